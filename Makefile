@@ -1,0 +1,37 @@
+# make run: create .venv if missing, install, run the main experiment on its default.
+PY      ?= python3.11
+VENV    := .venv
+BIN     := $(VENV)/bin
+STAMP   := $(VENV)/.installed
+export WANDB_MODE ?= offline
+export WANDB_SILENT ?= true
+export XLA_PYTHON_CLIENT_PREALLOCATE ?= false
+
+.PHONY: install run test bench lint sweep clean
+
+$(STAMP): pyproject.toml
+	@test -d $(VENV) || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e ".[dev]"
+	@touch $(STAMP)
+
+install: $(STAMP)
+
+run: $(STAMP)
+	$(BIN)/python -m hds.run +experiment=sim2real_friction
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/python -m bench.run
+
+lint: $(STAMP)
+	$(BIN)/ruff check hds tests bench
+	$(BIN)/ruff format --check hds tests bench
+
+sweep: $(STAMP)
+	$(BIN)/python -m hds.run -m +experiment=sim2real_friction real.friction_gap=0,0.5,1,2
+
+clean:
+	rm -rf $(VENV) outputs/runs outputs/multiruns

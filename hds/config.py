@@ -1,0 +1,217 @@
+"""Structured config schemas: one dataclass per `conf/` group, registered with Hydra.
+
+Hydra merges the YAML files onto these schemas, so an unknown key or a wrong type fails at
+composition. `validate(cfg)` then builds the dataclasses, whose checks reject out-of-range values
+with a message naming the key and what is allowed, before anything compiles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING, DictConfig, OmegaConf
+
+from hds.effects.library import check_params, effect_type
+from hds.envs.system import BACKENDS
+
+
+def _one_of(key: str, value: Any, allowed) -> None:
+    if value not in allowed:
+        raise ValueError(f"{key} = {value!r} is not allowed; choose one of {list(allowed)}")
+
+
+def _in_range(key: str, value: float, lower: float, upper: float = float("inf")) -> None:
+    if not lower <= value <= upper:
+        raise ValueError(f"{key} = {value} is out of range: it must lie in [{lower}, {upper}]")
+
+
+@dataclass
+class EffectConfig:
+    name: str = MISSING
+    target: str = MISSING
+    params: dict[str, float] = field(default_factory=dict)
+
+    def check(self):
+        effect_type(self.name)
+        check_params(self.name, dict(self.params), where=f"effect {self.name}@{self.target}")
+
+
+def _effects_field():
+    return field(default_factory=list)
+
+
+@dataclass
+class TaskConfig:
+    kind: str = "target"  # target: quadratic cost to q_target; reference: the reference project's
+    horizon: int = 100
+    q_mean: list[float] = MISSING
+    q_spread: list[float] = MISSING
+    qd_spread: list[float] = MISSING
+    q_target: list[float] = MISSING
+    q_weight: list[float] = MISSING
+    qd_weight: list[float] = MISSING
+    effort: float = 0.0
+
+    def check(self):
+        _one_of("env.task.kind", self.kind, ("target", "reference"))
+        _in_range("env.task.horizon", self.horizon, 1)
+        _in_range("env.task.effort", self.effort, 0.0)
+        for key in ("q_spread", "qd_spread", "q_weight", "qd_weight"):
+            if any(v < 0 for v in getattr(self, key)):
+                raise ValueError(f"env.task.{key} = {getattr(self, key)} must be non-negative")
+
+
+@dataclass
+class EnvConfig:
+    name: str = MISSING
+    xml: str = MISSING  # an asset of hds/envs/assets or a path to any MJCF
+    backend: str = "generalized"
+    timestep: float = 0.02  # MJCF physics timestep, s
+    frames_per_step: int = 2  # env dt = timestep * frames_per_step
+    sharpness: float = 50.0  # smoothing of Coulomb friction and dead zones in the simulator
+    task: TaskConfig = field(default_factory=TaskConfig)
+    effects: list[EffectConfig] = _effects_field()  # effects the simulator already models
+
+    def check(self):
+        _one_of("env.backend", self.backend, BACKENDS)
+        _in_range("env.timestep", self.timestep, 1e-6, 1.0)
+        _in_range("env.frames_per_step", self.frames_per_step, 1)
+        _in_range("env.sharpness", self.sharpness, 1e-6)
+
+
+@dataclass
+class RealConfig:
+    plant: str = "mujoco"  # mujoco: C MuJoCo, an independent engine; brax: the simulator itself
+    friction_gap: float = 1.0  # scales every friction effect below
+    effects: list[EffectConfig] = _effects_field()  # the effects the simulator does not know
+
+    def check(self):
+        _one_of("real.plant", self.plant, ("mujoco", "brax"))
+        _in_range("real.friction_gap", self.friction_gap, 0.0)
+
+
+@dataclass
+class AlgoConfig:
+    name: str = "pods"
+    order: str = "first"  # first: gradient step; second: Gauss-Newton step
+    epochs: int = 30
+    rollouts: int = 50  # initial states per epoch
+    inner_epochs: int = 20  # regression epochs onto the improved actions
+    minibatch: int = 256  # (state, action) pairs per regression step
+    learning_rate: float = 1e-3
+    step_size: float = 2e-2  # alpha of the action update
+    line_search: int = 8  # candidate step sizes alpha / 2^k, k < line_search, evaluated at once
+    grad_clip: float = 1e3  # global-norm clip of each action gradient
+    gn_damping: float = 1e-3  # Levenberg damping of the Gauss-Newton solve
+    early_stop: float = 0.0  # stop regressing once the loss improves less than this
+    hidden: list[int] = field(default_factory=lambda: [64, 64])
+    chunk: int = 5  # epochs per compiled chunk, between host-side logs and checkpoints
+
+    def check(self):
+        _one_of("algo.order", self.order, ("first", "second"))
+        for key in ("epochs", "rollouts", "inner_epochs", "minibatch", "line_search", "chunk"):
+            _in_range(f"algo.{key}", getattr(self, key), 1)
+        for key in ("learning_rate", "step_size", "grad_clip"):
+            _in_range(f"algo.{key}", getattr(self, key), 1e-12)
+        _in_range("algo.gn_damping", self.gn_damping, 0.0)
+        _in_range("algo.early_stop", self.early_stop, 0.0)
+
+
+@dataclass
+class NoiseConfig:
+    schedule: str = "none"  # exploration noise on the policy's actions while collecting
+    scale: float = 0.0  # initial standard deviation, control units
+    decay: float = 0.5  # exponential: sigma <- sigma * decay every epoch
+    final: float = 0.0  # linear, cosine: the value reached at the last epoch
+
+    def check(self):
+        _one_of("noise.schedule", self.schedule, ("none", "exponential", "linear", "cosine"))
+        _in_range("noise.scale", self.scale, 0.0)
+        _in_range("noise.decay", self.decay, 0.0, 1.0)
+        _in_range("noise.final", self.final, 0.0)
+
+
+@dataclass
+class AnnealConfig:
+    kind: str = "line_search"  # line_search: backtracking; simulated: annealed; fixed
+    temperature: float = 1.0  # simulated annealing: initial temperature (relative return)
+    cooling: float = 0.9  # simulated annealing: temperature <- temperature * cooling per epoch
+    step_decay: float = 1.0  # step size <- step size * step_decay per epoch
+
+    def check(self):
+        _one_of("anneal.kind", self.kind, ("line_search", "simulated", "fixed"))
+        _in_range("anneal.temperature", self.temperature, 0.0)
+        _in_range("anneal.cooling", self.cooling, 0.0, 1.0)
+        _in_range("anneal.step_decay", self.step_decay, 0.0, 1.0)
+
+
+@dataclass
+class DynamicsConfig:
+    model: str = "none"  # none | mlp | ensemble | residual
+    beta: float = 0.0  # fraction of rollouts taken through the learned model
+    path: str | None = None  # a saved model to reuse instead of training one
+
+    def check(self):
+        _one_of("dynamics.model", self.model, ("none", "mlp", "ensemble", "residual"))
+        _in_range("dynamics.beta", self.beta, 0.0, 1.0)
+
+
+@dataclass
+class LoggerConfig:
+    wandb: bool = True
+    mode: str = "offline"
+    project: str = "hds"
+    group: str | None = None  # W&B group: runs of one experiment or sweep share it
+
+    def check(self):
+        _one_of("logger.mode", self.mode, ("offline", "disabled"))
+
+
+@dataclass
+class Config:
+    env: EnvConfig = MISSING
+    real: RealConfig = MISSING
+    algo: AlgoConfig = MISSING
+    noise: NoiseConfig = MISSING
+    anneal: AnnealConfig = MISSING
+    dynamics: DynamicsConfig = MISSING
+    logger: LoggerConfig = MISSING
+    seed: int = 0
+    seeds: int = 1  # seeds trained together, vmapped in one program
+    name: str = "default"
+
+    def check(self):
+        _in_range("seeds", self.seeds, 1)
+
+
+def register() -> None:
+    ConfigStore.instance().store(name="config_schema", node=Config)
+
+
+def _check_all(node) -> None:
+    """Run `check` on every schema in the tree (they cannot be __post_init__: OmegaConf builds
+    default instances of the schemas, with missing values, while it composes)."""
+    if hasattr(node, "check"):
+        node.check()
+    children = node if isinstance(node, list) else getattr(node, "__dict__", {}).values()
+    for child in children:
+        if isinstance(child, list) or hasattr(child, "__dataclass_fields__"):
+            _check_all(child)
+
+
+def validate(cfg: DictConfig) -> Config:
+    """Build the typed config and run every range check; raise ValueError naming the key."""
+    try:
+        config = OmegaConf.to_object(cfg)
+    except Exception as err:  # e.g. a required value left as ???
+        raise ValueError(f"invalid config: {err}") from None
+    try:
+        _check_all(config)
+    except ValueError as err:
+        raise ValueError(f"invalid config: {err}") from None
+    return config
+
+
+register()

@@ -1,0 +1,197 @@
+"""The differentiable simulator: an MJCF on a Brax backend, with effects composed onto its step."""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from flax import struct
+
+from hds.effects import EffectParams, EffectSet, place
+from hds.utils.quiet import quiet_brax
+
+ASSETS = Path(__file__).parent / "assets"
+BACKENDS = ("generalized", "spring", "positional", "mjx")
+_FORCE_PREFIX = "hds_force_"  # the virtual motors through which effect forces enter
+
+
+def resolve_xml(xml: str) -> Path:
+    """An asset name (cartpole.xml) or a path to a user MJCF."""
+    path = Path(xml).expanduser()
+    if not path.is_file():
+        path = ASSETS / xml
+    if not path.is_file():
+        assets = sorted(p.name for p in ASSETS.glob("*.xml"))
+        raise FileNotFoundError(f"MJCF '{xml}' not found: give a file path or one of {assets}")
+    return path
+
+
+def load_spec(xml: str, timestep: float | None = None) -> mujoco.MjSpec:
+    spec = mujoco.MjSpec.from_file(str(resolve_xml(xml)))
+    if timestep is not None:
+        spec.option.timestep = timestep
+    return spec
+
+
+def one_dof_joints(model: mujoco.MjModel) -> dict[str, int]:
+    """{joint name: dof address} of the slide and hinge joints, where effects can act."""
+    kinds = (int(mujoco.mjtJoint.mjJNT_SLIDE), int(mujoco.mjtJoint.mjJNT_HINGE))
+    return {
+        model.joint(j).name: int(model.jnt_dofadr[j])
+        for j in range(model.njnt)
+        if int(model.jnt_type[j]) in kinds
+    }
+
+
+def state_names(model: mujoco.MjModel) -> list[str]:
+    """Observation names: q then qd of each joint, e.g. q_slider, q_hinge, qd_slider, qd_hinge."""
+    qpos, qvel = [], []
+    for j in range(model.njnt):
+        name = model.joint(j).name
+        nq = {0: 7, 1: 4}.get(int(model.jnt_type[j]), 1)
+        nv = {0: 6, 1: 3}.get(int(model.jnt_type[j]), 1)
+        qpos += [f"q_{name}"] if nq == 1 else [f"q_{name}_{k}" for k in range(nq)]
+        qvel += [f"qd_{name}"] if nv == 1 else [f"qd_{name}_{k}" for k in range(nv)]
+    return qpos + qvel
+
+
+def hinge_mask(model: mujoco.MjModel) -> np.ndarray:
+    """For each q entry: is it a hinge angle (whose error wraps around)?"""
+    mask = np.zeros(model.nq, dtype=bool)
+    for j in range(model.njnt):
+        if int(model.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_HINGE):
+            mask[model.jnt_qposadr[j]] = True
+    return mask
+
+
+def target_names(model: mujoco.MjModel) -> dict[str, dict[str, int]]:
+    """Where effects can act on this model, by target kind: {name: index}."""
+    return {
+        "joint": one_dof_joints(model),
+        "actuator": {model.actuator(a).name: a for a in range(model.nu)},
+        "body": {model.body(b).name: b - 1 for b in range(1, model.nbody)},  # brax link index
+        "observation": {n: i for i, n in enumerate(state_names(model))},
+    }
+
+
+@struct.dataclass
+class SimState:
+    pipeline: object  # the backend's state (q, qd, ...)
+    effects: dict  # delay buffers and lag filters
+
+    @property
+    def q(self):
+        return self.pipeline.q
+
+    @property
+    def qd(self):
+        return self.pipeline.qd
+
+
+@dataclass(frozen=True, eq=False)
+class Simulator:
+    """Pure step functions over a Brax system; hashable by identity so jit can close over it."""
+
+    sys: object
+    pipeline: object
+    frames: int
+    timestep: float
+    effects: EffectSet
+    sharpness: float | None  # smoothing of discontinuous effects; None = exact (plants)
+    force_dofs: np.ndarray
+    ctrl_range: np.ndarray  # [n_act, 2]
+    obs_names: tuple[str, ...]
+    action_names: tuple[str, ...]
+    targets: dict
+    angular: np.ndarray  # hinge mask over q
+    xml: str
+
+    @property
+    def dt(self) -> float:
+        return self.timestep * self.frames
+
+    @property
+    def n_act(self) -> int:
+        return len(self.action_names)
+
+    @property
+    def nq(self) -> int:
+        return len(self.angular)
+
+    @property
+    def n_obs(self) -> int:
+        return len(self.obs_names)
+
+    def init(self, q: jax.Array, qd: jax.Array) -> SimState:
+        return SimState(self.pipeline.init(self.sys, q, qd), self.effects.init_state())
+
+    def step(self, params: EffectParams, state: SimState, u: jax.Array) -> SimState:
+        sys = self.effects.modify_system(params, self.sys)
+        u, est = self.effects.command(params, state.effects, u, self.sharpness)
+        # Saturate before any actuator filter, as MuJoCo clamps ctrl before its dynamics.
+        u = jnp.clip(u, self.ctrl_range[:, 0], self.ctrl_range[:, 1])
+
+        def substep(carry, _):
+            ps, est = carry
+            applied, force, est = self.effects.substep(
+                params, est, u, ps.qd, self.timestep, self.sharpness
+            )
+            act = jnp.concatenate([applied, force[self.force_dofs]])
+            return (self.pipeline.step(sys, ps, act), est), None
+
+        (ps, est), _ = jax.lax.scan(substep, (state.pipeline, est), None, length=self.frames)
+        return SimState(ps, est)
+
+    def observe(self, params: EffectParams, state: SimState) -> jax.Array:
+        return self.effects.observe(params, jnp.concatenate([state.q, state.qd]))
+
+
+def make_simulator(
+    xml: str,
+    backend: str = "generalized",
+    timestep: float | None = None,
+    frames: int = 1,
+    effects=(),
+    sharpness: float | None = 50.0,
+    friction_gap: float = 1.0,
+) -> tuple[Simulator, EffectParams]:
+    """Build a simulator and the parameters of its effects from an MJCF."""
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown brax backend '{backend}'; choose one of {list(BACKENDS)}")
+    spec = load_spec(xml, timestep)
+    model = spec.compile()
+    targets = target_names(model)
+    effect_set, params = place(effects, targets, friction_gap)
+
+    for joint in targets["joint"]:  # effect forces enter as unlimited motors, on every backend
+        spec.add_actuator(name=_FORCE_PREFIX + joint, target=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT,
+                          ctrllimited=0, gear=[1, 0, 0, 0, 0, 0])
+    with quiet_brax():
+        from brax.io import mjcf
+
+        sys = mjcf.load_model(spec.compile())  # load_model edits its argument: a fresh model
+    if backend == "mjx":  # the default solver loop is a while_loop, which reverse mode rejects
+        sys = sys.tree_replace({"opt.iterations": 1})
+    ctrl_range = np.array(model.actuator_ctrlrange, dtype=np.float32)
+    ctrl_range[model.actuator_ctrllimited == 0] = [-np.inf, np.inf]
+    sim = Simulator(
+        sys=sys,
+        pipeline=importlib.import_module(f"brax.{backend}.pipeline"),
+        frames=int(frames),
+        timestep=float(model.opt.timestep),
+        effects=effect_set,
+        sharpness=sharpness,
+        force_dofs=np.array(list(targets["joint"].values()), dtype=np.int32),
+        ctrl_range=ctrl_range,
+        obs_names=tuple(state_names(model)),
+        action_names=tuple(model.actuator(a).name for a in range(model.nu)),
+        targets=targets,
+        angular=hinge_mask(model),
+        xml=str(resolve_xml(xml)),
+    )
+    return sim, params

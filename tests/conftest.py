@@ -1,0 +1,41 @@
+"""Shared fixtures. JAX compiles are the main cost on CPU: build each env and compile each
+function once per session (session-scoped fixtures), with the persistent compilation cache on."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("WANDB_MODE", "offline")
+os.environ.setdefault("WANDB_SILENT", "true")
+
+from hydra import compose, initialize_config_dir  # noqa: E402
+
+from hds.config import validate  # noqa: E402
+from hds.utils.runtime import enable_compilation_cache  # noqa: E402
+
+enable_compilation_cache()
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = ROOT / "conf"
+SHARED = ROOT.parent / "shared"
+
+
+def make_config(*overrides: str):
+    """Compose conf/config.yaml with overrides and validate it, as `python -m hds.run` does."""
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return validate(compose("config", overrides=list(overrides)))
+
+
+@pytest.fixture(scope="session")
+def cartpole_cfg():
+    return make_config().env
+
+
+@pytest.fixture(scope="session")
+def cartpole_env(cartpole_cfg):
+    from hds.envs import make_env
+
+    return make_env(cartpole_cfg)
