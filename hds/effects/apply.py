@@ -130,17 +130,27 @@ def _clip(u, half, sharpness):
     return (sp(sharpness * (u + half)) - sp(sharpness * (u - half))) / sharpness - half
 
 
+def as_spec(spec) -> EffectSpec:
+    """An EffectSpec from a dict or from anything with name, target and params (EffectConfig)."""
+    if isinstance(spec, EffectSpec):
+        return spec
+    if isinstance(spec, dict):
+        return EffectSpec(spec["name"], spec["target"], dict(spec.get("params", {})))
+    return EffectSpec(spec.name, spec.target, dict(spec.params))
+
+
 def place(
     specs, names: dict[str, dict[str, int]], friction_gap: float = 1.0
 ) -> tuple[EffectSet, EffectParams]:
     """Resolve effect specs against a model's names; check every name, target and value.
 
     `names` maps each target kind (joint, actuator, body, observation) to {name: index} of the
-    model's targets of that kind (a joint's index is its dof address). `friction_gap` scales the friction effects' magnitudes.
+    model's targets of that kind (a joint's index is its dof address). `friction_gap` scales
+    the friction effects' magnitudes.
     """
     sites, params, seen = [], [], set()
     for spec in specs:
-        spec = spec if isinstance(spec, EffectSpec) else EffectSpec(**spec)
+        spec = as_spec(spec)
         etype = effect_type(spec.name)
         allowed = list(names[etype.target_kind])
         if spec.target not in allowed:

@@ -62,14 +62,14 @@ def make_task(cfg, angular: np.ndarray, nq: int, nv: int) -> Task:
              "qd_weight": nv}
     vectors = {}
     for name, size in sizes.items():
-        value = np.asarray(cfg[name], dtype=np.float32)
+        value = np.asarray(getattr(cfg, name), dtype=np.float32)
         if value.shape != (size,):
             raise ValueError(
                 f"env.task.{name} has {value.size} entries, and this model needs {size} "
                 f"(one per {'q' if name.startswith('q_') else 'qd'} entry)"
             )
         vectors[name] = value
-    if cfg["kind"] == "reference" and (nq, nv) != (2, 2):
+    if cfg.kind == "reference" and (nq, nv) != (2, 2):
         raise ValueError("env.task.kind=reference is the cart-pole's task: it needs nq = nv = 2")
-    return Task(kind=cfg["kind"], horizon=int(cfg["horizon"]), effort=float(cfg["effort"]),
+    return Task(kind=cfg.kind, horizon=int(cfg.horizon), effort=float(cfg.effort),
                 angular=angular, **vectors)

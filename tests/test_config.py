@@ -1,0 +1,89 @@
+"""Config composition: every group option and experiment composes; bad values fail before compiling."""
+
+from __future__ import annotations
+
+import pytest
+from hydra.errors import ConfigCompositionException
+from omegaconf.errors import ConfigKeyError
+
+from tests.conftest import CONF, make_config
+
+
+def options(group: str) -> list[str]:
+    return sorted(p.stem for p in (CONF / group).glob("*.yaml"))
+
+
+@pytest.mark.parametrize(
+    "group", ["env", "real", "algo", "noise", "anneal", "dynamics", "logger"]
+)
+def test_every_option_composes(group):
+    for option in options(group):
+        overrides = [f"{group}={option}"]
+        if (group, option) == ("env", "custom"):
+            overrides += [
+                "env.xml=pendulum.xml", "env.task.q_mean=[0]", "env.task.q_spread=[0.1]",
+                "env.task.qd_spread=[0]", "env.task.q_target=[0]", "env.task.q_weight=[1]",
+                "env.task.qd_weight=[0]",
+            ]
+        cfg = make_config(*overrides)
+        assert getattr(cfg, group) is not None
+
+
+@pytest.mark.parametrize("experiment", options("experiment"))
+def test_every_experiment_composes(experiment):
+    cfg = make_config(f"+experiment={experiment}")
+    assert cfg.name
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("real.friction_gap=-1", "real.friction_gap = -1.0 is out of range"),
+        ("noise.decay=1.5", "noise.decay = 1.5 is out of range"),
+        ("dynamics.beta=2", "dynamics.beta = 2.0 is out of range"),
+        ("env.backend=bullet", "choose one of ['generalized', 'spring', 'positional', 'mjx']"),
+        ("algo.order=third", "algo.order = 'third' is not allowed"),
+        ("real.effects=[{name: ice, target: slider}]", "unknown effect 'ice'; the library has"),
+        (
+            "real.effects=[{name: coulomb_friction, target: slider, params: {force: -2}}]",
+            "coulomb_friction.force = -2.0 is out of range",
+        ),
+        (
+            "real.effects=[{name: coulomb_friction, target: slider, params: {mass: 2}}]",
+            "has no parameter ['mass']; its parameters are ['force']",
+        ),
+        (
+            "real.effects=[{name: action_delay, target: slide, params: {steps: 1.5}}]",
+            "action_delay.steps must be an integer",
+        ),
+    ],
+)
+def test_bad_values_fail_at_composition(override, message):
+    with pytest.raises(ValueError, match=None) as err:
+        make_config(override)
+    assert message in str(err.value)
+
+
+@pytest.mark.parametrize("override", ["env.frictoin=1", "algo.epochz=3"])
+def test_unknown_keys_fail(override):
+    with pytest.raises((ConfigCompositionException, ConfigKeyError)) as err:
+        make_config(override)
+    assert override.split("=")[0].split(".")[-1] in str(err.value)
+
+
+def test_wrong_type_fails():
+    with pytest.raises(ConfigCompositionException) as err:
+        make_config("algo.epochs=many")
+    assert "epochs" in str(err.value)
+
+
+def test_unknown_option_lists_the_available_ones():
+    with pytest.raises(ConfigCompositionException) as err:
+        make_config("noise=loud")
+    assert "exponential" in str(err.value)
+
+
+def test_missing_custom_mjcf_is_named():
+    with pytest.raises(ValueError) as err:
+        make_config("env=custom")
+    assert "xml" in str(err.value)
