@@ -32,13 +32,15 @@ class Episodes:
 
 def rollout(plant, task, q0, qd0, controller: Callable | np.ndarray, horizon: int) -> Episodes:
     """Run B episodes on a plant. `controller` is a function obs [B, n_obs] -> u [B, n_act]
-    (a policy) or an array of open-loop controls [B, T, n_act]. Rewards come from the true state."""
+    (a policy) or an array of open-loop controls [B, T, n_act]. The recorded actions are the
+    controls applied, i.e. saturated to the actuators' range. Rewards come from the true state."""
     reward = _batched_reward(task)
     obs = [plant.reset(np.asarray(q0), np.asarray(qd0))]
     actions, rewards = [], []
+    low, high = plant.ctrl_range[:, 0], plant.ctrl_range[:, 1]
     for t in range(horizon):
-        u = controller[:, t] if isinstance(controller, np.ndarray) else controller(obs[-1])
-        u = np.asarray(u, dtype=np.float64)
+        u = controller(obs[-1]) if callable(controller) else np.asarray(controller)[:, t]
+        u = np.clip(np.asarray(u, dtype=np.float64), low, high)
         obs.append(plant.step(u))
         q, qd = plant.state()
         actions.append(u)
