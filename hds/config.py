@@ -181,9 +181,14 @@ class Config:
     seed: int = 0
     seeds: int = 1  # seeds trained together, vmapped in one program
     name: str = "default"
+    oracle: bool = True  # with real=brax, also train on the real dynamics: the best achievable
+    eval_episodes: int = 32  # initial states shared by the simulator and plant evaluations
+    checkpoints_kept: int = 3
 
     def check(self):
         _in_range("seeds", self.seeds, 1)
+        _in_range("eval_episodes", self.eval_episodes, 1)
+        _in_range("checkpoints_kept", self.checkpoints_kept, 1)
 
 
 def register() -> None:

@@ -16,8 +16,8 @@ T = 25
 
 def rollout_return(env, params, state, actions):
     def step(s, u):
-        s, obs, r = env.step(s, u, params)
-        return s, (obs, r)
+        s = env.step(s, u, params)
+        return s, (env.observe(s, params), env.task.reward(*env.qqd(s), u))
 
     _, (obs, rewards) = jax.lax.scan(step, state, actions)
     return rewards.sum(), obs
@@ -115,5 +115,6 @@ def test_missing_mjcf_is_a_clear_error():
 def test_other_backends_step(backend):
     env = make_env(make_config(f"env.backend={backend}").env)
     state = env.reset(jax.random.PRNGKey(0))
-    state, obs, reward = jax.jit(env.step)(state, jnp.array([0.5]))
+    state = jax.jit(env.step)(state, jnp.array([0.5]), env.params)
+    obs, reward = env.observe(state, env.params), env.task.reward(*env.qqd(state), jnp.ones(1))
     assert obs.shape == (4,) and np.all(np.isfinite(obs)) and np.isfinite(reward)

@@ -13,7 +13,10 @@ from hds.envs.tasks import Task, make_task
 
 @dataclass(frozen=True, eq=False)
 class Env:
-    """A simulator, the parameters of the effects it models, and a task."""
+    """A simulator, the parameters of the effects it models, and a task.
+
+    It is an engine for the trainer: reset, step, observe and qqd are pure functions, and the
+    effect parameters are an argument so they can be differentiated or vmapped."""
 
     sim: Simulator
     params: EffectParams
@@ -22,11 +25,16 @@ class Env:
     def reset(self, key: jax.Array) -> SimState:
         return self.sim.init(*self.task.initial(key))
 
-    def step(self, state: SimState, u: jax.Array, params: EffectParams | None = None):
-        """One environment step: (next state, its observation, reward)."""
-        params = self.params if params is None else params
-        state = self.sim.step(params, state, u)
-        return state, self.sim.observe(params, state), self.task.reward(state.q, state.qd, u)
+    def step(self, state: SimState, u: jax.Array, params: EffectParams) -> SimState:
+        return self.sim.step(params, state, u)
+
+    def observe(self, state: SimState, params: EffectParams) -> jax.Array:
+        return self.sim.observe(params, state)
+
+    @staticmethod
+    def qqd(state: SimState):
+        """The true state, which rewards are computed from."""
+        return state.q, state.qd
 
 
 def make_env(cfg, effects=None, sharpness="config", friction_gap: float = 1.0) -> Env:

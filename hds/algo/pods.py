@@ -1,0 +1,143 @@
+"""PODS and HDS: one trainer, two configurations.
+
+`make_train(cfg, env)` returns a `Trainer` of pure functions, in the style of PureJaxRL:
+  init(key, hparams) -> TrainState
+  run_chunk(state, hparams) -> (state, metrics)   `chunk` epochs as one lax.scan
+  train(key, hparams) -> (state, metrics)         the whole run as one program
+`hparams` holds the numeric hyperparameters (step size, noise scale, effect parameters of the
+simulator), so `jax.jit(jax.vmap(train))` trains many seeds or settings in one compiled program.
+
+One epoch:
+  1. roll the policy out (plus exploration noise) from a batch of initial states; a static
+     share `dynamics.beta` of the batch runs through a learned dynamics model instead of the
+     simulator (two batches of fixed size: no per-sample branch, which would run both);
+  2. improve every action sequence with the gradient of its return (hds/algo/improve.py);
+  3. regress the policy onto the improved actions (hds/algo/regress.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from hds import anneal, noise
+from hds.algo.improve import improve
+from hds.algo.regress import regress
+from hds.algo.rollout import policy_rollout
+from hds.networks import make_policy
+
+
+class ImproveSettings(NamedTuple):
+    order: str
+    grad_clip: float
+    gn_damping: float
+    candidates: int
+    anneal: str
+
+
+@struct.dataclass
+class TrainState:
+    policy: dict
+    opt_state: optax.OptState
+    epoch: jax.Array
+    key: jax.Array
+
+
+@dataclass(frozen=True)
+class Trainer:
+    init: Callable
+    run_chunk: Callable
+    train: Callable
+    chunk: int  # epochs per chunk
+    chunks: int
+    policy: object  # the flax module; apply with TrainState.policy
+    default_hparams: dict
+
+
+def chunk_length(epochs: int, most: int) -> int:
+    """The largest divisor of `epochs` not above `most`: every chunk then has one shape."""
+    return max(d for d in range(1, min(epochs, most) + 1) if epochs % d == 0)
+
+
+def make_train(cfg, env, model=None) -> Trainer:
+    """`cfg` is a validated `hds.config.Config`; `model` an optional learned dynamics engine
+    (reset/step/observe/qqd) through which a share `cfg.dynamics.beta` of rollouts runs."""
+    algo, task, sim = cfg.algo, env.task, env.sim
+    low, high = jnp.asarray(sim.ctrl_range[:, 0]), jnp.asarray(sim.ctrl_range[:, 1])
+    policy = make_policy(algo.hidden, sim)
+    optimizer = optax.adam(algo.learning_rate)
+    sigma = lambda hp, epoch: noise.schedule(cfg.noise, algo.epochs, hp["noise_scale"])(epoch)  # noqa: E731
+    settings = ImproveSettings(algo.order, algo.grad_clip, algo.gn_damping,
+                               anneal.candidates(cfg.anneal.kind, algo.line_search),
+                               cfg.anneal.kind)
+    n_model = int(round(cfg.dynamics.beta * algo.rollouts)) if model is not None else 0
+    parts = [(env, algo.rollouts - n_model, "effects")]
+    if n_model:
+        parts.append((model, n_model, None))
+
+    def init(key, hparams) -> TrainState:
+        key, init_key = jax.random.split(key)
+        params = policy.init(init_key, jnp.zeros(sim.n_obs))
+        return TrainState(params, optimizer.init(params), jnp.array(0, jnp.int32), key)
+
+    def collect_and_improve(engine, params_key, count, state, hparams, key):
+        params = hparams[params_key] if params_key else None
+        k_reset, k_roll, k_improve = jax.random.split(key, 3)
+        starts = jax.vmap(engine.reset)(jax.random.split(k_reset, count))
+        act = lambda o: policy.apply(state.policy, o)  # noqa: E731
+        obs, actions, rewards = jax.vmap(
+            lambda s, k: policy_rollout(engine, params, task, act, s, k,
+                                        sigma(hparams, state.epoch), task.horizon, low, high)
+        )(starts, jax.random.split(k_roll, count))
+        alpha = anneal.step_size(hparams["step_size"], cfg.anneal.step_decay, state.epoch)
+        temp = anneal.temperature(cfg.anneal.temperature, cfg.anneal.cooling, state.epoch)
+        result = jax.vmap(
+            lambda s, a, k: improve(engine, params, task, s, a, k, alpha=alpha, temperature=temp,
+                                    cfg=settings, low=low, high=high)
+        )(starts, actions, jax.random.split(k_improve, count))
+        return obs, result, rewards.sum(-1), alpha
+
+    def epoch(state: TrainState, hparams):
+        key, *part_keys = jax.random.split(state.key, len(parts) + 2)
+        regress_key = part_keys.pop()
+        outs = [collect_and_improve(e, pk, n, state, hparams, k)
+                for (e, n, pk), k in zip(parts, part_keys)]
+        obs = jnp.concatenate([o[0].reshape(-1, sim.n_obs) for o in outs])
+        targets = jnp.concatenate([o[1].actions.reshape(-1, sim.n_act) for o in outs])
+        params, opt_state, loss = regress(
+            policy.apply, optimizer, state.policy, state.opt_state, obs, targets,
+            jnp.ones(obs.shape[0]), regress_key, inner_epochs=algo.inner_epochs,
+            minibatch=algo.minibatch, tol=algo.early_stop,
+        )
+        sim_obs, sim_result, sim_returns, alpha = outs[0]
+        metrics = {
+            "return": jnp.nanmean(sim_returns),  # the (noisy) policy's return on the simulator
+            "improved_return": jnp.nanmean(sim_result.new_value),
+            "loss": loss,
+            "step_size": alpha,
+            "noise": sigma(hparams, state.epoch),
+            "accepted": jnp.mean(jnp.concatenate([o[1].accepted for o in outs])),
+            "skipped": jnp.sum(jnp.concatenate([o[1].skipped for o in outs])),
+        }
+        return TrainState(params, opt_state, state.epoch + 1, key), metrics
+
+    chunk = chunk_length(algo.epochs, algo.chunk)
+
+    def run_chunk(state, hparams):
+        return jax.lax.scan(lambda s, _: epoch(s, hparams), state, None, length=chunk)
+
+    def train(key, hparams):
+        state = init(key, hparams)
+        return jax.lax.scan(lambda s, _: epoch(s, hparams), state, None, length=algo.epochs)
+
+    hparams = {
+        "step_size": jnp.asarray(algo.step_size, jnp.float32),
+        "noise_scale": jnp.asarray(cfg.noise.scale, jnp.float32),
+        "effects": env.params,
+    }
+    return Trainer(init, run_chunk, train, chunk, algo.epochs // chunk, policy, hparams)

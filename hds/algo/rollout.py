@@ -1,0 +1,37 @@
+"""Rollouts on an engine: anything with pure reset(key), step(state, u, params),
+observe(state, params) and qqd(state) (the simulator, or a learned dynamics model)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def policy_rollout(engine, params, task, act, state, key, noise_std, horizon, low, high):
+    """Closed loop: u_t = clip(act(o_t) + noise). Returns (obs [T, n_obs], u [T, n_act], r [T])."""
+
+    def step(state, key):
+        obs = engine.observe(state, params)
+        u = act(obs)
+        u = jnp.clip(u + noise_std * jax.random.normal(key, u.shape), low, high)
+        state = engine.step(state, u, params)
+        return state, (obs, u, task.reward(*engine.qqd(state), u))
+
+    _, (obs, u, r) = jax.lax.scan(step, state, jax.random.split(key, horizon))
+    return obs, u, r
+
+
+def trajectory(engine, params, task, state, actions):
+    """Open loop: the true states reached [T, nq + nv] and the rewards [T]."""
+
+    def step(state, u):
+        state = engine.step(state, u, params)
+        q, qd = engine.qqd(state)
+        return state, (jnp.concatenate([q, qd]), task.reward(q, qd, u))
+
+    return jax.lax.scan(step, state, actions)[1]
+
+
+def open_loop_return(engine, params, task, state, actions):
+    """The return of an action sequence: the reward of every state reached, the last included."""
+    return trajectory(engine, params, task, state, actions)[1].sum()

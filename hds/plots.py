@@ -1,0 +1,56 @@
+"""Figures a person would rather look at than read. Headless (Agg); each returns a Figure."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def learning_curves(histories: dict[str, dict]) -> plt.Figure:
+    """histories: {method: {metric: [n_seeds, n_epochs]}}; mean and range over seeds."""
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    for method, h in histories.items():
+        for ax, key in zip(axes, ("return", "loss", "step_size")):
+            values = np.asarray(h[key], dtype=float)
+            epochs = np.arange(values.shape[1])
+            line, = ax.plot(epochs, values.mean(0), label=method)
+            if values.shape[0] > 1:
+                ax.fill_between(epochs, values.min(0), values.max(0), alpha=0.2, color=line.get_color())
+            ax.set_xlabel("epoch")
+            ax.set_title({"return": "return on the simulator", "loss": "regression loss",
+                          "step_size": "action step size"}[key])
+    axes[1].set_yscale("log")
+    axes[0].legend()
+    fig.tight_layout()
+    return fig
+
+
+def sim_vs_real(rows: list[dict]) -> plt.Figure:
+    """Mean return on the simulator and on the real plant per method, seeds as dots."""
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    fig, ax = plt.subplots(figsize=(1.8 + 1.6 * len(methods), 3.6))
+    x = np.arange(len(methods))
+    for offset, key, label in ((-0.18, "sim_return", "simulator"), (0.18, "real_return", "real plant")):
+        vals = [[r[key] for r in rows if r["method"] == m] for m in methods]
+        ax.bar(x + offset, [np.mean(v) for v in vals], width=0.34, label=label, alpha=0.8)
+        for i, v in enumerate(vals):
+            ax.scatter(np.full(len(v), x[i] + offset), v, color="k", s=8, zorder=3)
+    ax.set_xticks(x, methods)
+    ax.set_ylabel("return")
+    ax.set_title("sim2real gap")
+    ax.legend()
+    fig.tight_layout()
+    return fig
+
+
+def save(fig: plt.Figure, path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp.png")
+    fig.savefig(tmp, dpi=110)
+    tmp.replace(path)
+    return path

@@ -1,0 +1,155 @@
+"""`python -m hds.run`: train a policy with PODS or HDS, measure its sim2real gap, record it all.
+
+config -> env, plant, (learned model) -> trainer compiled once, vmapped over seeds -> chunks of
+epochs, with a progress bar, a checkpoint and a W&B log between chunks -> evaluation on the
+simulator and on the plant -> summary.json, plots/, final table.
+
+A run started again on the same directory (`hydra.run.dir=...`) resumes from its checkpoints
+and ends with exactly the numbers an uninterrupted run gives.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from pathlib import Path
+
+os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")  # XLA's C++ notices, before jax loads
+os.environ.setdefault("WANDB_MODE", "offline")
+os.environ.setdefault("WANDB_SILENT", "true")
+
+import hydra  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from hydra.core.hydra_config import HydraConfig  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+
+from hds import plots  # noqa: E402
+from hds.algo.pods import make_train  # noqa: E402
+from hds.checkpoint import Checkpoints  # noqa: E402
+from hds.config import Config, validate  # noqa: E402
+from hds.envs import make_env  # noqa: E402
+from hds.evaluate import Evaluator, gap_rows  # noqa: E402
+from hds.logger import RunLogger, print_table  # noqa: E402
+from hds.real import make_plant  # noqa: E402
+from hds.utils.io import atomic_write_json  # noqa: E402
+from hds.utils.runtime import enable_compilation_cache  # noqa: E402
+
+log = logging.getLogger("hds")
+
+
+def seeds_of(cfg: Config) -> list[int]:
+    return [cfg.seed + i for i in range(cfg.seeds)]
+
+
+def train(cfg: Config, env, out_dir: Path, method: str, model=None, effects=None):
+    """Train `cfg.seeds` seeds together; returns (policy params [n_seeds, ...], history, timing).
+    Resumes from out_dir/checkpoints/<method> when it holds a checkpoint."""
+    trainer = make_train(cfg, env, model)
+    hparams = dict(trainer.default_hparams)
+    if effects is not None:
+        hparams["effects"] = effects
+    keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds_of(cfg)))
+    init = jax.jit(jax.vmap(trainer.init, in_axes=(0, None)))
+    run_chunk = jax.jit(jax.vmap(trainer.run_chunk, in_axes=(0, None)))
+
+    start = time.perf_counter()
+    state = init(keys, hparams)
+    compiled = run_chunk.lower(state, hparams).compile()
+    timing = {"compile_s": time.perf_counter() - start}
+
+    ckpt = Checkpoints(out_dir / "checkpoints" / method, keep=cfg.checkpoints_kept)
+    history: dict[str, list] = {}
+    if ckpt.latest() is not None:
+        state, meta = ckpt.restore(state)
+        history = {k: [list(map(float, row)) for row in v] for k, v in meta["history"].items()}
+        log.info("resuming %s from epoch %d", method, int(state.epoch[0]))
+    first = int(state.epoch[0])
+    logger = RunLogger(cfg, out_dir, method, cfg.algo.epochs, first) if first < cfg.algo.epochs else None
+    start = time.perf_counter()
+    while int(state.epoch[0]) < cfg.algo.epochs:
+        t0 = time.perf_counter()
+        epoch0 = int(state.epoch[0])
+        state, metrics = compiled(state, hparams)
+        metrics = {k: np.asarray(v, dtype=float) for k, v in metrics.items()}
+        for k, v in metrics.items():
+            rows = history.setdefault(k, [[] for _ in range(v.shape[0])])
+            for s in range(v.shape[0]):
+                rows[s].extend(map(float, v[s]))
+        ckpt.save(int(state.epoch[0]), state, {"history": history, "method": method})
+        logger.log_epochs(epoch0, metrics, (time.perf_counter() - t0) / trainer.chunk)
+        _check_finite(state, method)
+    timing["train_s"] = time.perf_counter() - start
+    ckpt.close()
+    return state.policy, history, timing, logger, trainer
+
+
+def _check_finite(state, method: str) -> None:
+    if not all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(state.policy)):
+        raise FloatingPointError(
+            f"{method}: the policy parameters are no longer finite; lower algo.learning_rate or "
+            "algo.step_size, or check the simulator for NaN states (env.backend, env.timestep)"
+        )
+
+
+def dynamics_model(cfg: Config, env, plant, out_dir: Path):
+    """The learned dynamics engine for HDS, or None when dynamics.model is none."""
+    if cfg.dynamics.model == "none" or cfg.dynamics.beta == 0.0:
+        return None, {}
+    from hds.dynamics import build
+
+    return build(cfg.dynamics, env, plant, jax.random.PRNGKey(cfg.seed), out_dir / "dynamics")
+
+
+def run(cfg: Config, out_dir: Path) -> dict:
+    """The whole run; returns the summary also written to out_dir/summary.json."""
+    out_dir = Path(out_dir)
+    env = make_env(cfg.env)
+    plant = make_plant(cfg.real, cfg.env)
+    model, model_report = dynamics_model(cfg, env, plant, out_dir)
+    methods = [(cfg.algo.name, env, model, None)]
+    if cfg.oracle and cfg.real.plant == "brax":
+        # The same algorithm trained on the real dynamics (friction smoothed to differentiate).
+        oracle = make_env(cfg.env, effects=list(cfg.real.effects), friction_gap=cfg.real.friction_gap)
+        methods.append(("oracle", oracle, None, None))
+
+    rows, histories, timings = [], {}, {}
+    for method, train_env, method_model, effects in methods:
+        params, history, timing, logger, trainer = train(cfg, train_env, out_dir, method,
+                                                         method_model, effects)
+        evaluator = Evaluator(env, trainer.policy, plant, cfg.eval_episodes, cfg.seed + 10_000)
+        method_rows = gap_rows(method, seeds_of(cfg), evaluator.sim_returns(params),
+                               evaluator.real_returns(params))
+        rows += method_rows
+        histories[method], timings[method] = history, timing
+        if logger:
+            logger.finish(method_rows, {"learning_curves": plots.learning_curves({method: history})})
+
+    print_table(rows, title=f"{cfg.name}: return on the simulator and on the {cfg.real.plant} plant")
+    figures = {"learning_curves": plots.learning_curves(histories), "sim_vs_real": plots.sim_vs_real(rows)}
+    for name, fig in figures.items():
+        plots.save(fig, out_dir / "plots" / f"{name}.png")
+    summary = {
+        "name": cfg.name, "rows": rows, "timing": timings, "dynamics": model_report,
+        "real": {"plant": cfg.real.plant, "friction_gap": cfg.real.friction_gap},
+        "history": histories,
+    }
+    atomic_write_json(out_dir / "summary.json", summary)
+    return summary
+
+
+@hydra.main(config_path="../conf", config_name="config", version_base="1.3")
+def main(dcfg) -> float:
+    cfg = validate(dcfg)  # every range check, before anything compiles
+    enable_compilation_cache()
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    OmegaConf.save(dcfg, out_dir / "config.yaml", resolve=True)
+    summary = run(cfg, out_dir)
+    log.info("wrote %s", out_dir / "summary.json")
+    return float(np.mean([r["real_return"] for r in summary["rows"]]))
+
+
+if __name__ == "__main__":
+    main()
