@@ -21,6 +21,14 @@ from hds.algo.rollout import open_loop_return, trajectory
 from hds.anneal import accept
 
 
+class ImproveSettings(NamedTuple):
+    order: str  # first | second
+    grad_clip: float
+    gn_damping: float
+    candidates: int  # step sizes alpha / 2^k tried together
+    anneal: str  # the acceptance rule: line_search | simulated | fixed
+
+
 class Improved(NamedTuple):
     actions: jax.Array  # [T, n_act]
     value: jax.Array  # return before

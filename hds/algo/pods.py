@@ -18,7 +18,7 @@ One epoch:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -26,18 +26,10 @@ import optax
 from flax import struct
 
 from hds import anneal, noise
-from hds.algo.improve import improve
+from hds.algo.improve import ImproveSettings, improve
 from hds.algo.regress import regress
 from hds.algo.rollout import policy_rollout
 from hds.networks import make_policy
-
-
-class ImproveSettings(NamedTuple):
-    order: str
-    grad_clip: float
-    gn_damping: float
-    candidates: int
-    anneal: str
 
 
 @struct.dataclass
