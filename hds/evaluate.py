@@ -26,7 +26,7 @@ class Evaluator:
         def sim_returns(params, effects):
             act = lambda o: policy.apply(params, o)  # noqa: E731
             def one(q, qd):
-                _, _, r = policy_rollout(env, effects, task, act, env.sim.init(q, qd),
+                _, _, r = policy_rollout(env, effects, task, act, env.sim.init(q, qd, effects),
                                          jax.random.PRNGKey(0), 0.0, task.horizon, low, high)
                 return r.sum()
             return jax.vmap(one)(jnp.asarray(self.q0), jnp.asarray(self.qd0))

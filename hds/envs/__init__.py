@@ -23,7 +23,7 @@ class Env:
     task: Task
 
     def reset(self, key: jax.Array) -> SimState:
-        return self.sim.init(*self.task.initial(key))
+        return self.sim.init(*self.task.initial(key), self.params)
 
     def step(self, state: SimState, u: jax.Array, params: EffectParams) -> SimState:
         return self.sim.step(params, state, u)

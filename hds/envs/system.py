@@ -127,8 +127,11 @@ class Simulator:
     def n_obs(self) -> int:
         return len(self.obs_names)
 
-    def init(self, q: jax.Array, qd: jax.Array) -> SimState:
-        return SimState(self.pipeline.init(self.sys, q, qd), self.effects.init_state())
+    def init(self, q: jax.Array, qd: jax.Array, params: EffectParams = ()) -> SimState:
+        """The state at (q, qd); `params` must be given when effects edit the system (mass_scale),
+        since the backend's state caches quantities such as the mass matrix."""
+        sys = self.effects.modify_system(params, self.sys) if params else self.sys
+        return SimState(self.pipeline.init(sys, q, qd), self.effects.init_state())
 
     def step(self, params: EffectParams, state: SimState, u: jax.Array) -> SimState:
         sys = self.effects.modify_system(params, self.sys)

@@ -15,13 +15,14 @@ class BraxPlant:
         sim = env.sim
         self.obs_names, self.action_names, self.dt = sim.obs_names, sim.action_names, sim.dt
         self.ctrl_range = sim.ctrl_range
-        self._init = jax.jit(jax.vmap(sim.init))
+        self._init = jax.jit(jax.vmap(sim.init, in_axes=(0, 0, None)))
         self._step = jax.jit(jax.vmap(sim.step, in_axes=(None, 0, 0)))
         self._observe = jax.jit(jax.vmap(sim.observe, in_axes=(None, 0)))
         self._state = None
 
     def reset(self, q, qd):
-        self._state = self._init(jnp.asarray(q, jnp.float32), jnp.asarray(qd, jnp.float32))
+        self._state = self._init(jnp.asarray(q, jnp.float32), jnp.asarray(qd, jnp.float32),
+                                 self.env.params)
         return np.asarray(self._observe(self.env.params, self._state))
 
     def step(self, u):
