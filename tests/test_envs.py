@@ -118,3 +118,22 @@ def test_other_backends_step(backend):
     state = jax.jit(env.step)(state, jnp.array([0.5]), env.params)
     obs, reward = env.observe(state, env.params), env.task.reward(*env.qqd(state), jnp.ones(1))
     assert obs.shape == (4,) and np.all(np.isfinite(obs)) and np.isfinite(reward)
+
+
+def test_every_effect_at_its_nominal_value_is_a_no_op(cartpole_env, batch):
+    """Gap discovery fits candidates as a superset of effects at their nominal values: each must
+    then leave the dynamics exactly as they are."""
+    from hds.effects import LIBRARY
+
+    sample = {"joint": "slider", "actuator": "slide", "body": "pole", "observation": "q_hinge"}
+    effects = [{"name": n, "target": sample[e.target_kind], "params": {}} for n, e in LIBRARY.items()]
+    cfg = make_config().env
+    loaded = make_env(cfg, effects=effects)
+    _, actions = batch
+    keys = jax.random.split(jax.random.PRNGKey(0), actions.shape[0])
+
+    def run(env):
+        return jax.jit(jax.vmap(lambda k, a: rollout_return(env, env.params, env.reset(k), a)))(
+            keys, actions)[1]
+
+    np.testing.assert_array_equal(run(loaded), run(cartpole_env))

@@ -67,8 +67,8 @@ class Plants:
         if kind == "mujoco":
             return MujocoPlant(self.env_cfg, effects, friction_gap)
         given = {(e["name"], e["target"]): e for e in effects}
-        # action_delay (its length is static) and actuator_lag (not a no-op at time_constant
-        # 0: the force uses the filter's output before its update) get a plant of their own.
+        # action_delay (its length is static) and actuator_lag (its filter state) get a plant
+        # of their own.
         extra = [e for k, e in given.items() if k not in SWAPPABLE]
         full = [given.get(k, effect(*k, **p)) for k, p in SWAPPABLE.items()] + extra
         key = tuple((e["name"], e["target"], e["params"].get("steps")) for e in extra)
@@ -270,15 +270,15 @@ def test_action_delay_shifts_the_response_by_whole_steps(plants, kind):
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_actuator_lag_rises_with_its_time_constant(plants, momentum, env_cfg, kind):
-    """A step of 50 N through a first-order lag of 0.1 s: the applied force is
-    50 (1 - exp(-t/tau)) one physics substep late; its impulse follows that exactly."""
+    """A step of 50 N through a first-order lag of 0.1 s: at physics substep k the applied
+    force is 50 (1 - a^(k+1)), a = exp(-h/tau); its impulse follows that exactly."""
     q0, qd0 = at_rest()
     u = constant(0.5, -0.5, 0.25, 1.0)
     tau, h = 0.1, env_cfg.timestep
     run = simulate(plants, kind, [effect("actuator_lag", "slide", time_constant=tau)], q0, qd0, u)
     a = np.exp(-h / tau)
     n = env_cfg.frames_per_step * np.arange(T + 1)  # physics substeps
-    applied = h * (n - (1 - a**n) / (1 - a))  # h * sum_{k<n} (1 - a^k)
+    applied = h * (n - a * (1 - a**n) / (1 - a))  # h * sum_{k<n} (1 - a^(k+1))
     expected = momentum.gear * u[:, :1, 0] * applied
     impulse = momentum.impulse(run)
     np.testing.assert_allclose(impulse, expected, rtol=0.0, atol=0.02 * 50 * times(run)[-1])

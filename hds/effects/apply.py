@@ -105,8 +105,11 @@ class EffectSet:
         for i, s in self.of("actuator_lag"):
             y = state[f"lag{i}"]
             tau = jnp.maximum(params[i]["time_constant"], 1e-6)
-            state[f"lag{i}"] = y + (1.0 - jnp.exp(-h / tau)) * (u[s.index] - y)
-            u = u.at[s.index].set(y)  # the force uses the filter's current output, as MuJoCo
+            y = y + (1.0 - jnp.exp(-h / tau)) * (u[s.index] - y)
+            # The force uses the updated output (MuJoCo's actearly), so a time constant of 0
+            # passes the control through unchanged: the effect's nominal value is a no-op.
+            state[f"lag{i}"] = y
+            u = u.at[s.index].set(y)
         force = jnp.zeros_like(qd)
         for i, s in self.of("coulomb_friction"):
             v = qd[s.index]

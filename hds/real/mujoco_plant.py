@@ -4,7 +4,7 @@ The effects MuJoCo has natively are written into the model (`mujoco_spec`, whose
 `spec.to_xml()` is an MJCF of the "real" system):
   coulomb_friction  joint frictionloss (added)     viscous_damping  joint damping (added)
   actuator_gain     actuator gear (scaled)         mass_scale       body mass, inertia (scaled)
-  actuator_lag      actuator dyntype filterexact, dynprm[0] = time constant
+  actuator_lag      actuator dyntype filterexact, dynprm[0] = time constant, actearly
 The others act in `MujocoPlant.step`, with the semantics of `hds.effects.apply.EffectSet`:
 action_delay, actuator_deadzone and actuator_offset on the control (then clipped to ctrlrange),
 sensor_bias on the returned observation. Everything is float64.
@@ -41,6 +41,7 @@ def place_effects(spec: mujoco.MjSpec, effects, friction_gap: float = 1.0):
                                  f"dynamics ({actuator.dyntype.name}); remove them or the effect")
             actuator.dyntype = mujoco.mjtDyn.mjDYN_FILTEREXACT
             actuator.dynprm[0] = value["time_constant"]
+            actuator.actearly = 1  # the force uses the updated filter state, as the simulator
         elif site.name == "mass_scale":
             _scale_mass(spec, spec.body(site.target), value["scale"])
     return placed, params
