@@ -152,10 +152,37 @@ class DynamicsConfig:
     model: str = "none"  # none | mlp | ensemble | residual
     beta: float = 0.0  # fraction of rollouts taken through the learned model
     path: str | None = None  # a saved model to reuse instead of training one
+    data: str | None = None  # a measured dataset (.npz/.csv) to fit on instead of collecting
+    # network and fitting (hds.dynamics)
+    hidden: list[int] = field(default_factory=lambda: [128, 128])
+    ensemble_size: int = 5  # members of model=ensemble (mlp and residual have one)
+    learning_rate: float = 1e-3
+    minibatch: int = 256  # transitions per Adam step
+    epochs: int = 300  # most passes over the training transitions
+    patience: int = 30  # stop after this many epochs without a better validation loss
+    val_fraction: float = 0.2  # share of episodes held out for early stopping and metrics
+    eval_steps: list[int] = field(default_factory=lambda: [1, 10, 25])  # open-loop k-step errors
+    # data collected from the plant when no dataset is given
+    episodes: int = 64
+    horizon: int = 100  # steps per episode
+    excitation: str = "steps"  # steps | chirp | prbs (hds.data.excitation)
+    excitation_scale: float = 0.2  # largest amplitude, share of the half range; spread over episodes
 
     def check(self):
         _one_of("dynamics.model", self.model, ("none", "mlp", "ensemble", "residual"))
         _in_range("dynamics.beta", self.beta, 0.0, 1.0)
+        if not self.hidden or any(int(w) < 1 for w in self.hidden):
+            raise ValueError(f"dynamics.hidden = {list(self.hidden)} must be one or more "
+                             "positive layer widths")
+        for key in ("ensemble_size", "minibatch", "epochs", "patience", "episodes", "horizon"):
+            _in_range(f"dynamics.{key}", getattr(self, key), 1)
+        _in_range("dynamics.learning_rate", self.learning_rate, 1e-12)
+        _in_range("dynamics.val_fraction", self.val_fraction, 1e-6, 0.9)
+        if not self.eval_steps or any(int(k) < 1 for k in self.eval_steps):
+            raise ValueError(f"dynamics.eval_steps = {list(self.eval_steps)} must be one or "
+                             "more positive step counts")
+        _one_of("dynamics.excitation", self.excitation, ("steps", "chirp", "prbs"))
+        _in_range("dynamics.excitation_scale", self.excitation_scale, 1e-6, 1.0)
 
 
 @dataclass
@@ -217,6 +244,12 @@ def validate(cfg: DictConfig) -> Config:
     except ValueError as err:
         raise ValueError(f"invalid config: {err}") from None
     return config
+
+
+def load_config(path) -> Config:
+    """The validated config of a run from its saved config.yaml."""
+    schema = OmegaConf.structured(Config)
+    return validate(OmegaConf.merge(schema, OmegaConf.load(path)))
 
 
 register()

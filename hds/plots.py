@@ -48,6 +48,26 @@ def sim_vs_real(rows: list[dict]) -> plt.Figure:
     return fig
 
 
+def gap_vs_friction(summary: list[dict]) -> plt.Figure:
+    """Real-plant return and sim2real gap against the friction gap, per method, with the 95%
+    interval over seeds (entries of hds.report.aggregate)."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for method in dict.fromkeys(e["method"] for e in summary):
+        entries = sorted((e for e in summary if e["method"] == method), key=lambda e: e["friction_gap"])
+        x = [e["friction_gap"] for e in entries]
+        for ax, key in zip(axes, ("real_return", "gap")):
+            mean, lo, hi = (np.array([e[key][i] for e in entries]) for i in range(3))
+            line, = ax.plot(x, mean, "o-", label=method)
+            ax.fill_between(x, lo, hi, alpha=0.2, color=line.get_color())
+    axes[0].set_title("return on the real plant")
+    axes[1].set_title("sim2real gap (sim - real)")
+    for ax in axes:
+        ax.set_xlabel("friction gap (x the plant's friction)")
+    axes[0].legend()
+    fig.tight_layout()
+    return fig
+
+
 def save(fig: plt.Figure, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp.png")

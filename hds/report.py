@@ -1,0 +1,144 @@
+"""`python -m hds.report DIR`: a markdown report of a run or a sweep directory.
+
+It reads every summary.json below DIR (one per run or job) and writes, into DIR:
+  report.md      a table of mean and 95% interval over seeds per method and friction gap, figures
+  report.csv     one row per method, friction gap and seed, for people who plot their own
+  plots/report_*.png
+and, with --gif, an animation of the same policy on the simulator and on the real plant (of the
+run, or of a sweep's first job).
+A gap-discovery run's report (report.json) is linked with its before/after figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from hds import plots
+from hds.utils.io import atomic_write_bytes, read_json
+
+COLUMNS = ("method", "friction_gap", "seed", "sim_return", "real_return", "gap", "gap_relative", "job")
+
+
+def collect_rows(root: Path) -> tuple[list[dict], dict[str, dict]]:
+    """Every row of every run summary below root (a sweep's gathered summary is skipped: its
+    jobs are read directly), with the plant's friction gap; and the histories per method."""
+    rows, histories = [], {}
+    for path in sorted(root.rglob("summary.json")):
+        summary = read_json(path)
+        if "history" not in summary:  # the sweep-level summary gathered from its jobs
+            continue
+        gap = summary.get("real", {}).get("friction_gap")
+        job = str(path.parent.relative_to(root)) if path.parent != root else "."
+        rows += [{**r, "friction_gap": gap, "job": job} for r in summary["rows"]]
+        for method, history in summary["history"].items():
+            histories.setdefault(f"{method} ({job})" if job != "." else method, history)
+    if not rows:
+        raise FileNotFoundError(
+            f"no run summary.json below {root}: point hds.report at a run or sweep directory "
+            "written by `python -m hds.run`"
+        )
+    return rows, histories
+
+
+def mean_ci(values) -> tuple[float, float, float]:
+    """Mean and 95% Student-t interval over seeds (the interval is the mean alone for one seed)."""
+    values = np.asarray(values, dtype=float)
+    mean = float(values.mean())
+    if len(values) < 2:
+        return mean, mean, mean
+    half = float(stats.t.ppf(0.975, len(values) - 1) * stats.sem(values))
+    return mean, mean - half, mean + half
+
+
+def aggregate(rows: list[dict]) -> list[dict]:
+    groups = defaultdict(list)
+    for r in rows:
+        groups[(r["method"], r["friction_gap"])].append(r)
+    out = []
+    for (method, gap), group in sorted(groups.items(), key=lambda kv: (str(kv[0][0]), kv[0][1] or 0)):
+        entry = {"method": method, "friction_gap": gap, "seeds": len(group)}
+        for key in ("sim_return", "real_return", "gap"):
+            entry[key] = mean_ci([r[key] for r in group])
+        out.append(entry)
+    return out
+
+
+def markdown_table(summary: list[dict]) -> str:
+    lines = ["| method | friction gap | seeds | sim return | real return | sim2real gap |",
+             "| --- | ---: | ---: | ---: | ---: | ---: |"]
+    fmt = lambda m, lo, hi: f"{m:.1f} [{lo:.1f}, {hi:.1f}]"  # noqa: E731
+    for e in summary:
+        lines.append(f"| {e['method']} | {e['friction_gap']} | {e['seeds']} | {fmt(*e['sim_return'])} "
+                     f"| {fmt(*e['real_return'])} | {fmt(*e['gap'])} |")
+    return "\n".join(lines)
+
+
+def write_csv(rows: list[dict], path: Path) -> None:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=COLUMNS, extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_bytes(path, buf.getvalue().encode())
+
+
+def discovery_sections(root: Path) -> list[str]:
+    sections = []
+    for path in sorted(root.rglob("report.json")):
+        found = read_json(path).get("missing_effects", [])
+        names = ", ".join(f"{e['name']}@{e['target']}" for e in found) or "none"
+        rel = path.parent.relative_to(root)
+        images = [f"![{p.stem}]({rel / 'plots' / p.name})" for p in sorted((path.parent / "plots").glob("*.png"))]
+        sections.append(f"### Gap discovery: {rel}\n\nMissing effects named: {names}. "
+                        f"Full report: [{rel / 'report.md'}]({rel / 'report.md'})\n\n" + "\n".join(images))
+    return sections
+
+
+def build(root: str | Path) -> Path:
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root} is not a directory; give a run or sweep directory")
+    rows, histories = collect_rows(root)
+    summary = aggregate(rows)
+    figures = {"report_learning_curves": plots.learning_curves(histories),
+               "report_sim_vs_real": plots.sim_vs_real(rows)}
+    if len({r["friction_gap"] for r in rows}) > 1:
+        figures["report_gap_vs_friction"] = plots.gap_vs_friction(summary)
+    for name, fig in figures.items():
+        plots.save(fig, root / "plots" / f"{name}.png")
+    write_csv(rows, root / "report.csv")
+    text = [f"# Report: {root.name}", "",
+            "Mean and 95% interval over seeds. gap = return on the simulator - return on the real plant.",
+            "", markdown_table(summary), "", "One row per seed: [report.csv](report.csv).", ""]
+    text += [f"![{name}](plots/{name}.png)" for name in figures]
+    text += [""] + discovery_sections(root)
+    path = atomic_write_bytes(root / "report.md", ("\n".join(text) + "\n").encode())
+    return path
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m hds.report", description=__doc__.splitlines()[0])
+    parser.add_argument("directory", help="a run or sweep directory written by python -m hds.run")
+    parser.add_argument("--gif", action="store_true", help="also animate one episode, sim beside real")
+    args = parser.parse_args(argv)
+    path = build(args.directory)
+    print(f"wrote {path}")
+    if args.gif:  # a run directory, or a sweep's first job
+        from hds.animate import animate_run
+
+        root = Path(args.directory)
+        runs = [root] if (root / "config.yaml").is_file() else sorted(
+            p.parent for p in root.glob("*/config.yaml"))
+        if not runs:
+            raise FileNotFoundError(f"no run directory (with config.yaml) in {root} to animate")
+        print(f"wrote {animate_run(runs[0])}")
+
+
+if __name__ == "__main__":
+    main()
