@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
 from hds.logger import print_table
 from hds.utils.io import atomic_write_json, read_json
+
+log = logging.getLogger("hds")
 
 
 def gather(sweep_dir: Path) -> dict:
@@ -17,7 +20,8 @@ def gather(sweep_dir: Path) -> dict:
         summary = read_json(path)
         jobs.append({"job": path.parent.name, "name": summary.get("name"), "real": summary.get("real")})
         rows += [{**row, "job": path.parent.name} for row in summary["rows"]]
-    return {"rows": rows, "jobs": jobs}
+    failed = sorted(p.parent.name for p in Path(sweep_dir).glob("*/failed.txt"))
+    return {"rows": rows, "jobs": jobs, "failed_jobs": failed}
 
 
 class SweepSummary(Callback):
@@ -27,3 +31,7 @@ class SweepSummary(Callback):
         if summary["rows"]:
             atomic_write_json(sweep_dir / "summary.json", summary)
             print_table(summary["rows"], title=f"{config.name}: every job of {sweep_dir}")
+        if summary["failed_jobs"]:
+            log.warning("jobs %s failed (see their failed.txt); run the same sweep again, with "
+                        "hydra.sweep.dir=%s, to rerun them and skip the finished ones",
+                        summary["failed_jobs"], sweep_dir)

@@ -159,14 +159,14 @@ class DynamicsConfig:
     learning_rate: float = 1e-3
     minibatch: int = 256  # transitions per Adam step
     epochs: int = 300  # most passes over the training transitions
-    patience: int = 30  # stop after this many epochs without a better validation loss
+    patience: int = 100  # stop after this many epochs without a better validation loss
     val_fraction: float = 0.2  # share of episodes held out for early stopping and metrics
     eval_steps: list[int] = field(default_factory=lambda: [1, 10, 25])  # open-loop k-step errors
     # data collected from the plant when no dataset is given
     episodes: int = 64
     horizon: int = 100  # steps per episode
     excitation: str = "steps"  # steps | chirp | prbs (hds.data.excitation)
-    excitation_scale: float = 0.2  # largest amplitude, share of the half range; spread over episodes
+    excitation_scale: float = 0.2  # largest amplitude (share of half range), spread over episodes
 
     def check(self):
         _one_of("dynamics.model", self.model, ("none", "mlp", "ensemble", "residual"))
@@ -197,6 +197,24 @@ class LoggerConfig:
 
 
 @dataclass
+class SweepConfig:
+    """Numeric settings trained together in one program (vmapped, and sharded across devices
+    when there are several), crossed with each other and with the seeds. Empty: not swept."""
+
+    step_size: list[float] = field(default_factory=list)
+    noise_scale: list[float] = field(default_factory=list)
+
+    def check(self):
+        for key in ("step_size", "noise_scale"):
+            if any(v < 0 for v in getattr(self, key)):
+                raise ValueError(f"sweep.{key} = {getattr(self, key)} must be non-negative")
+
+    def items(self):
+        """(name, values) of the settings swept."""
+        return [(k, v) for k, v in (("step_size", self.step_size), ("noise_scale", self.noise_scale)) if v]
+
+
+@dataclass
 class Config:
     env: EnvConfig = MISSING
     real: RealConfig = MISSING
@@ -211,6 +229,7 @@ class Config:
     oracle: bool = True  # with real=brax, also train on the real dynamics: the best achievable
     eval_episodes: int = 32  # initial states shared by the simulator and plant evaluations
     checkpoints_kept: int = 3
+    sweep: SweepConfig = field(default_factory=lambda: SweepConfig())
 
     def check(self):
         _in_range("seeds", self.seeds, 1)

@@ -31,7 +31,7 @@ class Evaluator:
                 return r.sum()
             return jax.vmap(one)(jnp.asarray(self.q0), jnp.asarray(self.qd0))
 
-        self._sim = jax.jit(jax.vmap(sim_returns, in_axes=(0, None)))
+        self._sim = jax.jit(jax.vmap(sim_returns, in_axes=(0, None)))  # over the batch of runs
         self._act = jax.jit(policy.apply)
 
     def sim_returns(self, params, effects=None) -> np.ndarray:
@@ -51,12 +51,13 @@ class Evaluator:
         return np.stack(out)
 
 
-def gap_rows(method: str, seeds, sim: np.ndarray, real: np.ndarray) -> list[dict]:
+def gap_rows(method: str, runs: list[dict], sim: np.ndarray, real: np.ndarray) -> list[dict]:
+    """One row per run of the batch (`runs`: its seed and swept settings), mean over episodes."""
     rows = []
-    for s, seed in enumerate(seeds):
+    for s, run in enumerate(runs):
         sim_r, real_r = float(np.mean(sim[s])), float(np.mean(real[s]))
         rows.append({
-            "method": method, "seed": int(seed), "sim_return": sim_r, "real_return": real_r,
+            "method": method, **run, "sim_return": sim_r, "real_return": real_r,
             "gap": sim_r - real_r, "gap_relative": (sim_r - real_r) / max(abs(sim_r), 1e-9),
         })
     return rows

@@ -63,7 +63,7 @@ def aggregate(rows: list[dict]) -> list[dict]:
         groups[(r["method"], r["friction_gap"])].append(r)
     out = []
     for (method, gap), group in sorted(groups.items(), key=lambda kv: (str(kv[0][0]), kv[0][1] or 0)):
-        entry = {"method": method, "friction_gap": gap, "seeds": len(group)}
+        entry = {"method": method, "friction_gap": gap, "runs": len(group)}
         for key in ("sim_return", "real_return", "gap"):
             entry[key] = mean_ci([r[key] for r in group])
         out.append(entry)
@@ -71,11 +71,11 @@ def aggregate(rows: list[dict]) -> list[dict]:
 
 
 def markdown_table(summary: list[dict]) -> str:
-    lines = ["| method | friction gap | seeds | sim return | real return | sim2real gap |",
+    lines = ["| method | friction gap | runs | sim return | real return | sim2real gap |",
              "| --- | ---: | ---: | ---: | ---: | ---: |"]
     fmt = lambda m, lo, hi: f"{m:.1f} [{lo:.1f}, {hi:.1f}]"  # noqa: E731
     for e in summary:
-        lines.append(f"| {e['method']} | {e['friction_gap']} | {e['seeds']} | {fmt(*e['sim_return'])} "
+        lines.append(f"| {e['method']} | {e['friction_gap']} | {e['runs']} | {fmt(*e['sim_return'])} "
                      f"| {fmt(*e['real_return'])} | {fmt(*e['gap'])} |")
     return "\n".join(lines)
 

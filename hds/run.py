@@ -10,9 +10,11 @@ and ends with exactly the numbers an uninterrupted run gives.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 import time
+import traceback
 from pathlib import Path
 
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")  # XLA's C++ notices, before jax loads
@@ -24,6 +26,8 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
+from hydra.types import RunMode  # noqa: E402
+from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from hds import plots  # noqa: E402
@@ -34,26 +38,44 @@ from hds.envs import make_env  # noqa: E402
 from hds.evaluate import Evaluator, gap_rows  # noqa: E402
 from hds.logger import RunLogger, print_table  # noqa: E402
 from hds.real import make_plant  # noqa: E402
-from hds.utils.io import atomic_write_json  # noqa: E402
+from hds.utils.io import atomic_write_bytes, atomic_write_json, read_json  # noqa: E402
 from hds.utils.runtime import enable_compilation_cache  # noqa: E402
 
 log = logging.getLogger("hds")
 
 
-def seeds_of(cfg: Config) -> list[int]:
-    return [cfg.seed + i for i in range(cfg.seeds)]
+def batch_of(cfg: Config) -> list[dict]:
+    """The runs trained together: every seed crossed with every setting of `cfg.sweep`."""
+    names, values = zip(*cfg.sweep.items()) if cfg.sweep.items() else ((), ())
+    settings = [dict(zip(names, combo)) for combo in itertools.product(*values)]
+    return [{"seed": cfg.seed + i, **setting} for setting in settings for i in range(cfg.seeds)]
+
+
+def _shard(tree):
+    """Split the batch axis across devices when there are several and it divides evenly."""
+    devices = jax.devices()
+    n = jax.tree.leaves(tree)[0].shape[0]
+    if len(devices) == 1 or n % len(devices):
+        return tree
+    sharding = NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch"))
+    return jax.device_put(tree, sharding)
 
 
 def train(cfg: Config, env, out_dir: Path, method: str, model=None, effects=None):
-    """Train `cfg.seeds` seeds together; returns (policy params [n_seeds, ...], history, timing).
-    Resumes from out_dir/checkpoints/<method> when it holds a checkpoint."""
+    """Train the batch of `batch_of(cfg)` together; returns (policy params [batch, ...], history,
+    timing, logger, trainer). Resumes from out_dir/checkpoints/<method> when it has a checkpoint."""
     trainer = make_train(cfg, env, model)
+    runs = batch_of(cfg)
     hparams = dict(trainer.default_hparams)
     if effects is not None:
         hparams["effects"] = effects
-    keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds_of(cfg)))
-    init = jax.jit(jax.vmap(trainer.init, in_axes=(0, None)))
-    run_chunk = jax.jit(jax.vmap(trainer.run_chunk, in_axes=(0, None)))
+    hparams = jax.tree.map(lambda x: jnp.stack([x] * len(runs)), hparams)
+    for key, _ in cfg.sweep.items():
+        hparams[key] = jnp.asarray([r[key] for r in runs], jnp.float32)
+    keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray([r["seed"] for r in runs]))
+    keys, hparams = _shard((keys, hparams))
+    init = jax.jit(jax.vmap(trainer.init))
+    run_chunk = jax.jit(jax.vmap(trainer.run_chunk))
 
     start = time.perf_counter()
     state = init(keys, hparams)
@@ -104,8 +126,12 @@ def dynamics_model(cfg: Config, env, plant, out_dir: Path):
 
 
 def run(cfg: Config, out_dir: Path) -> dict:
-    """The whole run; returns the summary also written to out_dir/summary.json."""
+    """The whole run; returns the summary also written to out_dir/summary.json. A directory
+    that already has its summary.json is a finished job (of a sweep started again): skipped."""
     out_dir = Path(out_dir)
+    if (out_dir / "summary.json").is_file():
+        log.info("%s is finished (summary.json exists): skipped", out_dir)
+        return read_json(out_dir / "summary.json")
     env = make_env(cfg.env)
     plant = make_plant(cfg.real, cfg.env)
     model, model_report = dynamics_model(cfg, env, plant, out_dir)
@@ -120,7 +146,7 @@ def run(cfg: Config, out_dir: Path) -> dict:
         params, history, timing, logger, trainer = train(cfg, train_env, out_dir, method,
                                                          method_model, effects)
         evaluator = Evaluator(env, trainer.policy, plant, cfg.eval_episodes, cfg.seed + 10_000)
-        method_rows = gap_rows(method, seeds_of(cfg), evaluator.sim_returns(params),
+        method_rows = gap_rows(method, batch_of(cfg), evaluator.sim_returns(params),
                                evaluator.real_returns(params))
         rows += method_rows
         histories[method], timings[method] = history, timing
@@ -144,9 +170,20 @@ def run(cfg: Config, out_dir: Path) -> dict:
 def main(dcfg) -> float:
     cfg = validate(dcfg)  # every range check, before anything compiles
     enable_compilation_cache()
-    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    hydra_cfg = HydraConfig.get()
+    out_dir = Path(hydra_cfg.runtime.output_dir)
     OmegaConf.save(dcfg, out_dir / "config.yaml", resolve=True)
-    summary = run(cfg, out_dir)
+    try:
+        summary = run(cfg, out_dir)
+    except Exception:
+        if hydra_cfg.mode != RunMode.MULTIRUN:
+            raise
+        # One failed job must not stop the sweep: record why, let the others run. Starting
+        # the sweep again reruns this job and skips the finished ones.
+        atomic_write_bytes(out_dir / "failed.txt", traceback.format_exc().encode())
+        log.exception("job %s failed; see %s", hydra_cfg.job.num, out_dir / "failed.txt")
+        return float("nan")
+    (out_dir / "failed.txt").unlink(missing_ok=True)
     log.info("wrote %s", out_dir / "summary.json")
     return float(np.mean([r["real_return"] for r in summary["rows"]]))
 

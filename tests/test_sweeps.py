@@ -1,0 +1,118 @@
+"""Sweeps: vmapped inside one program or as Hydra multiruns (basic, joblib, submitit_local), the
+two agreeing; sharding across host devices; a failed job that a restarted sweep reruns while it
+skips the finished ones; and hds.report on the result."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+from hds import run as hds_run
+from hds.envs import make_env
+from hds.envs.system import ASSETS
+from tests.conftest import ROOT, make_config
+
+TINY = ("env.backend=analytic", "algo.epochs=2", "algo.chunk=2", "algo.rollouts=4",
+        "env.task.horizon=10", "algo.inner_epochs=1", "eval_episodes=2", "logger=none")
+
+
+def hds_run_cli(*args, env_vars=None, timeout=900):
+    env = {**os.environ, "WANDB_MODE": "offline", **(env_vars or {})}
+    proc = subprocess.run([sys.executable, "-m", "hds.run", *args], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=timeout)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    return proc
+
+
+def test_a_vmapped_sweep_gives_the_numbers_of_separate_runs(tmp_path):
+    cfg = make_config(*TINY, "sweep.step_size=[0.01,0.04]")
+    env = make_env(cfg.env)
+    together, history, *_ = hds_run.train(cfg, env, tmp_path / "vmapped", "pods")
+    for i, step in enumerate((0.01, 0.04)):
+        alone, alone_history, *_ = hds_run.train(make_config(*TINY, f"algo.step_size={step}"), env,
+                                                 tmp_path / f"alone{i}", "pods")
+        for a, b in zip(jax.tree.leaves(together), jax.tree.leaves(alone)):
+            np.testing.assert_allclose(a[i], b[0], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(history["return"][i], alone_history["return"][0], rtol=1e-5)
+    assert not np.allclose(history["step_size"][0], history["step_size"][1])
+
+
+def test_the_batch_is_sharded_across_two_host_devices(tmp_path):
+    code = (
+        "import jax, json, sys; from tests.conftest import make_config; from hds import run;"
+        "from hds.envs import make_env;"
+        f"cfg = make_config(*{list(TINY)!r}, 'seeds=2');"
+        "p, h, *_ = run.train(cfg, make_env(cfg.env), __import__('pathlib').Path(sys.argv[1]), 'pods');"
+        "leaf = jax.tree.leaves(p)[0];"
+        "print(json.dumps({'devices': jax.device_count(), 'shards': len(leaf.sharding.device_set),"
+        " 'return': h['return']}))"
+    )
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    proc = subprocess.run([sys.executable, "-c", code, str(tmp_path / "sharded")], cwd=ROOT,
+                          env=env, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["devices"] == 2 and out["shards"] == 2
+    cfg = make_config(*TINY, "seeds=2")
+    _, history, *_ = hds_run.train(cfg, make_env(cfg.env), tmp_path / "single", "pods")
+    np.testing.assert_allclose(out["return"], history["return"], rtol=1e-5)
+
+
+@pytest.fixture(scope="module")
+def restarted_sweep(tmp_path_factory):
+    """A basic-launcher sweep whose second job fails (its MJCF is missing), then the same sweep
+    started again once the file exists."""
+    tmp = tmp_path_factory.mktemp("sweep")
+    late = tmp / "late.xml"
+    args = ["-m", *TINY, f"env.xml=cartpole.xml,{late}", f"hydra.sweep.dir={tmp / 'sweep'}"]
+    first = hds_run_cli(*args)
+    sweep = tmp / "sweep"
+    state = {
+        "first_failed": (sweep / "1" / "failed.txt").is_file(),
+        "first_summary": json.loads((sweep / "summary.json").read_text()),
+        "job0_mtime": (sweep / "0" / "summary.json").stat().st_mtime_ns,
+        "first_stdout": first.stdout,
+    }
+    shutil.copy(ASSETS / "cartpole.xml", late)
+    second = hds_run_cli(*args)
+    return sweep, state, second
+
+
+def test_a_failed_job_keeps_the_others_results(restarted_sweep):
+    _, state, _ = restarted_sweep
+    assert state["first_failed"]
+    assert state["first_summary"]["failed_jobs"] == ["1"]
+    assert {r["job"] for r in state["first_summary"]["rows"]} == {"0"}
+
+
+def test_a_restarted_sweep_skips_finished_jobs_and_reruns_failed_ones(restarted_sweep):
+    sweep, state, second = restarted_sweep
+    assert (sweep / "0" / "summary.json").stat().st_mtime_ns == state["job0_mtime"]
+    assert not (sweep / "1" / "failed.txt").exists()
+    summary = json.loads((sweep / "summary.json").read_text())
+    assert {r["job"] for r in summary["rows"]} == {"0", "1"} and summary["failed_jobs"] == []
+
+
+def test_hds_report_on_a_sweep(restarted_sweep):
+    from hds.report import build
+
+    sweep, *_ = restarted_sweep
+    report = build(sweep).read_text()
+    assert "| pods | 1.0 | 2 |" in report  # both jobs: same method and friction gap
+    assert (sweep / "report.csv").read_text().count("\n") == 3  # header and one row per job
+    assert (sweep / "plots" / "report_sim_vs_real.png").is_file()
+
+
+@pytest.mark.parametrize("launcher", ["local_processes", "local_submitit"])
+def test_other_launchers_run_a_sweep(tmp_path, launcher):
+    hds_run_cli("-m", *TINY, "seed=0,1", f"hydra/launcher={launcher}",
+                f"hydra.sweep.dir={tmp_path}")
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert sorted(r["seed"] for r in summary["rows"]) == [0, 1]
