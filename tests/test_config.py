@@ -41,7 +41,7 @@ def test_every_experiment_composes(experiment):
         ("real.friction_gap=-1", "real.friction_gap = -1.0 is out of range"),
         ("noise.decay=1.5", "noise.decay = 1.5 is out of range"),
         ("dynamics.beta=2", "dynamics.beta = 2.0 is out of range"),
-        ("env.backend=bullet", "choose one of ['generalized', 'spring', 'positional', 'mjx']"),
+        ("env.backend=bullet", "choose one of ['generalized', 'spring', 'positional', 'mjx', 'analytic']"),
         ("algo.order=third", "algo.order = 'third' is not allowed"),
         ("real.effects=[{name: ice, target: slider}]", "unknown effect 'ice'; the library has"),
         (

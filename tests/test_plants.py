@@ -166,30 +166,17 @@ def times(run: Run):
 # Without effects -----------------------------------------------------------------------------
 
 def test_brax_and_mujoco_agree_without_effects(plants):
-    """0.52 s of random open-loop force (+-50 N) from states around the hanging pole.
-    Measured: at most 0.6 mm (cart), 6 mrad (pole), 5 mm/s, 53 mrad/s. Tolerance: 1.5 mm,
-    15 mrad, 15 mm/s, 0.12 rad/s."""
+    """0.52 s of random open-loop force (+-50 N) from states around the hanging pole. With an
+    exact mass-matrix inverse in brax (matrix_inv_iterations 0 in the MJCF) the two engines
+    agree to float32 precision: measured 2e-6 at most. Tolerance: 1e-4 on every variable."""
     rng = np.random.default_rng(0)
     q0 = np.array([0.0, HANG]) + rng.uniform(-0.2, 0.2, (B, 2))
     qd0 = rng.uniform(-0.3, 0.3, (B, 2))
     u = rng.uniform(-0.5, 0.5, (B, T, 1))
     brax, mj = (simulate(plants, k, [], q0, qd0, u) for k in KINDS)
     err = np.abs(brax.obs - mj.obs).max(axis=(0, 1))
-    assert np.all(err < [1.5e-3, 15e-3, 15e-3, 0.12]), err
-    assert np.abs(brax.obs - mj.obs).max() > 1e-5  # two engines, not one engine twice
-
-
-def test_the_difference_is_mujocos_implicit_damping(plants):
-    """MuJoCo's Euler integrator treats joint damping implicitly, brax explicitly: with that
-    off, the two agree to float32 precision even with the pole upright (unstable)."""
-    rng = np.random.default_rng(1)
-    q0 = np.array([[0.0, HANG], [0.1, 0.05], [-0.2, -0.1], [0.0, 0.0]])
-    qd0, u = rng.uniform(-0.3, 0.3, (B, 2)), rng.uniform(-0.5, 0.5, (B, T, 1))
-    brax = simulate(plants, "brax", [], q0, qd0, u)
-    mj = plants("mujoco")
-    mj.model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_EULERDAMP
-    obs = [mj.reset(q0, qd0)] + [mj.step(u[:, t]) for t in range(T)]
-    assert np.abs(brax.obs - np.stack(obs, 1)).max() < 1e-5
+    assert np.all(err < 1e-4), err
+    assert np.abs(brax.obs - mj.obs).max() > 0  # two engines (float32, float64), not one twice
 
 
 # Each effect, in both plants -------------------------------------------------------------------

@@ -16,7 +16,7 @@ from hds.effects import EffectParams, EffectSet, place
 from hds.utils.quiet import quiet_brax
 
 ASSETS = Path(__file__).parent / "assets"
-BACKENDS = ("generalized", "spring", "positional", "mjx")
+BACKENDS = ("generalized", "spring", "positional", "mjx", "analytic")
 _FORCE_PREFIX = "hds_force_"  # the virtual motors through which effect forces enter
 
 
@@ -110,6 +110,7 @@ class Simulator:
     targets: dict
     angular: np.ndarray  # hinge mask over q
     xml: str
+    backend: str
 
     @property
     def dt(self) -> float:
@@ -180,11 +181,17 @@ def make_simulator(
         sys = mjcf.load_model(spec.compile())  # load_model edits its argument: a fresh model
     if backend == "mjx":  # the default solver loop is a while_loop, which reverse mode rejects
         sys = sys.tree_replace({"opt.iterations": 1})
+    if backend == "analytic":  # closed-form dynamics: refuse unsupported models here, once
+        from hds.envs import analytic
+
+        analytic.check(sys)
     ctrl_range = np.array(model.actuator_ctrlrange, dtype=np.float32)
     ctrl_range[model.actuator_ctrllimited == 0] = [-np.inf, np.inf]
     sim = Simulator(
         sys=sys,
-        pipeline=importlib.import_module(f"brax.{backend}.pipeline"),
+        pipeline=importlib.import_module(
+            "hds.envs.analytic" if backend == "analytic" else f"brax.{backend}.pipeline"
+        ),
         frames=int(frames),
         timestep=float(model.opt.timestep),
         effects=effect_set,
@@ -196,5 +203,6 @@ def make_simulator(
         targets=targets,
         angular=hinge_mask(model),
         xml=str(resolve_xml(xml)),
+        backend=backend,
     )
     return sim, params
