@@ -1,8 +1,9 @@
 """Record a Dataset from any plant (hds.real): a policy or an open-loop signal, run with
 `hds.real.rollout`, with the names and dt taken from the plant.
 
-The recorded action is the command given to the plant (before the plant saturates it to its
-ctrl_range); excitation signals from `hds.data.excitation` already lie within the limits.
+The recorded action is the control applied, i.e. saturated to the plant's ctrl_range (as
+`hds.real.rollout` records it); excitation signals from `hds.data.excitation` already lie within
+the limits.
 """
 
 from __future__ import annotations

@@ -1,0 +1,119 @@
+"""Learned dynamics models for HDS: fitted on measured episodes, used as engines by the trainer.
+
+  fit(cfg, env, obs, actions, key) -> (model, report)   cfg: hds.config.DynamicsConfig
+  save(path, model, cfg, report) / load(path, env) -> model
+  build(cfg, env, plant, key, out_dir) -> (model, report)   what `python -m hds.run` calls:
+      load dynamics.path when given; else fit on dynamics.data, or on episodes collected
+      from the plant with an excitation signal, and save the model to out_dir
+  evaluate(model, obs, actions, ks)    open-loop k-step errors, model and constant velocity
+
+A model (`DynamicsModel`) satisfies the engine protocol of hds.algo (reset, step, observe,
+qqd; its state is the observation [q, qd]); see hds.dynamics.model for the three kinds.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from hds.dynamics.metrics import multistep_errors, open_loop_predictions
+from hds.dynamics.model import (
+    KINDS,
+    DynamicsModel,
+    Normalizer,
+    constant_velocity,
+    skeleton,
+    zero_residual,
+)
+from hds.dynamics.store import load, read_meta, save
+from hds.dynamics.training import as_arrays, evaluate, fit, split_episodes
+
+log = logging.getLogger(__name__)
+
+
+def excite(cfg, env, key) -> np.ndarray:
+    """Open-loop controls [episodes, horizon, n_act]: the excitation signal, its amplitude
+    spread evenly over episodes from excitation_scale / episodes up to excitation_scale, so
+    the data hold both gentle and hard pushes."""
+    from hds.data import excitation
+
+    sim = env.sim
+    u = excitation(cfg.excitation, key, cfg.episodes, cfg.horizon, sim.dt, sim.ctrl_range)
+    middle = sim.ctrl_range.mean(1)
+    scales = cfg.excitation_scale * np.arange(1, cfg.episodes + 1) / cfg.episodes
+    return middle + scales[:, None, None] * (u - middle)
+
+
+def collect_data(cfg, env, plant, key):
+    """A Dataset of cfg.episodes episodes recorded on `plant` from the task's initial states."""
+    from hds.data import collect, initial_states
+
+    k_init, k_u = jax.random.split(key)
+    q0, qd0 = initial_states(env.task, k_init, cfg.episodes)
+    return collect(plant, env.task, q0, qd0, excite(cfg, env, k_u), cfg.horizon)
+
+
+def build(cfg, env, plant, key, out_dir) -> tuple[DynamicsModel, dict]:
+    """The model for a run: loaded from cfg.path, or fitted (on cfg.data or on data collected
+    from `plant`) and saved to out_dir. Returns (model, JSON-ready report)."""
+    if cfg.path:
+        model = load(cfg.path, env)
+        meta = read_meta(cfg.path)
+        log.info("loaded the %s dynamics model from %s", model.kind, cfg.path)
+        if cfg.model not in ("none", model.kind):
+            log.warning("dynamics.model = %s, but the model at %s is a %s model: using it as "
+                        "saved", cfg.model, cfg.path, model.kind)
+        return model, {"path": str(Path(cfg.path).expanduser().absolute()), "loaded": True,
+                       **meta.get("report", {})}
+    k_data, k_fit = jax.random.split(key)
+    if cfg.data:
+        from hds.data import load as load_data
+        from hds.data import validate
+
+        data = validate(load_data(cfg.data), env.sim, where=f"dynamics.data = {cfg.data}")
+        source = {"data": str(cfg.data)}
+    else:
+        if plant is None:
+            raise ValueError("fitting a dynamics model needs data: give dynamics.data (a "
+                             "measured dataset), dynamics.path (a fitted model) or a plant")
+        data = collect_data(cfg, env, plant, k_data)
+        source = {"data": "plant", "excitation": cfg.excitation,
+                  "excitation_scale": cfg.excitation_scale}
+    model, report = fit(cfg, env, data, key=k_fit)
+    report.update(source)
+    path = save(Path(out_dir), model, cfg, report)
+    report.update({"path": str(path), "loaded": False})
+    def fmt(x):
+        return "nan" if x is None else f"{x:.3g}"
+
+    log.info("fitted the %s dynamics model in %.1f s, saved to %s; open-loop nrmse on held-out "
+             "episodes (model / constant velocity / simulator): %s", cfg.model, report["fit_s"],
+             path, ", ".join(f"k={k}: {fmt(v['model'])} / {fmt(v['baseline'])} / "
+                             f"{fmt(v.get('simulator'))}"
+                             for k, v in report["multistep"].items()))
+    return model, report
+
+
+__all__ = [
+    "KINDS",
+    "DynamicsModel",
+    "Normalizer",
+    "as_arrays",
+    "build",
+    "collect_data",
+    "constant_velocity",
+    "evaluate",
+    "excite",
+    "fit",
+    "load",
+    "multistep_errors",
+    "open_loop_predictions",
+    "read_meta",
+    "save",
+    "skeleton",
+    "split_episodes",
+    "zero_residual",
+]

@@ -1,0 +1,238 @@
+"""Learned dynamics models as engines for the trainer.
+
+A model's state is the observation vector [q..., qd...] (for the systems of hds.envs the
+observation is the full state), so `observe` and `qqd` just read it. One step is
+
+  next = base(obs, u) + mean_k delta_k(obs, u)
+
+  mlp       base = obs (the network predicts the change over one step), one member
+  ensemble  base = obs, K members trained independently; their spread is the disagreement
+  residual  base = the simulator's step from (q, qd) = obs with the env's effect parameters;
+            the network predicts what the simulator gets wrong. With a zero correction the
+            model is exactly the simulator (for effects without internal state: a delay buffer
+            or lag filter is restarted from rest at every step, as the state holds only q, qd).
+
+delta_k = y_mean + y_std * net_k((features(obs) ++ u - x_mean) / x_std): inputs and outputs are
+normalised with statistics of the training data. Hinge angles enter as (sin, cos) and their
+one-step change is wrapped to [-pi, pi), so the model does not care about turn counts.
+Every function here is pure JAX: usable inside jit, vmap and grad (w.r.t. state and actions).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from hds.networks import features
+
+KINDS = ("mlp", "ensemble", "residual")
+
+
+class MLP(nn.Module):
+    """The delta network: silu hidden layers, linear output (zero at init when `zero_last`)."""
+
+    hidden: Sequence[int]
+    out: int
+    zero_last: bool = False
+
+    @nn.compact
+    def __call__(self, x):
+        for width in self.hidden:
+            x = nn.silu(nn.Dense(width)(x))
+        init = nn.initializers.zeros if self.zero_last else nn.initializers.lecun_normal()
+        return nn.Dense(self.out, kernel_init=init)(x)
+
+
+@struct.dataclass
+class Normalizer:
+    x_mean: jax.Array  # [n_in] network inputs: features(obs) ++ u
+    x_std: jax.Array
+    y_mean: jax.Array  # [n_obs] one-step change (or correction), physical units
+    y_std: jax.Array
+
+    @classmethod
+    def fit(cls, x: np.ndarray, y: np.ndarray) -> Normalizer:
+        def stats(a):
+            mean, std = a.mean(0), a.std(0)
+            return (jnp.asarray(mean, jnp.float32),
+                    jnp.asarray(np.where(std > 1e-6, std, 1.0), jnp.float32))
+
+        return cls(*stats(x), *stats(y))
+
+    @classmethod
+    def identity(cls, n_in: int, n_out: int) -> Normalizer:
+        return cls(jnp.zeros(n_in), jnp.ones(n_in), jnp.zeros(n_out), jnp.ones(n_out))
+
+    def as_dict(self) -> dict:
+        return {"x_mean": self.x_mean, "x_std": self.x_std, "y_mean": self.y_mean,
+                "y_std": self.y_std}
+
+
+def wrap_angles(delta: jax.Array, angular: np.ndarray) -> jax.Array:
+    """Wrap the hinge entries of a state difference [..., nq + nv] to [-pi, pi)."""
+    mask = np.zeros(delta.shape[-1], dtype=bool)
+    mask[: len(angular)] = angular
+    wrapped = jnp.mod(delta + jnp.pi, 2 * jnp.pi) - jnp.pi
+    return jnp.where(mask, wrapped, delta)
+
+
+@dataclass(frozen=True, eq=False)
+class DynamicsModel:
+    """A fitted model; hashable by identity, so jit can close over it. `params` are stacked
+    over members (leading axis K, K = 1 for mlp and residual)."""
+
+    kind: str
+    net: MLP
+    params: Any
+    norm: Normalizer
+    obs_names: tuple[str, ...]
+    action_names: tuple[str, ...]
+    angular: np.ndarray  # hinge mask over q
+    dt: float
+    ctrl_range: np.ndarray  # [n_act, 2]
+    task: Any = None  # where reset draws initial states from (env.task)
+    sim: Any = None  # residual: the simulator whose step is corrected
+    sim_params: Any = None  # residual: its effect parameters
+
+    @property
+    def nq(self) -> int:
+        return len(self.angular)
+
+    @property
+    def n_obs(self) -> int:
+        return len(self.obs_names)
+
+    @property
+    def n_act(self) -> int:
+        return len(self.action_names)
+
+    @property
+    def members(self) -> int:
+        return int(jax.tree.leaves(self.params)[0].shape[0])
+
+    # -- the pieces of one step (single sample: obs [n_obs], u [n_act]) ------------------------
+
+    def clip(self, u):
+        return jnp.clip(u, self.ctrl_range[:, 0], self.ctrl_range[:, 1])
+
+    def inputs(self, obs, u):
+        return jnp.concatenate([features(obs, self.angular), self.clip(u)], axis=-1)
+
+    def base(self, obs, u):
+        """What the network corrects: obs itself, or the simulator's next state (residual)."""
+        if self.kind != "residual":
+            return obs
+        state = self.sim.init(obs[: self.nq], obs[self.nq:], self.sim_params)
+        state = self.sim.step(self.sim_params, state, self.clip(u))
+        return jnp.concatenate([state.q, state.qd])
+
+    def normalized_deltas(self, obs, u):
+        """[K, n_obs] each member's output in normalised units."""
+        x = (self.inputs(obs, u) - self.norm.x_mean) / self.norm.x_std
+        return jax.vmap(lambda p: self.net.apply(p, x))(self.params)
+
+    def deltas(self, obs, u):
+        """[K, n_obs] each member's change (or correction) in physical units."""
+        return self.norm.y_mean + self.norm.y_std * self.normalized_deltas(obs, u)
+
+    def predict(self, obs, u):
+        """The next observation: base plus the members' mean delta."""
+        return self.base(obs, u) + jnp.mean(self.deltas(obs, u), axis=0)
+
+    def predict_members(self, obs, u):
+        """[K, n_obs] every member's next observation."""
+        return self.base(obs, u) + self.deltas(obs, u)
+
+    def disagreement(self, obs, u):
+        """Spread of the members: std over members of the normalised delta, mean over outputs
+        (0 for a single member). Large where the data did not pin the model down."""
+        return jnp.mean(jnp.std(self.normalized_deltas(obs, u), axis=0))
+
+    # -- the engine protocol ------------------------------------------------------------------
+
+    def reset(self, key):
+        if self.task is None:
+            raise ValueError("this model has no task to draw initial states from: load or fit it "
+                             "with an env (hds.dynamics.load(path, env))")
+        q, qd = self.task.initial(key)
+        return jnp.concatenate([q, qd]).astype(jnp.float32)
+
+    def step(self, state, u, params=None):
+        return self.predict(state, u)
+
+    def observe(self, state, params=None):
+        return state
+
+    def qqd(self, state):
+        return state[: self.nq], state[self.nq:]
+
+
+def make_net(kind: str, hidden: Sequence[int], n_obs: int) -> MLP:
+    return MLP(tuple(int(w) for w in hidden), n_obs, zero_last=kind == "residual")
+
+
+def n_inputs(angular: np.ndarray, n_obs: int, n_act: int) -> int:
+    return n_obs + int(np.sum(angular)) + n_act
+
+
+def init_params(net: MLP, key, n_in: int, members: int):
+    """Member-stacked initial parameters, each member from its own key."""
+    return jax.vmap(lambda k: net.init(k, jnp.zeros(n_in)))(jax.random.split(key, members))
+
+
+def skeleton(kind: str, env, hidden: Sequence[int], members: int, params=None,
+             norm: Normalizer | None = None) -> DynamicsModel:
+    """A model for `env`'s system; parameters default to a fresh init (key 0), normalisation
+    to the identity."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown dynamics model '{kind}'; choose one of {list(KINDS)}")
+    sim = env.sim
+    net = make_net(kind, hidden, sim.n_obs)
+    n_in = n_inputs(sim.angular, sim.n_obs, sim.n_act)
+    if params is None:
+        params = init_params(net, jax.random.PRNGKey(0), n_in, members)
+    return DynamicsModel(
+        kind=kind, net=net, params=params,
+        norm=norm if norm is not None else Normalizer.identity(n_in, sim.n_obs),
+        obs_names=tuple(sim.obs_names), action_names=tuple(sim.action_names),
+        angular=np.asarray(sim.angular, dtype=bool), dt=float(sim.dt),
+        ctrl_range=np.asarray(sim.ctrl_range, dtype=np.float32), task=env.task,
+        sim=sim if kind == "residual" else None,
+        sim_params=env.params if kind == "residual" else None,
+    )
+
+
+_ZERO: dict = {}
+
+
+def zero_residual(env, hidden: Sequence[int] = (8,)) -> DynamicsModel:
+    """A residual model whose correction is exactly zero: the simulator itself (one object per
+    env and width, so what is compiled for it is reused)."""
+    key = (id(env), tuple(hidden))
+    if key not in _ZERO or _ZERO[key][0] is not env:
+        model = skeleton("residual", env, hidden, 1)
+        _ZERO[key] = (env, replace(model, params=jax.tree.map(jnp.zeros_like, model.params)))
+    return _ZERO[key][1]
+
+
+@dataclass(frozen=True)
+class ConstantVelocity:
+    """The baseline step: q' = q + dt qd, qd' = qd (q held when nq != nv). Hashable by value."""
+
+    dt: float
+    nq: int
+
+    def __call__(self, obs, u):
+        q, qd = obs[: self.nq], obs[self.nq:]
+        return jnp.concatenate([q + self.dt * qd if qd.shape == q.shape else q, qd])
+
+
+def constant_velocity(dt: float, nq: int) -> ConstantVelocity:
+    return ConstantVelocity(float(dt), int(nq))
