@@ -27,7 +27,9 @@ def pole_positions(obs: np.ndarray, names: tuple[str, ...], length: float = 0.6)
     return x, x + length * np.sin(theta), length * np.cos(theta)
 
 
-def animate(sim_obs, real_obs, names, dt: float, path: Path, titles=("simulator", "real plant")) -> Path:
+def animate(
+    sim_obs, real_obs, names, dt: float, path: Path, titles=("simulator", "real plant")
+) -> Path:
     fig, axes = plt.subplots(1, 2, figsize=(8, 3.2))
     tracks = [pole_positions(o, names) for o in (sim_obs, real_obs)]
     span = max(1.0, max(float(np.abs(t[0]).max()) for t in tracks) + 0.8)
@@ -38,8 +40,8 @@ def animate(sim_obs, real_obs, names, dt: float, path: Path, titles=("simulator"
         ax.set_aspect("equal")
         ax.axhline(0, color="0.7", lw=1)
         ax.set_title(title)
-        cart, = ax.plot([], [], "s", ms=14, color="tab:blue")
-        pole, = ax.plot([], [], "-", lw=4, color="tab:brown")
+        (cart,) = ax.plot([], [], "s", ms=14, color="tab:blue")
+        (pole,) = ax.plot([], [], "-", lw=4, color="tab:brown")
         artists.append((cart, pole))
     label = fig.suptitle("")
 
@@ -63,8 +65,10 @@ def animate_run(run_dir: Path, method: str | None = None, seed_index: int = 0) -
     """Rebuild a finished run from its config.yaml and last checkpoint; animate one episode."""
     config_path = run_dir / "config.yaml"
     if not config_path.is_file():
-        raise FileNotFoundError(f"{config_path} not found: give the directory of one run "
-                                "(a sweep's job directory), which holds config.yaml and checkpoints/")
+        raise FileNotFoundError(
+            f"{config_path} not found: give the directory of one run "
+            "(a sweep's job directory), which holds config.yaml and checkpoints/"
+        )
     cfg = load_config(config_path)
     env, plant = make_env(cfg.env), make_plant(cfg.real, cfg.env)
     method = method or cfg.algo.name
@@ -80,7 +84,14 @@ def animate_run(run_dir: Path, method: str | None = None, seed_index: int = 0) -
 
     sim_eps = rollout(BraxPlant(env), env.task, q0, qd0, controller, env.task.horizon)
     real_eps = rollout(plant, env.task, q0, qd0, controller, env.task.horizon)
-    return animate(sim_eps.obs[0], real_eps.obs[0], env.sim.obs_names, env.sim.dt,
-                   run_dir / "plots" / f"{method}_sim_vs_real.gif",
-                   titles=(f"simulator: return {sim_eps.returns[0]:.0f}",
-                           f"{cfg.real.plant} plant: return {real_eps.returns[0]:.0f}"))
+    return animate(
+        sim_eps.obs[0],
+        real_eps.obs[0],
+        env.sim.obs_names,
+        env.sim.dt,
+        run_dir / "plots" / f"{method}_sim_vs_real.gif",
+        titles=(
+            f"simulator: return {sim_eps.returns[0]:.0f}",
+            f"{cfg.real.plant} plant: return {real_eps.returns[0]:.0f}",
+        ),
+    )

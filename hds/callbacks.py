@@ -18,7 +18,9 @@ def gather(sweep_dir: Path) -> dict:
     rows, jobs = [], []
     for path in sorted(Path(sweep_dir).glob("*/summary.json"), key=lambda p: p.parent.name):
         summary = read_json(path)
-        jobs.append({"job": path.parent.name, "name": summary.get("name"), "real": summary.get("real")})
+        jobs.append(
+            {"job": path.parent.name, "name": summary.get("name"), "real": summary.get("real")}
+        )
         rows += [{**row, "job": path.parent.name} for row in summary["rows"]]
     failed = sorted(p.parent.name for p in Path(sweep_dir).glob("*/failed.txt"))
     return {"rows": rows, "jobs": jobs, "failed_jobs": failed}
@@ -32,6 +34,9 @@ class SweepSummary(Callback):
             atomic_write_json(sweep_dir / "summary.json", summary)
             print_table(summary["rows"], title=f"{config.name}: every job of {sweep_dir}")
         if summary["failed_jobs"]:
-            log.warning("jobs %s failed (see their failed.txt); run the same sweep again, with "
-                        "hydra.sweep.dir=%s, to rerun them and skip the finished ones",
-                        summary["failed_jobs"], sweep_dir)
+            log.warning(
+                "jobs %s failed (see their failed.txt); run the same sweep again, with "
+                "hydra.sweep.dir=%s, to rerun them and skip the finished ones",
+                summary["failed_jobs"],
+                sweep_dir,
+            )

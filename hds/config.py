@@ -172,15 +172,18 @@ class DynamicsConfig:
         _one_of("dynamics.model", self.model, ("none", "mlp", "ensemble", "residual"))
         _in_range("dynamics.beta", self.beta, 0.0, 1.0)
         if not self.hidden or any(int(w) < 1 for w in self.hidden):
-            raise ValueError(f"dynamics.hidden = {list(self.hidden)} must be one or more "
-                             "positive layer widths")
+            raise ValueError(
+                f"dynamics.hidden = {list(self.hidden)} must be one or more positive layer widths"
+            )
         for key in ("ensemble_size", "minibatch", "epochs", "patience", "episodes", "horizon"):
             _in_range(f"dynamics.{key}", getattr(self, key), 1)
         _in_range("dynamics.learning_rate", self.learning_rate, 1e-12)
         _in_range("dynamics.val_fraction", self.val_fraction, 1e-6, 0.9)
         if not self.eval_steps or any(int(k) < 1 for k in self.eval_steps):
-            raise ValueError(f"dynamics.eval_steps = {list(self.eval_steps)} must be one or "
-                             "more positive step counts")
+            raise ValueError(
+                f"dynamics.eval_steps = {list(self.eval_steps)} must be one or "
+                "more positive step counts"
+            )
         _one_of("dynamics.excitation", self.excitation, ("steps", "chirp", "prbs"))
         _in_range("dynamics.excitation_scale", self.excitation_scale, 1e-6, 1.0)
 
@@ -211,7 +214,11 @@ class SweepConfig:
 
     def items(self):
         """(name, values) of the settings swept."""
-        return [(k, v) for k, v in (("step_size", self.step_size), ("noise_scale", self.noise_scale)) if v]
+        return [
+            (k, v)
+            for k, v in (("step_size", self.step_size), ("noise_scale", self.noise_scale))
+            if v
+        ]
 
 
 @dataclass

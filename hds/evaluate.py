@@ -25,10 +25,22 @@ class Evaluator:
 
         def sim_returns(params, effects):
             act = lambda o: policy.apply(params, o)  # noqa: E731
+
             def one(q, qd):
-                _, _, r = policy_rollout(env, effects, task, act, env.sim.init(q, qd, effects),
-                                         jax.random.PRNGKey(0), 0.0, task.horizon, low, high)
+                _, _, r = policy_rollout(
+                    env,
+                    effects,
+                    task,
+                    act,
+                    env.sim.init(q, qd, effects),
+                    jax.random.PRNGKey(0),
+                    0.0,
+                    task.horizon,
+                    low,
+                    high,
+                )
                 return r.sum()
+
             return jax.vmap(one)(jnp.asarray(self.q0), jnp.asarray(self.qd0))
 
         self._sim = jax.jit(jax.vmap(sim_returns, in_axes=(0, None)))  # over the batch of runs
@@ -43,10 +55,15 @@ class Evaluator:
         n_seeds = jax.tree.leaves(params)[0].shape[0]
         out = []
         for s in range(n_seeds):
-            p = jax.tree.map(lambda x: x[s], params)
-            ep = rollout(self.plant, self.env.task, self.q0, self.qd0,
-                         lambda obs: np.asarray(self._act(p, jnp.asarray(obs, jnp.float32))),
-                         self.env.task.horizon)
+            p = jax.tree.map(lambda x, s=s: x[s], params)
+            ep = rollout(
+                self.plant,
+                self.env.task,
+                self.q0,
+                self.qd0,
+                lambda obs, p=p: np.asarray(self._act(p, jnp.asarray(obs, jnp.float32))),
+                self.env.task.horizon,
+            )
             out.append(ep.returns)
         return np.stack(out)
 
@@ -56,8 +73,14 @@ def gap_rows(method: str, runs: list[dict], sim: np.ndarray, real: np.ndarray) -
     rows = []
     for s, run in enumerate(runs):
         sim_r, real_r = float(np.mean(sim[s])), float(np.mean(real[s]))
-        rows.append({
-            "method": method, **run, "sim_return": sim_r, "real_return": real_r,
-            "gap": sim_r - real_r, "gap_relative": (sim_r - real_r) / max(abs(sim_r), 1e-9),
-        })
+        rows.append(
+            {
+                "method": method,
+                **run,
+                "sim_return": sim_r,
+                "real_return": real_r,
+                "gap": sim_r - real_r,
+                "gap_relative": (sim_r - real_r) / max(abs(sim_r), 1e-9),
+            }
+        )
     return rows

@@ -21,13 +21,23 @@ class RunLogger:
             import wandb
 
             self.wandb = wandb.init(
-                project=cfg.logger.project, group=cfg.logger.group, name=name, dir=str(out_dir),
-                mode=cfg.logger.mode, config=_flat(cfg), reinit="create_new",
+                project=cfg.logger.project,
+                group=cfg.logger.group,
+                name=name,
+                dir=str(out_dir),
+                mode=cfg.logger.mode,
+                config=_flat(cfg),
+                reinit="create_new",
             )
         self.progress = Progress(
-            TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("epoch {task.completed}/{task.total}"),
-            TextColumn("return {task.fields[ret]}"), TimeElapsedColumn(), TimeRemainingColumn(),
-            console=console, transient=False,
+            TextColumn("[bold]{task.description}"),
+            BarColumn(),
+            TextColumn("epoch {task.completed}/{task.total}"),
+            TextColumn("return {task.fields[ret]}"),
+            TimeElapsedColumn(),
+            TimeRemainingColumn(),
+            console=console,
+            transient=False,
         )
         self.task = self.progress.add_task(name, total=total_epochs, completed=start_epoch, ret="-")
         self.progress.start()
@@ -38,9 +48,17 @@ class RunLogger:
         for i in range(n):
             row = {k: float(np.nanmean(v[:, i])) for k, v in metrics.items()}
             if self.wandb:
-                row |= {f"{k}/seed{s}": float(v[s, i]) for k, v in metrics.items() for s in range(v.shape[0])}
-                self.wandb.log(row | {"epoch": first_epoch + i, "wall_time_per_epoch": seconds_per_epoch})
-        self.progress.update(self.task, advance=n, ret=f"{np.nanmean(metrics['return'][:, -1]):.1f}")
+                row |= {
+                    f"{k}/seed{s}": float(v[s, i])
+                    for k, v in metrics.items()
+                    for s in range(v.shape[0])
+                }
+                self.wandb.log(
+                    row | {"epoch": first_epoch + i, "wall_time_per_epoch": seconds_per_epoch}
+                )
+        self.progress.update(
+            self.task, advance=n, ret=f"{np.nanmean(metrics['return'][:, -1]):.1f}"
+        )
 
     def finish(self, rows: list[dict], figures: dict) -> None:
         self.progress.stop()
@@ -48,19 +66,33 @@ class RunLogger:
             import wandb
 
             keys = list(rows[0])
-            self.wandb.log({"summary": wandb.Table(columns=keys, data=[[r[k] for k in keys] for r in rows])})
+            self.wandb.log(
+                {"summary": wandb.Table(columns=keys, data=[[r[k] for k in keys] for r in rows])}
+            )
             self.wandb.log({name: wandb.Image(fig) for name, fig in figures.items()})
             self.wandb.finish()
 
 
 def print_table(rows: list[dict], title: str = "sim2real") -> None:
     table = Table(title=title)
-    keys = [k for k in ("method", "seed", "sim_return", "real_return", "gap", "gap_relative") if k in rows[0]]
+    keys = [
+        k
+        for k in ("method", "seed", "sim_return", "real_return", "gap", "gap_relative")
+        if k in rows[0]
+    ]
     for k in keys:
         table.add_column(k, justify="right" if k != "method" else "left")
     for r in rows:
-        table.add_row(*[f"{r[k]:.1f}" if isinstance(r[k], float) and k != "gap_relative"
-                        else f"{r[k]:.1%}" if k == "gap_relative" else str(r[k]) for k in keys])
+        table.add_row(
+            *[
+                f"{r[k]:.1f}"
+                if isinstance(r[k], float) and k != "gap_relative"
+                else f"{r[k]:.1%}"
+                if k == "gap_relative"
+                else str(r[k])
+                for k in keys
+            ]
+        )
     console.print(table)
 
 

@@ -30,7 +30,9 @@ class Policy(nn.Module):
         x = features(obs, self.angular)
         for width in self.hidden:
             x = nn.tanh(nn.Dense(width)(x))
-        x = nn.Dense(len(self.low), kernel_init=nn.initializers.variance_scaling(0.01, "fan_in", "uniform"))(x)
+        x = nn.Dense(
+            len(self.low), kernel_init=nn.initializers.variance_scaling(0.01, "fan_in", "uniform")
+        )(x)
         mid, half = (self.high + self.low) / 2, (self.high - self.low) / 2
         return mid + half * jnp.tanh(x)
 

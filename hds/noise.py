@@ -21,6 +21,8 @@ def schedule(cfg, epochs: int, scale):
         return optax.exponential_decay(scale, transition_steps=1, decay_rate=cfg.decay)
     if cfg.schedule == "linear":
         return optax.linear_schedule(scale, cfg.final, transition_steps=max(epochs - 1, 1))
-    return lambda epoch: cfg.final + (scale - cfg.final) * optax.cosine_decay_schedule(
-        1.0, decay_steps=max(epochs - 1, 1)
-    )(epoch)
+    return lambda epoch: (
+        cfg.final
+        + (scale - cfg.final)
+        * optax.cosine_decay_schedule(1.0, decay_steps=max(epochs - 1, 1))(epoch)
+    )

@@ -18,12 +18,19 @@ def learning_curves(histories: dict[str, dict]) -> plt.Figure:
         for ax, key in zip(axes, ("return", "loss", "step_size")):
             values = np.asarray(h[key], dtype=float)
             epochs = np.arange(values.shape[1])
-            line, = ax.plot(epochs, values.mean(0), label=method)
+            (line,) = ax.plot(epochs, values.mean(0), label=method)
             if values.shape[0] > 1:
-                ax.fill_between(epochs, values.min(0), values.max(0), alpha=0.2, color=line.get_color())
+                ax.fill_between(
+                    epochs, values.min(0), values.max(0), alpha=0.2, color=line.get_color()
+                )
             ax.set_xlabel("epoch")
-            ax.set_title({"return": "return on the simulator", "loss": "regression loss",
-                          "step_size": "action step size"}[key])
+            ax.set_title(
+                {
+                    "return": "return on the simulator",
+                    "loss": "regression loss",
+                    "step_size": "action step size",
+                }[key]
+            )
     axes[1].set_yscale("log")
     axes[0].legend()
     fig.tight_layout()
@@ -35,7 +42,10 @@ def sim_vs_real(rows: list[dict]) -> plt.Figure:
     methods = list(dict.fromkeys(r["method"] for r in rows))
     fig, ax = plt.subplots(figsize=(1.8 + 1.6 * len(methods), 3.6))
     x = np.arange(len(methods))
-    for offset, key, label in ((-0.18, "sim_return", "simulator"), (0.18, "real_return", "real plant")):
+    for offset, key, label in (
+        (-0.18, "sim_return", "simulator"),
+        (0.18, "real_return", "real plant"),
+    ):
         vals = [[r[key] for r in rows if r["method"] == m] for m in methods]
         ax.bar(x + offset, [np.mean(v) for v in vals], width=0.34, label=label, alpha=0.8)
         for i, v in enumerate(vals):
@@ -53,11 +63,13 @@ def gap_vs_friction(summary: list[dict]) -> plt.Figure:
     interval over seeds (entries of hds.report.aggregate)."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
     for method in dict.fromkeys(e["method"] for e in summary):
-        entries = sorted((e for e in summary if e["method"] == method), key=lambda e: e["friction_gap"])
+        entries = sorted(
+            (e for e in summary if e["method"] == method), key=lambda e: e["friction_gap"]
+        )
         x = [e["friction_gap"] for e in entries]
         for ax, key in zip(axes, ("real_return", "gap")):
             mean, lo, hi = (np.array([e[key][i] for e in entries]) for i in range(3))
-            line, = ax.plot(x, mean, "o-", label=method)
+            (line,) = ax.plot(x, mean, "o-", label=method)
             ax.fill_between(x, lo, hi, alpha=0.2, color=line.get_color())
     axes[0].set_title("return on the real plant")
     axes[1].set_title("sim2real gap (sim - real)")

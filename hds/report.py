@@ -23,7 +23,16 @@ from scipy import stats
 from hds import plots
 from hds.utils.io import atomic_write_bytes, read_json
 
-COLUMNS = ("method", "friction_gap", "seed", "sim_return", "real_return", "gap", "gap_relative", "job")
+COLUMNS = (
+    "method",
+    "friction_gap",
+    "seed",
+    "sim_return",
+    "real_return",
+    "gap",
+    "gap_relative",
+    "job",
+)
 
 
 def collect_rows(root: Path) -> tuple[list[dict], dict[str, dict]]:
@@ -62,7 +71,9 @@ def aggregate(rows: list[dict]) -> list[dict]:
     for r in rows:
         groups[(r["method"], r["friction_gap"])].append(r)
     out = []
-    for (method, gap), group in sorted(groups.items(), key=lambda kv: (str(kv[0][0]), kv[0][1] or 0)):
+    for (method, gap), group in sorted(
+        groups.items(), key=lambda kv: (str(kv[0][0]), kv[0][1] or 0)
+    ):
         entry = {"method": method, "friction_gap": gap, "runs": len(group)}
         for key in ("sim_return", "real_return", "gap"):
             entry[key] = mean_ci([r[key] for r in group])
@@ -71,12 +82,16 @@ def aggregate(rows: list[dict]) -> list[dict]:
 
 
 def markdown_table(summary: list[dict]) -> str:
-    lines = ["| method | friction gap | runs | sim return | real return | sim2real gap |",
-             "| --- | ---: | ---: | ---: | ---: | ---: |"]
+    lines = [
+        "| method | friction gap | runs | sim return | real return | sim2real gap |",
+        "| --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
     fmt = lambda m, lo, hi: f"{m:.1f} [{lo:.1f}, {hi:.1f}]"  # noqa: E731
     for e in summary:
-        lines.append(f"| {e['method']} | {e['friction_gap']} | {e['runs']} | {fmt(*e['sim_return'])} "
-                     f"| {fmt(*e['real_return'])} | {fmt(*e['gap'])} |")
+        lines.append(
+            f"| {e['method']} | {e['friction_gap']} | {e['runs']} | {fmt(*e['sim_return'])} "
+            f"| {fmt(*e['real_return'])} | {fmt(*e['gap'])} |"
+        )
     return "\n".join(lines)
 
 
@@ -94,9 +109,14 @@ def discovery_sections(root: Path) -> list[str]:
         found = read_json(path).get("missing_effects", [])
         names = ", ".join(f"{e['name']}@{e['target']}" for e in found) or "none"
         rel = path.parent.relative_to(root)
-        images = [f"![{p.stem}]({rel / 'plots' / p.name})" for p in sorted((path.parent / "plots").glob("*.png"))]
-        sections.append(f"### Gap discovery: {rel}\n\nMissing effects named: {names}. "
-                        f"Full report: [{rel / 'report.md'}]({rel / 'report.md'})\n\n" + "\n".join(images))
+        images = [
+            f"![{p.stem}]({rel / 'plots' / p.name})"
+            for p in sorted((path.parent / "plots").glob("*.png"))
+        ]
+        sections.append(
+            f"### Gap discovery: {rel}\n\nMissing effects named: {names}. "
+            f"Full report: [{rel / 'report.md'}]({rel / 'report.md'})\n\n" + "\n".join(images)
+        )
     return sections
 
 
@@ -106,16 +126,25 @@ def build(root: str | Path) -> Path:
         raise FileNotFoundError(f"{root} is not a directory; give a run or sweep directory")
     rows, histories = collect_rows(root)
     summary = aggregate(rows)
-    figures = {"report_learning_curves": plots.learning_curves(histories),
-               "report_sim_vs_real": plots.sim_vs_real(rows)}
+    figures = {
+        "report_learning_curves": plots.learning_curves(histories),
+        "report_sim_vs_real": plots.sim_vs_real(rows),
+    }
     if len({r["friction_gap"] for r in rows}) > 1:
         figures["report_gap_vs_friction"] = plots.gap_vs_friction(summary)
     for name, fig in figures.items():
         plots.save(fig, root / "plots" / f"{name}.png")
     write_csv(rows, root / "report.csv")
-    text = [f"# Report: {root.name}", "",
-            "Mean and 95% interval over seeds. gap = return on the simulator - return on the real plant.",
-            "", markdown_table(summary), "", "One row per seed: [report.csv](report.csv).", ""]
+    text = [
+        f"# Report: {root.name}",
+        "",
+        "Mean and 95% interval over seeds. gap = return on the simulator - on the real plant.",
+        "",
+        markdown_table(summary),
+        "",
+        "One row per seed: [report.csv](report.csv).",
+        "",
+    ]
     text += [f"![{name}](plots/{name}.png)" for name in figures]
     text += [""] + discovery_sections(root)
     path = atomic_write_bytes(root / "report.md", ("\n".join(text) + "\n").encode())
@@ -123,9 +152,13 @@ def build(root: str | Path) -> Path:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m hds.report", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m hds.report", description=__doc__.splitlines()[0]
+    )
     parser.add_argument("directory", help="a run or sweep directory written by python -m hds.run")
-    parser.add_argument("--gif", action="store_true", help="also animate one episode, sim beside real")
+    parser.add_argument(
+        "--gif", action="store_true", help="also animate one episode, sim beside real"
+    )
     args = parser.parse_args(argv)
     path = build(args.directory)
     print(f"wrote {path}")
@@ -133,8 +166,11 @@ def main(argv=None) -> None:
         from hds.animate import animate_run
 
         root = Path(args.directory)
-        runs = [root] if (root / "config.yaml").is_file() else sorted(
-            p.parent for p in root.glob("*/config.yaml"))
+        runs = (
+            [root]
+            if (root / "config.yaml").is_file()
+            else sorted(p.parent for p in root.glob("*/config.yaml"))
+        )
         if not runs:
             raise FileNotFoundError(f"no run directory (with config.yaml) in {root} to animate")
         print(f"wrote {animate_run(runs[0])}")

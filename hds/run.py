@@ -89,7 +89,9 @@ def train(cfg: Config, env, out_dir: Path, method: str, model=None, effects=None
         history = {k: [list(map(float, row)) for row in v] for k, v in meta["history"].items()}
         log.info("resuming %s from epoch %d", method, int(state.epoch[0]))
     first = int(state.epoch[0])
-    logger = RunLogger(cfg, out_dir, method, cfg.algo.epochs, first) if first < cfg.algo.epochs else None
+    logger = (
+        RunLogger(cfg, out_dir, method, cfg.algo.epochs, first) if first < cfg.algo.epochs else None
+    )
     start = time.perf_counter()
     while int(state.epoch[0]) < cfg.algo.epochs:
         t0 = time.perf_counter()
@@ -138,27 +140,41 @@ def run(cfg: Config, out_dir: Path) -> dict:
     methods = [(cfg.algo.name, env, model, None)]
     if cfg.oracle and cfg.real.plant == "brax":
         # The same algorithm trained on the real dynamics (friction smoothed to differentiate).
-        oracle = make_env(cfg.env, effects=list(cfg.real.effects), friction_gap=cfg.real.friction_gap)
+        oracle = make_env(
+            cfg.env, effects=list(cfg.real.effects), friction_gap=cfg.real.friction_gap
+        )
         methods.append(("oracle", oracle, None, None))
 
     rows, histories, timings = [], {}, {}
     for method, train_env, method_model, effects in methods:
-        params, history, timing, logger, trainer = train(cfg, train_env, out_dir, method,
-                                                         method_model, effects)
+        params, history, timing, logger, trainer = train(
+            cfg, train_env, out_dir, method, method_model, effects
+        )
         evaluator = Evaluator(env, trainer.policy, plant, cfg.eval_episodes, cfg.seed + 10_000)
-        method_rows = gap_rows(method, batch_of(cfg), evaluator.sim_returns(params),
-                               evaluator.real_returns(params))
+        method_rows = gap_rows(
+            method, batch_of(cfg), evaluator.sim_returns(params), evaluator.real_returns(params)
+        )
         rows += method_rows
         histories[method], timings[method] = history, timing
         if logger:
-            logger.finish(method_rows, {"learning_curves": plots.learning_curves({method: history})})
+            logger.finish(
+                method_rows, {"learning_curves": plots.learning_curves({method: history})}
+            )
 
-    print_table(rows, title=f"{cfg.name}: return on the simulator and on the {cfg.real.plant} plant")
-    figures = {"learning_curves": plots.learning_curves(histories), "sim_vs_real": plots.sim_vs_real(rows)}
+    print_table(
+        rows, title=f"{cfg.name}: return on the simulator and on the {cfg.real.plant} plant"
+    )
+    figures = {
+        "learning_curves": plots.learning_curves(histories),
+        "sim_vs_real": plots.sim_vs_real(rows),
+    }
     for name, fig in figures.items():
         plots.save(fig, out_dir / "plots" / f"{name}.png")
     summary = {
-        "name": cfg.name, "rows": rows, "timing": timings, "dynamics": model_report,
+        "name": cfg.name,
+        "rows": rows,
+        "timing": timings,
+        "dynamics": model_report,
         "real": {"plant": cfg.real.plant, "friction_gap": cfg.real.friction_gap},
         "history": histories,
     }

@@ -23,10 +23,13 @@ CONF = ROOT / "conf"
 SHARED = ROOT.parent / "shared"
 
 
-def make_config(*overrides: str):
-    """Compose conf/config.yaml with overrides and validate it, as `python -m hds.run` does."""
+def make_config(*overrides: str, config_name: str = "config"):
+    """Compose a primary config (conf/config.yaml: `python -m hds.run`; conf/discover.yaml:
+    `python -m hds.discover`) with overrides and validate it, as the command does."""
+    if config_name == "discover":
+        import hds.discover.config  # noqa: F401  (registers discover's schema)
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return validate(compose("config", overrides=list(overrides)))
+        return validate(compose(config_name, overrides=list(overrides)))
 
 
 @pytest.fixture(scope="session")

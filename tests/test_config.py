@@ -1,4 +1,4 @@
-"""Config composition: every group option and experiment composes; bad values fail before compiling."""
+"""Config composition: every option and experiment composes; bad values fail before compiling."""
 
 from __future__ import annotations
 
@@ -13,16 +13,18 @@ def options(group: str) -> list[str]:
     return sorted(p.stem for p in (CONF / group).glob("*.yaml"))
 
 
-@pytest.mark.parametrize(
-    "group", ["env", "real", "algo", "noise", "anneal", "dynamics", "logger"]
-)
+@pytest.mark.parametrize("group", ["env", "real", "algo", "noise", "anneal", "dynamics", "logger"])
 def test_every_option_composes(group):
     for option in options(group):
         overrides = [f"{group}={option}"]
         if (group, option) == ("env", "custom"):
             overrides += [
-                "env.xml=pendulum.xml", "env.task.q_mean=[0]", "env.task.q_spread=[0.1]",
-                "env.task.qd_spread=[0]", "env.task.q_target=[0]", "env.task.q_weight=[1]",
+                "env.xml=pendulum.xml",
+                "env.task.q_mean=[0]",
+                "env.task.q_spread=[0.1]",
+                "env.task.qd_spread=[0]",
+                "env.task.q_target=[0]",
+                "env.task.q_weight=[1]",
                 "env.task.qd_weight=[0]",
             ]
         cfg = make_config(*overrides)
@@ -31,7 +33,10 @@ def test_every_option_composes(group):
 
 @pytest.mark.parametrize("experiment", options("experiment"))
 def test_every_experiment_composes(experiment):
-    cfg = make_config(f"+experiment={experiment}")
+    """Each experiment with the command it names: hds.discover's or hds.run's config."""
+    text = (CONF / "experiment" / f"{experiment}.yaml").read_text()
+    config_name = "discover" if "python -m hds.discover" in text else "config"
+    cfg = make_config(f"+experiment={experiment}", config_name=config_name)
     assert cfg.name
 
 
@@ -41,7 +46,10 @@ def test_every_experiment_composes(experiment):
         ("real.friction_gap=-1", "real.friction_gap = -1.0 is out of range"),
         ("noise.decay=1.5", "noise.decay = 1.5 is out of range"),
         ("dynamics.beta=2", "dynamics.beta = 2.0 is out of range"),
-        ("env.backend=bullet", "choose one of ['generalized', 'spring', 'positional', 'mjx', 'analytic']"),
+        (
+            "env.backend=bullet",
+            "choose one of ['generalized', 'spring', 'positional', 'mjx', 'analytic']",
+        ),
         ("algo.order=third", "algo.order = 'third' is not allowed"),
         ("real.effects=[{name: ice, target: slider}]", "unknown effect 'ice'; the library has"),
         (

@@ -73,21 +73,29 @@ def test_csv_layout_follows_the_contract(tmp_path):
     assert lines[0] == "episode,t,q_slider,q_hinge,qd_slider,qd_hinge,u_slide"
     assert len(lines) == 1 + 2 * 3  # T+1 rows per episode
     rows = [line.split(",") for line in lines[1:]]
-    assert [r[:2] for r in rows] == [["0", "0.0"], ["0", "0.5"], ["0", "1.0"],
-                                    ["1", "0.0"], ["1", "0.5"], ["1", "1.0"]]
+    assert [r[:2] for r in rows] == [
+        ["0", "0.0"],
+        ["0", "0.5"],
+        ["0", "1.0"],
+        ["1", "0.0"],
+        ["1", "0.5"],
+        ["1", "1.0"],
+    ]
     assert [r[-1] == "" for r in rows] == [False, False, True] * 2  # last row: no action
     assert float(rows[1][-1]) == data.actions[0, 1, 0]
 
 
 def test_csv_from_a_logger_reads(tmp_path):
     """A hand-written file: string episode labels, t not from zero, spaces, a trailing newline."""
-    text = ("episode,t,q_slider,q_hinge,qd_slider,qd_hinge,u_slide\n"
-            "run_a, 10.00, 0, 0.1, 0, 0, 1.5\n"
-            "run_a, 10.04, 0, 0.2, 0, 0, -1\n"
-            "run_a, 10.08, 0, 0.3, 0, 0,\n"
-            "run_b, 0.00, 1, 0.1, 0, 0, 0\n"
-            "run_b, 0.04, 1, 0.2, 0, 0, 2\n"
-            "run_b, 0.08, 1, nan, 0, 0,\n\n")
+    text = (
+        "episode,t,q_slider,q_hinge,qd_slider,qd_hinge,u_slide\n"
+        "run_a, 10.00, 0, 0.1, 0, 0, 1.5\n"
+        "run_a, 10.04, 0, 0.2, 0, 0, -1\n"
+        "run_a, 10.08, 0, 0.3, 0, 0,\n"
+        "run_b, 0.00, 1, 0.1, 0, 0, 0\n"
+        "run_b, 0.04, 1, 0.2, 0, 0, 2\n"
+        "run_b, 0.08, 1, nan, 0, 0,\n\n"
+    )
     (tmp_path / "log.csv").write_text(text)
     data = load(tmp_path / "log.csv")
     assert data.obs.shape == (2, 3, 4) and data.actions.shape == (2, 2, 1)
@@ -140,29 +148,41 @@ def _with(array, index, value):
 
 BASE = make_dataset()
 BAD_DATASETS = {
-    "obs_dims": (_bad(obs=BASE.obs[..., :3], obs_names=None), ["3 observed variables",
-                                                             "needs 4", "q_slider"]),
-    "act_dims": (_bad(actions=np.zeros((E, T, 2)), action_names=None), ["2 actions", "needs 1",
-                                                                        "slide"]),
+    "obs_dims": (
+        _bad(obs=BASE.obs[..., :3], obs_names=None),
+        ["3 observed variables", "needs 4", "q_slider"],
+    ),
+    "act_dims": (
+        _bad(actions=np.zeros((E, T, 2)), action_names=None),
+        ["2 actions", "needs 1", "slide"],
+    ),
     "obs_2d": (_bad(obs=BASE.obs[0]), ["3 dimensions", "episode axis"]),
     "act_2d": (_bad(actions=BASE.actions[..., 0]), ["[episodes, T, n_act]"]),
     "t_mismatch": (_bad(actions=np.zeros((E, T + 1, 1))), ["off-by-one", f"need {T + 2} steps"]),
     "episodes": (_bad(actions=np.zeros((E - 1, T, 1))), [f"{E} episodes", f"{E - 1}"]),
     "empty": (_bad(obs=np.zeros((0, T + 1, 4)), actions=np.zeros((0, T, 1))), ["empty"]),
     "no_step": (_bad(obs=BASE.obs[:, :1], actions=BASE.actions[:, :0]), ["empty", "T = 0"]),
-    "nan_obs": (_bad(obs=_with(BASE.obs, (1, 5, 1), np.nan)),
-                ["NaN or inf", "nan at episode 1, step 5, observation 'q_hinge'"]),
-    "inf_act": (_bad(actions=_with(BASE.actions, (2, 7, 0), -np.inf)),
-                ["-inf at episode 2, step 7, action 'slide'"]),
+    "nan_obs": (
+        _bad(obs=_with(BASE.obs, (1, 5, 1), np.nan)),
+        ["NaN or inf", "nan at episode 1, step 5, observation 'q_hinge'"],
+    ),
+    "inf_act": (
+        _bad(actions=_with(BASE.actions, (2, 7, 0), -np.inf)),
+        ["-inf at episode 2, step 7, action 'slide'"],
+    ),
     "dt_zero": (_bad(dt=0.0), ["dt = 0.0", "positive"]),
     "dt_negative": (_bad(dt=-0.04), ["positive"]),
     "dt_nan": (_bad(dt=float("nan")), ["positive"]),
     "dt_1.5": (_bad(dt=0.03), ["not an integer multiple", "timestep 0.02 s", "1.5"]),
     "dt_small": (_bad(dt=0.01), ["not an integer multiple", "0.5"]),
-    "names_wrong": (_bad(obs_names=("x", "theta", "x_dot", "theta_dot")),
-                    ["do not match", "q_slider", "'x'", "rename"]),
-    "names_order": (_bad(obs_names=("q_hinge", "q_slider", "qd_slider", "qd_hinge")),
-                    ["another order", "reorder"]),
+    "names_wrong": (
+        _bad(obs_names=("x", "theta", "x_dot", "theta_dot")),
+        ["do not match", "q_slider", "'x'", "rename"],
+    ),
+    "names_order": (
+        _bad(obs_names=("q_hinge", "q_slider", "qd_slider", "qd_hinge")),
+        ["another order", "reorder"],
+    ),
     "action_name": (_bad(action_names=("force",)), ["action_names", "'force'", "slide"]),
     "names_count": (_bad(obs_names=OBS[:3]), ["3 names", "4 variables"]),
     "names_dup": (_bad(obs_names=(*OBS[:3], "q_slider")), ["repeats", "q_slider"]),
@@ -209,7 +229,7 @@ def _flip(tmp_path):
     path = save(make_dataset(), tmp_path / "d.npz")
     raw = bytearray(path.read_bytes())
     mid = len(raw) // 2
-    raw[mid:mid + 16] = bytes(16)
+    raw[mid : mid + 16] = bytes(16)
     path.write_bytes(bytes(raw))
     return path
 
@@ -222,7 +242,7 @@ def _write(path, raw: bytes):
 def _replace_cell(lines, line, column, value):
     cells = lines[line].rstrip("\n").split(",")
     cells[column] = value
-    return [*lines[:line], ",".join(cells) + "\n", *lines[line + 1:]]
+    return [*lines[:line], ",".join(cells) + "\n", *lines[line + 1 :]]
 
 
 BAD_FILES = {
@@ -232,52 +252,85 @@ BAD_FILES = {
     "npz_cut": (lambda p: _cut(p, 0.6, "npz"), ["truncated or corrupt"]),
     "npz_cut_early": (lambda p: _cut(p, 0.05, "npz"), ["truncated or corrupt"]),
     "npz_flipped": (_flip, ["truncated or corrupt"]),
-    "npz_not_zip": (lambda p: _write(p / "d.npz", b"obs,actions\n1,2\n"),
-                    ["truncated or corrupt"]),
-    "npz_missing_key": (lambda p: _npz(p, obs=GOOD["obs"], dt=0.04),
-                        ["lacks the key(s) ['actions']", "obs [E, T+1, n_obs]"]),
-    "npz_objects": (lambda p: _npz(p, **{**GOOD, "obs_names": np.array([1, "a", None],
-                                                                       dtype=object)}),
-                    ["Python objects"]),
-    "npz_t_mismatch": (lambda p: _npz(p, **{**GOOD, "actions": np.zeros((2, 4, 1))}),
-                       ["off-by-one", "d.npz"]),
+    "npz_not_zip": (lambda p: _write(p / "d.npz", b"obs,actions\n1,2\n"), ["truncated or corrupt"]),
+    "npz_missing_key": (
+        lambda p: _npz(p, obs=GOOD["obs"], dt=0.04),
+        ["lacks the key(s) ['actions']", "obs [E, T+1, n_obs]"],
+    ),
+    "npz_objects": (
+        lambda p: _npz(p, **{**GOOD, "obs_names": np.array([1, "a", None], dtype=object)}),
+        ["Python objects"],
+    ),
+    "npz_t_mismatch": (
+        lambda p: _npz(p, **{**GOOD, "actions": np.zeros((2, 4, 1))}),
+        ["off-by-one", "d.npz"],
+    ),
     "npz_dt_shape": (lambda p: _npz(p, **{**GOOD, "dt": [0.04, 0.04]}), ["dt has shape (2,)"]),
-    "npz_text_obs": (lambda p: _npz(p, **{**GOOD, "obs": np.full((2, 4, 4), "a")}),
-                     ["'obs' has dtype", "real numbers"]),
-    "npz_names_2d": (lambda p: _npz(p, **{**GOOD, "obs_names": np.array([["a", "b"]] * 2)}),
-                     ["'obs_names' must be a 1-D array of str"]),
+    "npz_text_obs": (
+        lambda p: _npz(p, **{**GOOD, "obs": np.full((2, 4, 4), "a")}),
+        ["'obs' has dtype", "real numbers"],
+    ),
+    "npz_names_2d": (
+        lambda p: _npz(p, **{**GOOD, "obs_names": np.array([["a", "b"]] * 2)}),
+        ["'obs_names' must be a 1-D array of str"],
+    ),
     "csv_cut_mid_row": (lambda p: _cut(p, 0.5, "csv"), ["ragged row", "truncated or corrupt"]),
-    "csv_cut_at_row": (lambda p: _csv(p, lambda ls: ls[:-1]),
-                       ["episode '1' has 3 rows", "same number of rows"]),
-    "csv_ragged": (lambda p: _csv(p, lambda ls: [*ls[:3], ls[3].rstrip("\n") + ",7\n", *ls[4:]]),
-                   ["line 4", "8 fields", "header has 7"]),
+    "csv_cut_at_row": (
+        lambda p: _csv(p, lambda ls: ls[:-1]),
+        ["episode '1' has 3 rows", "same number of rows"],
+    ),
+    "csv_ragged": (
+        lambda p: _csv(p, lambda ls: [*ls[:3], ls[3].rstrip("\n") + ",7\n", *ls[4:]]),
+        ["line 4", "8 fields", "header has 7"],
+    ),
     "csv_header_only": (lambda p: _csv(p, lambda ls: ls[:1]), ["no data rows"]),
-    "csv_no_actions": (lambda p: _csv(p, lambda ls: [ls[0].replace("u_slide", "slide"),
-                                                     *ls[1:]]),
-                       ["no action column", "u_"]),
-    "csv_obs_after_action": (lambda p: _csv(p, lambda ls: [ls[0].replace(
-        "qd_hinge,u_slide", "u_slide,qd_hinge"), *ls[1:]]),
-        ["['qd_hinge'] come after action columns"]),
-    "csv_no_t": (lambda p: _csv(p, lambda ls: [ls[0].replace("episode,t", "ep,time"), *ls[1:]]),
-                 ["starts with the columns episode,t"]),
-    "csv_text_cell": (lambda p: _csv(p, lambda ls: _replace_cell(ls, 2, 3, "1.2.3")),
-                      ["line 3", "column 'q_hinge'", "'1.2.3'", "not a number"]),
-    "csv_empty_cell": (lambda p: _csv(p, lambda ls: _replace_cell(ls, 2, 4, "")),
-                       ["line 3", "column 'qd_slider' is empty"]),
-    "csv_missing_action": (lambda p: _csv(p, lambda ls: _replace_cell(ls, 1, 6, "")),
-                           ["line 2", "column 'u_slide' is empty"]),
-    "csv_last_row_action": (lambda p: _csv(p, lambda ls: _replace_cell(ls, 4, 6, "0.5")),
-                            ["line 5", "last row of episode '0' has action values", "empty"]),
-    "csv_uneven_t": (lambda p: _csv(p, lambda ls: _replace_cell(ls, 6, 1, "0.05")),
-                     ["not evenly spaced", "episode '1'", "resample"]),
-    "csv_t_flat": (lambda p: _csv(p, lambda ls: _replace_cell(ls, 2, 1, "0.0")),
-                   ["t must be finite and increase"]),
-    "csv_interleaved": (lambda p: _csv(p, lambda ls: [ls[0], ls[1], ls[5], *ls[2:5], *ls[6:]]),
-                        ["episode '0' are not consecutive", "sort the file"]),
-    "csv_single_row": (lambda p: _csv(p, lambda ls: [ls[0], ls[4], ls[8]]),
-                       ["single row"]),
-    "csv_binary": (lambda p: _write(p / "d.csv", b"\xff\xfe\x00\x81 not text"),
-                   ["not a readable CSV"]),
+    "csv_no_actions": (
+        lambda p: _csv(p, lambda ls: [ls[0].replace("u_slide", "slide"), *ls[1:]]),
+        ["no action column", "u_"],
+    ),
+    "csv_obs_after_action": (
+        lambda p: _csv(
+            p, lambda ls: [ls[0].replace("qd_hinge,u_slide", "u_slide,qd_hinge"), *ls[1:]]
+        ),
+        ["['qd_hinge'] come after action columns"],
+    ),
+    "csv_no_t": (
+        lambda p: _csv(p, lambda ls: [ls[0].replace("episode,t", "ep,time"), *ls[1:]]),
+        ["starts with the columns episode,t"],
+    ),
+    "csv_text_cell": (
+        lambda p: _csv(p, lambda ls: _replace_cell(ls, 2, 3, "1.2.3")),
+        ["line 3", "column 'q_hinge'", "'1.2.3'", "not a number"],
+    ),
+    "csv_empty_cell": (
+        lambda p: _csv(p, lambda ls: _replace_cell(ls, 2, 4, "")),
+        ["line 3", "column 'qd_slider' is empty"],
+    ),
+    "csv_missing_action": (
+        lambda p: _csv(p, lambda ls: _replace_cell(ls, 1, 6, "")),
+        ["line 2", "column 'u_slide' is empty"],
+    ),
+    "csv_last_row_action": (
+        lambda p: _csv(p, lambda ls: _replace_cell(ls, 4, 6, "0.5")),
+        ["line 5", "last row of episode '0' has action values", "empty"],
+    ),
+    "csv_uneven_t": (
+        lambda p: _csv(p, lambda ls: _replace_cell(ls, 6, 1, "0.05")),
+        ["not evenly spaced", "episode '1'", "resample"],
+    ),
+    "csv_t_flat": (
+        lambda p: _csv(p, lambda ls: _replace_cell(ls, 2, 1, "0.0")),
+        ["t must be finite and increase"],
+    ),
+    "csv_interleaved": (
+        lambda p: _csv(p, lambda ls: [ls[0], ls[1], ls[5], *ls[2:5], *ls[6:]]),
+        ["episode '0' are not consecutive", "sort the file"],
+    ),
+    "csv_single_row": (lambda p: _csv(p, lambda ls: [ls[0], ls[4], ls[8]]), ["single row"]),
+    "csv_binary": (
+        lambda p: _write(p / "d.csv", b"\xff\xfe\x00\x81 not text"),
+        ["not a readable CSV"],
+    ),
     "extension": (lambda p: p / "d.parquet", ["unknown dataset format '.parquet'", ".npz"]),
 }
 
@@ -358,7 +411,7 @@ def test_prbs_is_a_maximum_length_binary_sequence():
     assert set(np.unique(u)) == {-2.0, 4.0}
     bits = u[:, ::2] > 1.0  # one bit per 2 steps
     period = 2**6 - 1
-    np.testing.assert_array_equal(bits[:, :period], bits[:, period:2 * period])
+    np.testing.assert_array_equal(bits[:, :period], bits[:, period : 2 * period])
     assert (bits[:, :period].sum(1) == 2**5).all()  # m-sequence balance
     for order in (3, 5, 8, 11):
         start = np.zeros((1, order), dtype=np.uint8)
@@ -366,7 +419,7 @@ def test_prbs_is_a_maximum_length_binary_sequence():
         seq = lfsr_bits(order, start, 2 * (2**order - 1))[0]
         p = 2**order - 1
         np.testing.assert_array_equal(seq[:p], seq[p:])
-        assert all(not np.array_equal(seq[:p - k], seq[k:p]) for k in (1, 2, 3, p // 2))
+        assert all(not np.array_equal(seq[: p - k], seq[k:p]) for k in (1, 2, 3, p // 2))
     assert len(LFSR_TAPS) >= 10
 
 

@@ -22,13 +22,25 @@ from tests.conftest import make_config
 
 # The analytic backend (MuJoCo-exact cart-pole, compiles in seconds); the models do not depend
 # on the backend (the residual one on generalized was checked once: 210 s to compile the trainer).
-SMALL = ("env.backend=analytic", "dynamics.hidden=[64,64]", "dynamics.epochs=300",
-         "dynamics.minibatch=64", "dynamics.ensemble_size=3", "dynamics.episodes=32",
-         "dynamics.horizon=50",
-         "dynamics.eval_steps=[1,10,25]", "dynamics.beta=0.5", "dynamics.model=mlp",
-         # the trainer, for the one HDS test: tiny
-         "algo.epochs=2", "algo.chunk=2", "algo.rollouts=4", "env.task.horizon=10",
-         "algo.inner_epochs=1", "logger=none")
+SMALL = (
+    "env.backend=analytic",
+    "dynamics.hidden=[64,64]",
+    "dynamics.epochs=300",
+    "dynamics.minibatch=64",
+    "dynamics.ensemble_size=3",
+    "dynamics.episodes=32",
+    "dynamics.horizon=50",
+    "dynamics.eval_steps=[1,10,25]",
+    "dynamics.beta=0.5",
+    "dynamics.model=mlp",
+    # the trainer, for the one HDS test: tiny
+    "algo.epochs=2",
+    "algo.chunk=2",
+    "algo.rollouts=4",
+    "env.task.horizon=10",
+    "algo.inner_epochs=1",
+    "logger=none",
+)
 FRICTION = [EffectConfig("coulomb_friction", "slider", {"force": 20.0})]
 KS = (1, 10, 25)
 
@@ -41,8 +53,9 @@ def setup():
     env = make_env(cfg.env)
     plant = BraxPlant(make_env(cfg.env, effects=FRICTION, sharpness=None))
     train = dynamics.collect_data(cfg.dynamics, env, plant, jax.random.PRNGKey(0))
-    test = dynamics.collect_data(replace(cfg.dynamics, episodes=8), env, plant,
-                                 jax.random.PRNGKey(1))
+    test = dynamics.collect_data(
+        replace(cfg.dynamics, episodes=8), env, plant, jax.random.PRNGKey(1)
+    )
     return cfg, env, plant, train, test
 
 
@@ -64,8 +77,9 @@ def fitted(setup, tmp_path_factory):
             obs = np.concatenate([train.obs, train.obs[:1]])
             obs[-1, 5, 1] = np.nan  # one broken episode: dropped, not fitted on
             actions = np.concatenate([train.actions, train.actions[:1]])
-            cache[kind] = dynamics.fit(dcfg, env, obs, actions, jax.random.PRNGKey(3),
-                                       compare_simulator=False)
+            cache[kind] = dynamics.fit(
+                dcfg, env, obs, actions, jax.random.PRNGKey(3), compare_simulator=False
+            )
         else:
             cache[kind] = dynamics.fit(dcfg, env, train, key=jax.random.PRNGKey(4))
         return cache[kind]
@@ -105,9 +119,11 @@ def test_residual_with_zero_correction_is_the_simulator(setup):
     key = jax.random.PRNGKey(5)
     actions = jax.random.uniform(key, (20, 1), minval=-1.0, maxval=1.0)
     sim_states, sim_rewards = jax.jit(
-        lambda a: trajectory(env, env.params, env.task, env.reset(key), a))(actions)
+        lambda a: trajectory(env, env.params, env.task, env.reset(key), a)
+    )(actions)
     model_states, model_rewards = jax.jit(
-        lambda a: trajectory(model, None, env.task, model.reset(key), a))(actions)
+        lambda a: trajectory(model, None, env.task, model.reset(key), a)
+    )(actions)
     np.testing.assert_allclose(model_states, sim_states, atol=2e-4, rtol=1e-4)
     np.testing.assert_allclose(model_rewards, sim_rewards, atol=1e-3, rtol=1e-4)
 
@@ -150,8 +166,19 @@ def test_training_skips_non_finite_minibatches_and_keeps_the_best():
     y[::50] = np.nan  # 6 bad rows: about one minibatch in five holds one
     net = MLP((16,), 1)
     params = init_params(net, jax.random.PRNGKey(0), 3, 2)
-    best, info = train_members(net, params, x, y, x_val, y_val, jax.random.split(
-        jax.random.PRNGKey(1), 2), learning_rate=1e-2, minibatch=32, epochs=40, patience=40)
+    best, info = train_members(
+        net,
+        params,
+        x,
+        y,
+        x_val,
+        y_val,
+        jax.random.split(jax.random.PRNGKey(1), 2),
+        learning_rate=1e-2,
+        minibatch=32,
+        epochs=40,
+        patience=40,
+    )
     assert all(bool(jnp.all(jnp.isfinite(a))) for a in jax.tree.leaves(best))
     history = np.asarray(info["history"])  # [members, epochs, (train, val)]
     assert np.all(np.isfinite(history[..., 1]))
@@ -171,17 +198,22 @@ def test_save_load_round_trip_predicts_identically(setup, fitted, tmp_path, kind
         path = dynamics.save(tmp_path / kind, model, replace(cfg.dynamics, model=kind), report)
     loaded = dynamics.load(path, env)
     assert loaded.kind == kind and loaded.members == model.members
-    for a, b in zip(jax.tree.leaves((model.params, model.norm)),
-                    jax.tree.leaves((loaded.params, loaded.norm)), strict=True):
+    for a, b in zip(
+        jax.tree.leaves((model.params, model.norm)),
+        jax.tree.leaves((loaded.params, loaded.norm)),
+        strict=True,
+    ):
         np.testing.assert_array_equal(a, b)
     o = jnp.asarray(test.obs[:2, :-1].reshape(-1, 4), jnp.float32)
     u = jnp.asarray(test.actions[:2].reshape(-1, 1), jnp.float32)
     # the network's output (for residual, the simulator's step is added to it: same env)
-    np.testing.assert_array_equal(np.asarray(jax.vmap(loaded.deltas)(o, u)),
-                                  np.asarray(jax.vmap(model.deltas)(o, u)))
+    np.testing.assert_array_equal(
+        np.asarray(jax.vmap(loaded.deltas)(o, u)), np.asarray(jax.vmap(model.deltas)(o, u))
+    )
     if kind != "residual":  # the whole step (eagerly: cheap without a simulator in it)
-        np.testing.assert_array_equal(np.asarray(jax.vmap(loaded.predict)(o, u)),
-                                      np.asarray(jax.vmap(model.predict)(o, u)))
+        np.testing.assert_array_equal(
+            np.asarray(jax.vmap(loaded.predict)(o, u)), np.asarray(jax.vmap(model.predict)(o, u))
+        )
     meta = dynamics.read_meta(path)
     assert meta["config"]["model"] == kind
     assert meta["report"]["multistep"] == report["multistep"]
@@ -190,8 +222,9 @@ def test_save_load_round_trip_predicts_identically(setup, fitted, tmp_path, kind
 def test_build_reuses_a_saved_model_by_path(setup, fitted):
     cfg, env, *_ = setup
     _, report = fitted("mlp")
-    model, again = dynamics.build(replace(cfg.dynamics, path=report["path"]), env, None,
-                                  jax.random.PRNGKey(0), "/nonexistent")
+    model, again = dynamics.build(
+        replace(cfg.dynamics, path=report["path"]), env, None, jax.random.PRNGKey(0), "/nonexistent"
+    )
     assert again["loaded"] is True and again["multistep"] == report["multistep"]
 
 
@@ -239,8 +272,10 @@ def test_a_model_drives_rollouts_inside_the_trainer(setup, fitted):
     assert np.all(np.isfinite(np.asarray(metrics["return"])))
     assert np.all(np.isfinite(np.asarray(metrics["loss"])))
     assert int(np.sum(metrics["skipped"])) == 0
-    changed = [not np.array_equal(a, b) for a, b in
-               zip(jax.tree.leaves(before), jax.tree.leaves(state.policy), strict=True)]
+    changed = [
+        not np.array_equal(a, b)
+        for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(state.policy), strict=True)
+    ]
     assert all(changed)
 
 
@@ -252,7 +287,8 @@ def test_model_rollouts_have_a_finite_nonzero_action_gradient(setup, fitted, kin
     model, _ = fitted(kind)
     start = model.reset(jax.random.PRNGKey(6))
     grad = jax.jit(jax.grad(lambda a: open_loop_return(model, None, env.task, start, a)))(
-        jnp.zeros((10, 1)))
+        jnp.zeros((10, 1))
+    )
     assert np.all(np.isfinite(np.asarray(grad))) and float(jnp.abs(grad).min()) > 0
 
 
@@ -262,7 +298,8 @@ def test_residual_step_has_a_finite_jacobian(setup, fitted):
     where a central difference of 1e-2 is off by 7 % while the simulator alone agrees.)"""
     *_, test = setup
     model, _ = fitted("residual")
-    x = jnp.concatenate([jnp.asarray(test.obs[0, 10], jnp.float32),
-                         jnp.asarray(test.actions[0, 10], jnp.float32)])
+    x = jnp.concatenate(
+        [jnp.asarray(test.obs[0, 10], jnp.float32), jnp.asarray(test.actions[0, 10], jnp.float32)]
+    )
     jac = np.asarray(jax.jit(jax.jacrev(lambda x: model.step(x[:4], x[4:])))(x))
     assert np.all(np.isfinite(jac)) and np.all(np.abs(jac).max(0) > 0)

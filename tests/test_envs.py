@@ -126,7 +126,9 @@ def test_every_effect_at_its_nominal_value_is_a_no_op(cartpole_env, batch):
     from hds.effects import LIBRARY
 
     sample = {"joint": "slider", "actuator": "slide", "body": "pole", "observation": "q_hinge"}
-    effects = [{"name": n, "target": sample[e.target_kind], "params": {}} for n, e in LIBRARY.items()]
+    effects = [
+        {"name": n, "target": sample[e.target_kind], "params": {}} for n, e in LIBRARY.items()
+    ]
     cfg = make_config().env
     loaded = make_env(cfg, effects=effects)
     _, actions = batch
@@ -134,6 +136,7 @@ def test_every_effect_at_its_nominal_value_is_a_no_op(cartpole_env, batch):
 
     def run(env):
         return jax.jit(jax.vmap(lambda k, a: rollout_return(env, env.params, env.reset(k), a)))(
-            keys, actions)[1]
+            keys, actions
+        )[1]
 
     np.testing.assert_array_equal(run(loaded), run(cartpole_env))

@@ -33,30 +33,56 @@ class DoubleIntegrator:
         return state[:1], state[1:]
 
 
-TASK = Task(kind="target", horizon=T, q_mean=np.zeros(1, np.float32), q_spread=np.ones(1, np.float32),
-            qd_spread=np.ones(1, np.float32), q_target=np.zeros(1, np.float32),
-            q_weight=np.ones(1, np.float32), qd_weight=np.full(1, 0.1, np.float32), effort=0.01,
-            angular=np.zeros(1, bool))
+TASK = Task(
+    kind="target",
+    horizon=T,
+    q_mean=np.zeros(1, np.float32),
+    q_spread=np.ones(1, np.float32),
+    qd_spread=np.ones(1, np.float32),
+    q_target=np.zeros(1, np.float32),
+    q_weight=np.ones(1, np.float32),
+    qd_weight=np.full(1, 0.1, np.float32),
+    effort=0.01,
+    angular=np.zeros(1, bool),
+)
 ENGINE = DoubleIntegrator()
 
 
 def settings(order="first", anneal="line_search", candidates=6):
-    return ImproveSettings(order=order, grad_clip=1e6, gn_damping=1e-6, candidates=candidates,
-                               anneal=anneal)
+    return ImproveSettings(
+        order=order, grad_clip=1e6, gn_damping=1e-6, candidates=candidates, anneal=anneal
+    )
 
 
 def improve_batch(alpha, cfg, n=16):
     states = jax.vmap(ENGINE.reset)(jax.random.split(jax.random.PRNGKey(0), n))
     actions = jax.random.normal(jax.random.PRNGKey(1), (n, T, 1))
-    run = jax.jit(jax.vmap(lambda s, a, k: improve(ENGINE, None, TASK, s, a, k, alpha=alpha,
-                                                   temperature=0.0, cfg=cfg, low=-10.0, high=10.0)))
+    run = jax.jit(
+        jax.vmap(
+            lambda s, a, k: improve(
+                ENGINE,
+                None,
+                TASK,
+                s,
+                a,
+                k,
+                alpha=alpha,
+                temperature=0.0,
+                cfg=cfg,
+                low=-10.0,
+                high=10.0,
+            )
+        )
+    )
     return states, actions, run(states, actions, jax.random.split(jax.random.PRNGKey(2), n))
 
 
 @pytest.mark.parametrize("alpha", [1e-3, 0.1, 1e3])
 def test_line_search_never_accepts_a_worse_sequence(alpha):
     states, actions, out = improve_batch(alpha, settings())
-    recomputed = jax.vmap(lambda s, a: open_loop_return(ENGINE, None, TASK, s, a))(states, out.actions)
+    recomputed = jax.vmap(lambda s, a: open_loop_return(ENGINE, None, TASK, s, a))(
+        states, out.actions
+    )
     assert np.all(np.asarray(recomputed) >= np.asarray(out.value) - 1e-5)
     np.testing.assert_allclose(recomputed, out.new_value, rtol=1e-5, atol=1e-5)
     rejected = ~np.asarray(out.accepted)
@@ -85,7 +111,9 @@ def test_gauss_newton_step_matches_a_direct_solve():
     damping = 1e-2
     step = gauss_newton_step(H, g, damping)
     lam = damping * np.mean(np.diag(exact)) + 1e-6
-    direct = np.linalg.solve(np.asarray(exact, np.float64) + lam * np.eye(T), np.asarray(g, np.float64))
+    direct = np.linalg.solve(
+        np.asarray(exact, np.float64) + lam * np.eye(T), np.asarray(g, np.float64)
+    )
     np.testing.assert_allclose(step, direct, rtol=1e-3, atol=1e-6)
     # and on a quadratic problem the undamped step lands (almost) on the optimum
     _, _, out = improve_batch(1.0, settings(order="second"), n=4)
@@ -101,6 +129,17 @@ def test_second_order_improves_more_than_first_order_in_one_step():
 def test_a_nan_gradient_skips_the_sample():
     state = jnp.array([0.5, -0.3])
     actions = jnp.zeros((T, 1)).at[3, 0].set(jnp.nan)
-    out = improve(ENGINE, None, TASK, state, actions, jax.random.PRNGKey(0), alpha=0.1,
-                  temperature=0.0, cfg=settings(), low=-10.0, high=10.0)
+    out = improve(
+        ENGINE,
+        None,
+        TASK,
+        state,
+        actions,
+        jax.random.PRNGKey(0),
+        alpha=0.1,
+        temperature=0.0,
+        cfg=settings(),
+        low=-10.0,
+        high=10.0,
+    )
     assert bool(out.skipped) and not bool(out.accepted)

@@ -165,6 +165,7 @@ def times(run: Run):
 
 # Without effects -----------------------------------------------------------------------------
 
+
 def test_brax_and_mujoco_agree_without_effects(plants):
     """0.52 s of random open-loop force (+-50 N) from states around the hanging pole. With an
     exact mass-matrix inverse in brax (matrix_inv_iterations 0 in the MJCF) the two engines
@@ -180,6 +181,7 @@ def test_brax_and_mujoco_agree_without_effects(plants):
 
 
 # Each effect, in both plants -------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_coulomb_friction_decelerates_at_the_friction_force(plants, momentum, kind):
@@ -278,19 +280,22 @@ def heavy_and_light(plants, kind):
     q0, qd0 = at_rest()
     u = constant(0.5, -0.3, 0.2, -0.1)
     heavy_effects = [effect("mass_scale", b, scale=2.0) for b in ("cart", "pole")]
-    return u, simulate(plants, kind, heavy_effects, q0, qd0, u), simulate(plants, kind, [], q0,
-                                                                           qd0, u)
+    return (
+        u,
+        simulate(plants, kind, heavy_effects, q0, qd0, u),
+        simulate(plants, kind, [], q0, qd0, u),
+    )
 
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_mass_scale_divides_the_acceleration(plants, momentum, kind):
-    """The same force gives the same momentum (of the doubled masses) at half the velocity.
-    """
+    """The same force gives the same momentum (of the doubled masses) at half the velocity."""
     u, heavy, light = heavy_and_light(plants, kind)
     force = momentum.gear * u[:, :1, 0]
     impulse = momentum.impulse(heavy, mass_scale=2.0)
-    np.testing.assert_allclose(impulse[:, 1:] - impulse[:, 1:2], force * times(heavy)[:-1],
-                               rtol=0.02, atol=0.05)
+    np.testing.assert_allclose(
+        impulse[:, 1:] - impulse[:, 1:2], force * times(heavy)[:-1], rtol=0.02, atol=0.05
+    )
     gained = [run.qd[:, -1, 0] - run.qd[:, 1, 0] for run in (heavy, light)]
     np.testing.assert_allclose(gained[0] / gained[1], 0.5, rtol=0.03)
 
@@ -309,8 +314,9 @@ def test_sensor_bias_shifts_the_observation_only(plants, kind):
     u = rng.uniform(-0.5, 0.5, (B, T, 1))
     biased = simulate(plants, kind, [effect("sensor_bias", "q_hinge", bias=0.1)], q0, qd0, u)
     clean = simulate(plants, kind, [], q0, qd0, u)
-    np.testing.assert_allclose(biased.obs - clean.obs, np.broadcast_to([0, 0.1, 0, 0],
-                                                                       clean.obs.shape), atol=1e-6)
+    np.testing.assert_allclose(
+        biased.obs - clean.obs, np.broadcast_to([0, 0.1, 0, 0], clean.obs.shape), atol=1e-6
+    )
     np.testing.assert_array_equal(biased.q, clean.q)
     np.testing.assert_array_equal(biased.qd, clean.qd)
 
@@ -330,28 +336,40 @@ def test_friction_gap_scales_friction(plants, momentum, kind):
 
 # Configuration and errors ----------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("kind", KINDS)
 def test_a_bad_target_names_the_allowed_ones(kind):
-    cfg = make_config(f"real.plant={kind}",
-                      "real.effects=[{name: coulomb_friction, target: nope, params: {force: 1.0}}]")
+    cfg = make_config(
+        f"real.plant={kind}",
+        "real.effects=[{name: coulomb_friction, target: nope, params: {force: 1.0}}]",
+    )
     with pytest.raises(ValueError, match=r"no joint 'nope'.*\['slider', 'hinge'\]"):
         make_plant(cfg.real, cfg.env)
 
 
 def test_the_mujoco_spec_writes_the_native_effects_to_mjcf(env_cfg):
-    effects = [effect("coulomb_friction", "slider", force=20.0),
-               effect("viscous_damping", "hinge", coefficient=0.5),
-               effect("actuator_gain", "slide", gain=1.5),
-               effect("actuator_lag", "slide", time_constant=0.1),
-               effect("mass_scale", "pole", scale=2.0),
-               effect("actuator_offset", "slide", offset=0.3)]  # not native: not in the MJCF
+    effects = [
+        effect("coulomb_friction", "slider", force=20.0),
+        effect("viscous_damping", "hinge", coefficient=0.5),
+        effect("actuator_gain", "slide", gain=1.5),
+        effect("actuator_lag", "slide", time_constant=0.1),
+        effect("mass_scale", "pole", scale=2.0),
+        effect("actuator_offset", "slide", offset=0.3),
+    ]  # not native: not in the MJCF
     nominal = load_spec(env_cfg.xml, env_cfg.timestep).compile()
     spec = mujoco_spec(env_cfg, effects, 0.5)
     model = spec.compile()
     # to_xml writes 6 significant digits (the pole's length): 1e-6 of its mass
     written = mujoco.MjSpec.from_string(spec.to_xml()).compile()
-    for field in ("body_mass", "body_inertia", "dof_frictionloss", "dof_damping",
-                  "actuator_gear", "actuator_dyntype", "actuator_dynprm"):
+    for field in (
+        "body_mass",
+        "body_inertia",
+        "dof_frictionloss",
+        "dof_damping",
+        "actuator_gear",
+        "actuator_dyntype",
+        "actuator_dynprm",
+    ):
         np.testing.assert_allclose(getattr(written, field), getattr(model, field), rtol=1e-5)
     np.testing.assert_allclose(model.dof_frictionloss, [10.0, 0.0])  # friction gap 0.5
     np.testing.assert_allclose(model.dof_damping, nominal.dof_damping + [0.0, 0.5 * 0.5])

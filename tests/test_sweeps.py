@@ -19,14 +19,28 @@ from hds.envs import make_env
 from hds.envs.system import ASSETS
 from tests.conftest import ROOT, make_config
 
-TINY = ("env.backend=analytic", "algo.epochs=2", "algo.chunk=2", "algo.rollouts=4",
-        "env.task.horizon=10", "algo.inner_epochs=1", "eval_episodes=2", "logger=none")
+TINY = (
+    "env.backend=analytic",
+    "algo.epochs=2",
+    "algo.chunk=2",
+    "algo.rollouts=4",
+    "env.task.horizon=10",
+    "algo.inner_epochs=1",
+    "eval_episodes=2",
+    "logger=none",
+)
 
 
 def hds_run_cli(*args, env_vars=None, timeout=900):
     env = {**os.environ, "WANDB_MODE": "offline", **(env_vars or {})}
-    proc = subprocess.run([sys.executable, "-m", "hds.run", *args], cwd=ROOT, env=env,
-                          capture_output=True, text=True, timeout=timeout)
+    proc = subprocess.run(
+        [sys.executable, "-m", "hds.run", *args],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
     return proc
 
@@ -36,8 +50,9 @@ def test_a_vmapped_sweep_gives_the_numbers_of_separate_runs(tmp_path):
     env = make_env(cfg.env)
     together, history, *_ = hds_run.train(cfg, env, tmp_path / "vmapped", "pods")
     for i, step in enumerate((0.01, 0.04)):
-        alone, alone_history, *_ = hds_run.train(make_config(*TINY, f"algo.step_size={step}"), env,
-                                                 tmp_path / f"alone{i}", "pods")
+        alone, alone_history, *_ = hds_run.train(
+            make_config(*TINY, f"algo.step_size={step}"), env, tmp_path / f"alone{i}", "pods"
+        )
         for a, b in zip(jax.tree.leaves(together), jax.tree.leaves(alone)):
             np.testing.assert_allclose(a[i], b[0], rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(history["return"][i], alone_history["return"][0], rtol=1e-5)
@@ -49,14 +64,21 @@ def test_the_batch_is_sharded_across_two_host_devices(tmp_path):
         "import jax, json, sys; from tests.conftest import make_config; from hds import run;"
         "from hds.envs import make_env;"
         f"cfg = make_config(*{list(TINY)!r}, 'seeds=2');"
-        "p, h, *_ = run.train(cfg, make_env(cfg.env), __import__('pathlib').Path(sys.argv[1]), 'pods');"
+        "out = __import__('pathlib').Path(sys.argv[1]);"
+        "p, h, *_ = run.train(cfg, make_env(cfg.env), out, 'pods');"
         "leaf = jax.tree.leaves(p)[0];"
         "print(json.dumps({'devices': jax.device_count(), 'shards': len(leaf.sharding.device_set),"
         " 'return': h['return']}))"
     )
     env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
-    proc = subprocess.run([sys.executable, "-c", code, str(tmp_path / "sharded")], cwd=ROOT,
-                          env=env, capture_output=True, text=True, timeout=900)
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(tmp_path / "sharded")],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = json.loads(proc.stdout.strip().splitlines()[-1])
     assert out["devices"] == 2 and out["shards"] == 2
@@ -112,7 +134,8 @@ def test_hds_report_on_a_sweep(restarted_sweep):
 
 @pytest.mark.parametrize("launcher", ["local_processes", "local_submitit"])
 def test_other_launchers_run_a_sweep(tmp_path, launcher):
-    hds_run_cli("-m", *TINY, "seed=0,1", f"hydra/launcher={launcher}",
-                f"hydra.sweep.dir={tmp_path}")
+    hds_run_cli(
+        "-m", *TINY, "seed=0,1", f"hydra/launcher={launcher}", f"hydra.sweep.dir={tmp_path}"
+    )
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert sorted(r["seed"] for r in summary["rows"]) == [0, 1]

@@ -21,8 +21,16 @@ from tests.conftest import ROOT, make_config
 
 # Small budgets on the analytic backend, which compiles in seconds (tests/test_analytic.py
 # checks it against brax and MuJoCo).
-TINY = ("env.backend=analytic", "algo.epochs=6", "algo.chunk=3", "algo.rollouts=16",
-        "env.task.horizon=30", "algo.inner_epochs=4", "eval_episodes=8", "logger=none")
+TINY = (
+    "env.backend=analytic",
+    "algo.epochs=6",
+    "algo.chunk=3",
+    "algo.rollouts=16",
+    "env.task.horizon=30",
+    "algo.inner_epochs=4",
+    "eval_episodes=8",
+    "logger=none",
+)
 
 
 @pytest.fixture(scope="module")
@@ -135,8 +143,16 @@ def test_kill_and_resume_gives_identical_parameters(tmp_path, monkeypatch):
 def test_hds_run_writes_every_output(tmp_path):
     out = tmp_path / "run"
     env = {**os.environ, "WANDB_MODE": "offline"}
-    cmd = [sys.executable, "-m", "hds.run", *TINY[:-1], "method=hds", "real=brax", "seeds=2",
-           f"hydra.run.dir={out}"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "hds.run",
+        *TINY[:-1],
+        "method=hds",
+        "real=brax",
+        "seeds=2",
+        f"hydra.run.dir={out}",
+    ]
     proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     summary = json.loads((out / "summary.json").read_text())
@@ -145,7 +161,10 @@ def test_hds_run_writes_every_output(tmp_path):
     for row in summary["rows"]:
         assert row["gap"] == pytest.approx(row["sim_return"] - row["real_return"])
     assert (out / "config.yaml").is_file()
-    assert sorted(p.name for p in (out / "checkpoints" / "hds").iterdir() if p.name.isdigit()) == ["3", "6"]
+    assert sorted(p.name for p in (out / "checkpoints" / "hds").iterdir() if p.name.isdigit()) == [
+        "3",
+        "6",
+    ]
     assert len(list((out / "wandb").glob("offline-run-*"))) == 2
     assert {p.name for p in (out / "plots").iterdir()} == {"learning_curves.png", "sim_vs_real.png"}
     assert "real_return" in proc.stdout and "Traceback" not in proc.stderr

@@ -17,8 +17,8 @@ One epoch:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -64,9 +64,13 @@ def make_train(cfg, env, model=None) -> Trainer:
     policy = make_policy(algo.hidden, sim)
     optimizer = optax.adam(algo.learning_rate)
     sigma = lambda hp, epoch: noise.schedule(cfg.noise, algo.epochs, hp["noise_scale"])(epoch)  # noqa: E731
-    settings = ImproveSettings(algo.order, algo.grad_clip, algo.gn_damping,
-                               anneal.candidates(cfg.anneal.kind, algo.line_search),
-                               cfg.anneal.kind)
+    settings = ImproveSettings(
+        algo.order,
+        algo.grad_clip,
+        algo.gn_damping,
+        anneal.candidates(cfg.anneal.kind, algo.line_search),
+        cfg.anneal.kind,
+    )
     n_model = int(round(cfg.dynamics.beta * algo.rollouts)) if model is not None else 0
     parts = [(env, algo.rollouts - n_model, "effects")]
     if n_model:
@@ -83,28 +87,59 @@ def make_train(cfg, env, model=None) -> Trainer:
         starts = jax.vmap(engine.reset)(jax.random.split(k_reset, count))
         act = lambda o: policy.apply(state.policy, o)  # noqa: E731
         obs, actions, rewards = jax.vmap(
-            lambda s, k: policy_rollout(engine, params, task, act, s, k,
-                                        sigma(hparams, state.epoch), task.horizon, low, high)
+            lambda s, k: policy_rollout(
+                engine,
+                params,
+                task,
+                act,
+                s,
+                k,
+                sigma(hparams, state.epoch),
+                task.horizon,
+                low,
+                high,
+            )
         )(starts, jax.random.split(k_roll, count))
         alpha = anneal.step_size(hparams["step_size"], cfg.anneal.step_decay, state.epoch)
         temp = anneal.temperature(cfg.anneal.temperature, cfg.anneal.cooling, state.epoch)
         result = jax.vmap(
-            lambda s, a, k: improve(engine, params, task, s, a, k, alpha=alpha, temperature=temp,
-                                    cfg=settings, low=low, high=high)
+            lambda s, a, k: improve(
+                engine,
+                params,
+                task,
+                s,
+                a,
+                k,
+                alpha=alpha,
+                temperature=temp,
+                cfg=settings,
+                low=low,
+                high=high,
+            )
         )(starts, actions, jax.random.split(k_improve, count))
         return obs, result, rewards.sum(-1), alpha
 
     def epoch(state: TrainState, hparams):
         key, *part_keys = jax.random.split(state.key, len(parts) + 2)
         regress_key = part_keys.pop()
-        outs = [collect_and_improve(e, pk, n, state, hparams, k)
-                for (e, n, pk), k in zip(parts, part_keys)]
+        outs = [
+            collect_and_improve(e, pk, n, state, hparams, k)
+            for (e, n, pk), k in zip(parts, part_keys)
+        ]
         obs = jnp.concatenate([o[0].reshape(-1, sim.n_obs) for o in outs])
         targets = jnp.concatenate([o[1].actions.reshape(-1, sim.n_act) for o in outs])
         params, opt_state, loss = regress(
-            policy.apply, optimizer, state.policy, state.opt_state, obs, targets,
-            jnp.ones(obs.shape[0]), regress_key, inner_epochs=algo.inner_epochs,
-            minibatch=algo.minibatch, tol=algo.early_stop,
+            policy.apply,
+            optimizer,
+            state.policy,
+            state.opt_state,
+            obs,
+            targets,
+            jnp.ones(obs.shape[0]),
+            regress_key,
+            inner_epochs=algo.inner_epochs,
+            minibatch=algo.minibatch,
+            tol=algo.early_stop,
         )
         sim_obs, sim_result, sim_returns, alpha = outs[0]
         metrics = {

@@ -17,8 +17,20 @@ def weighted_mse(apply, params, obs, targets, weights):
     return jnp.sum(weights * err) / jnp.maximum(jnp.sum(weights), 1.0)
 
 
-def regress(apply, optimizer, params, opt_state, obs, targets, weights, key, *,
-            inner_epochs: int, minibatch: int, tol: float):
+def regress(
+    apply,
+    optimizer,
+    params,
+    opt_state,
+    obs,
+    targets,
+    weights,
+    key,
+    *,
+    inner_epochs: int,
+    minibatch: int,
+    tol: float,
+):
     """Returns (params, opt_state, final loss). Rows with non-finite data get zero weight."""
     finite = jnp.all(jnp.isfinite(obs), -1) & jnp.all(jnp.isfinite(targets), -1)
     weights = jnp.where(finite, weights, 0.0)
@@ -39,11 +51,20 @@ def regress(apply, optimizer, params, opt_state, obs, targets, weights, key, *,
     def epoch(carry, key):
         params, opt_state, loss, stopped = carry
         order = jax.random.permutation(key, n)[: batches * size].reshape(batches, size)
-        (params, opt_state, _), _ = jax.lax.scan(minibatch_step, (params, opt_state, stopped), order)
+        (params, opt_state, _), _ = jax.lax.scan(
+            minibatch_step, (params, opt_state, stopped), order
+        )
         new_loss = weighted_mse(apply, params, obs, targets, weights)
         stopped = stopped | (loss - new_loss < tol)
         return (params, opt_state, new_loss, stopped), None
 
-    start = (params, opt_state, weighted_mse(apply, params, obs, targets, weights), jnp.array(False))
-    (params, opt_state, loss, _), _ = jax.lax.scan(epoch, start, jax.random.split(key, inner_epochs))
+    start = (
+        params,
+        opt_state,
+        weighted_mse(apply, params, obs, targets, weights),
+        jnp.array(False),
+    )
+    (params, opt_state, loss, _), _ = jax.lax.scan(
+        epoch, start, jax.random.split(key, inner_epochs)
+    )
     return params, opt_state, loss

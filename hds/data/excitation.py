@@ -28,9 +28,23 @@ import numpy as np
 
 # Feedback taps of maximum-length Fibonacci LFSRs (bit positions, 1-based), by register length.
 LFSR_TAPS = {
-    3: (3, 2), 4: (4, 3), 5: (5, 3), 6: (6, 5), 7: (7, 6), 8: (8, 6, 5, 4), 9: (9, 5),
-    10: (10, 7), 11: (11, 9), 12: (12, 6, 4, 1), 13: (13, 4, 3, 1), 14: (14, 5, 3, 1),
-    15: (15, 14), 16: (16, 15, 13, 4), 17: (17, 14), 18: (18, 11), 19: (19, 6, 2, 1),
+    3: (3, 2),
+    4: (4, 3),
+    5: (5, 3),
+    6: (6, 5),
+    7: (7, 6),
+    8: (8, 6, 5, 4),
+    9: (9, 5),
+    10: (10, 7),
+    11: (11, 9),
+    12: (12, 6, 4, 1),
+    13: (13, 4, 3, 1),
+    14: (14, 5, 3, 1),
+    15: (15, 14),
+    16: (16, 15, 13, 4),
+    17: (17, 14),
+    18: (18, 11),
+    19: (19, 6, 2, 1),
     20: (20, 17),
 }
 
@@ -44,24 +58,32 @@ def make_rng(seed) -> np.random.Generator:
     try:  # a JAX key: typed (jax.random.key) or raw uint32 (jax.random.PRNGKey)
         import jax
 
-        data = jax.random.key_data(seed) if jax.dtypes.issubdtype(seed.dtype,
-                                                                   jax.dtypes.prng_key) else seed
+        data = (
+            jax.random.key_data(seed)
+            if jax.dtypes.issubdtype(seed.dtype, jax.dtypes.prng_key)
+            else seed
+        )
         return np.random.default_rng(np.asarray(data, dtype=np.uint32).ravel().tolist())
     except (AttributeError, TypeError, ValueError):
-        raise TypeError(f"seed must be an int, a numpy Generator or a JAX PRNG key, not "
-                        f"{type(seed).__name__}") from None
+        raise TypeError(
+            f"seed must be an int, a numpy Generator or a JAX PRNG key, not {type(seed).__name__}"
+        ) from None
 
 
 def _setup(n_episodes, horizon, dt, ctrl_range, scale):
     ctrl_range = np.asarray(ctrl_range, dtype=np.float64)
     if ctrl_range.ndim != 2 or ctrl_range.shape[1] != 2 or ctrl_range.shape[0] < 1:
-        raise ValueError(f"ctrl_range has shape {ctrl_range.shape}; it must be [n_act, 2] "
-                         "(low, high per actuator)")
+        raise ValueError(
+            f"ctrl_range has shape {ctrl_range.shape}; it must be [n_act, 2] "
+            "(low, high per actuator)"
+        )
     if not np.isfinite(ctrl_range).all():
         bad = np.flatnonzero(~np.isfinite(ctrl_range).all(1)).tolist()
-        raise ValueError(f"actuator(s) {bad} have no finite limits (ctrl_range "
-                         f"{ctrl_range.tolist()}): give finite limits to excite within, "
-                         "e.g. ctrl_range=[[-1, 1]]")
+        raise ValueError(
+            f"actuator(s) {bad} have no finite limits (ctrl_range "
+            f"{ctrl_range.tolist()}): give finite limits to excite within, "
+            "e.g. ctrl_range=[[-1, 1]]"
+        )
     if (ctrl_range[:, 0] >= ctrl_range[:, 1]).any():
         raise ValueError(f"ctrl_range {ctrl_range.tolist()} has low >= high for some actuator")
     if int(n_episodes) < 1 or int(horizon) < 1:
@@ -79,13 +101,23 @@ def _clip(u, ctrl_range):
     return np.clip(u, ctrl_range[:, 0], ctrl_range[:, 1])
 
 
-def random_steps(seed, n_episodes: int, horizon: int, dt: float, ctrl_range, min_hold=0.2,
-                 max_hold=1.0, scale=1.0) -> np.ndarray:
+def random_steps(
+    seed,
+    n_episodes: int,
+    horizon: int,
+    dt: float,
+    ctrl_range,
+    min_hold=0.2,
+    max_hold=1.0,
+    scale=1.0,
+) -> np.ndarray:
     """Piecewise-constant levels, uniform in the range, held min_hold..max_hold seconds each."""
     ctrl_range, middle, half = _setup(n_episodes, horizon, dt, ctrl_range, scale)
     if not 0 < min_hold <= max_hold:
-        raise ValueError(f"hold times must satisfy 0 < min_hold <= max_hold (seconds); got "
-                         f"min_hold = {min_hold}, max_hold = {max_hold}")
+        raise ValueError(
+            f"hold times must satisfy 0 < min_hold <= max_hold (seconds); got "
+            f"min_hold = {min_hold}, max_hold = {max_hold}"
+        )
     rng = make_rng(seed)
     n_act = len(ctrl_range)
     lo_steps = max(1, round(min_hold / dt))
@@ -101,15 +133,18 @@ def random_steps(seed, n_episodes: int, horizon: int, dt: float, ctrl_range, min
     return _clip(np.moveaxis(u, 1, 2), ctrl_range)
 
 
-def chirp(seed, n_episodes: int, horizon: int, dt: float, ctrl_range, f0=0.1, f1=None,
-          scale=1.0) -> np.ndarray:
+def chirp(
+    seed, n_episodes: int, horizon: int, dt: float, ctrl_range, f0=0.1, f1=None, scale=1.0
+) -> np.ndarray:
     """A sine sweeping linearly from f0 to f1 Hz over the horizon, random phase per pair."""
     ctrl_range, middle, half = _setup(n_episodes, horizon, dt, ctrl_range, scale)
     nyquist = 0.5 / dt
     f1 = 0.25 * nyquist if f1 is None else f1
     if not (0 <= f0 <= nyquist and 0 <= f1 <= nyquist):
-        raise ValueError(f"chirp frequencies f0 = {f0} Hz, f1 = {f1} Hz must lie in "
-                         f"[0, {nyquist}] Hz (the Nyquist frequency of dt = {dt} s)")
+        raise ValueError(
+            f"chirp frequencies f0 = {f0} Hz, f1 = {f1} Hz must lie in "
+            f"[0, {nyquist}] Hz (the Nyquist frequency of dt = {dt} s)"
+        )
     rng = make_rng(seed)
     n_act = len(ctrl_range)
     phase0 = rng.uniform(0.0, 2 * np.pi, size=(n_episodes, 1, n_act))
@@ -136,8 +171,9 @@ def lfsr_bits(order: int, state: np.ndarray, n_bits: int) -> np.ndarray:
     return out
 
 
-def prbs(seed, n_episodes: int, horizon: int, dt: float, ctrl_range, bit_time=None, order=None,
-         scale=1.0) -> np.ndarray:
+def prbs(
+    seed, n_episodes: int, horizon: int, dt: float, ctrl_range, bit_time=None, order=None, scale=1.0
+) -> np.ndarray:
     """Maximum-length pseudo-random binary sequence between middle +- scale * half range, one bit
     per bit_time seconds (default dt); order (register length) defaults to the shortest whose
     period covers the horizon, at least 3."""

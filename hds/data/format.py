@@ -109,8 +109,11 @@ class Dataset:
 
     def transitions(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """All E*T transitions (obs [N, n_obs], action [N, n_act], next obs [N, n_obs])."""
-        return (self.obs[:, :-1].reshape(-1, self.n_obs), self.actions.reshape(-1, self.n_act),
-                self.obs[:, 1:].reshape(-1, self.n_obs))
+        return (
+            self.obs[:, :-1].reshape(-1, self.n_obs),
+            self.actions.reshape(-1, self.n_act),
+            self.obs[:, 1:].reshape(-1, self.n_obs),
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -121,18 +124,26 @@ def check(dataset: Dataset, where: str = "dataset") -> None:
     """Check that a dataset is consistent in itself (shapes, T, names, dt); no system needed."""
     obs, actions = dataset.obs, dataset.actions
     if obs.ndim != 3:
-        raise ValueError(f"{where}: obs has shape {obs.shape}; it must be [episodes, T+1, n_obs] "
-                         "(3 dimensions): add an episode axis for a single episode")
+        raise ValueError(
+            f"{where}: obs has shape {obs.shape}; it must be [episodes, T+1, n_obs] "
+            "(3 dimensions): add an episode axis for a single episode"
+        )
     if actions.ndim != 3:
-        raise ValueError(f"{where}: actions have shape {actions.shape}; they must be "
-                         "[episodes, T, n_act] (3 dimensions): add an episode axis for a single "
-                         "episode, and an action axis for a single actuator")
+        raise ValueError(
+            f"{where}: actions have shape {actions.shape}; they must be "
+            "[episodes, T, n_act] (3 dimensions): add an episode axis for a single "
+            "episode, and an action axis for a single actuator"
+        )
     if obs.shape[0] == 0 or obs.shape[2] == 0 or actions.shape[2] == 0:
-        raise ValueError(f"{where} is empty: obs {obs.shape}, actions {actions.shape}; it needs "
-                         "at least one episode, one observed variable and one action")
+        raise ValueError(
+            f"{where} is empty: obs {obs.shape}, actions {actions.shape}; it needs "
+            "at least one episode, one observed variable and one action"
+        )
     if obs.shape[0] != actions.shape[0]:
-        raise ValueError(f"{where}: obs hold {obs.shape[0]} episodes and actions "
-                         f"{actions.shape[0]}: give both the same episodes")
+        raise ValueError(
+            f"{where}: obs hold {obs.shape[0]} episodes and actions "
+            f"{actions.shape[0]}: give both the same episodes"
+        )
     if obs.shape[1] != actions.shape[1] + 1:
         raise ValueError(
             f"{where}: obs have {obs.shape[1]} steps and actions {actions.shape[1]}; an episode "
@@ -140,18 +151,26 @@ def check(dataset: Dataset, where: str = "dataset") -> None:
             f"need {actions.shape[1] + 1} steps: check for an off-by-one"
         )
     if actions.shape[1] < 1:
-        raise ValueError(f"{where} is empty: its episodes have no step (T = 0); record at least "
-                         "two observations and the action between them")
+        raise ValueError(
+            f"{where} is empty: its episodes have no step (T = 0); record at least "
+            "two observations and the action between them"
+        )
     if not np.isfinite(dataset.dt) or dataset.dt <= 0:
-        raise ValueError(f"{where}: dt = {dataset.dt} must be a positive number of seconds "
-                         "(the time between two observations)")
-    for kind, names, size in (("obs_names", dataset.obs_names, obs.shape[2]),
-                              ("action_names", dataset.action_names, actions.shape[2])):
+        raise ValueError(
+            f"{where}: dt = {dataset.dt} must be a positive number of seconds "
+            "(the time between two observations)"
+        )
+    for kind, names, size in (
+        ("obs_names", dataset.obs_names, obs.shape[2]),
+        ("action_names", dataset.action_names, actions.shape[2]),
+    ):
         if names is None:
             continue
         if len(names) != size:
-            raise ValueError(f"{where}: {kind} has {len(names)} names {list(names)} for {size} "
-                             f"variables: give one name per variable, in order")
+            raise ValueError(
+                f"{where}: {kind} has {len(names)} names {list(names)} for {size} "
+                f"variables: give one name per variable, in order"
+            )
         if len(set(names)) != len(names):
             dups = sorted({n for n in names if names.count(n) > 1})
             raise ValueError(f"{where}: {kind} repeats {dups}: every name must be unique")
@@ -176,21 +195,31 @@ def validate(dataset: Dataset, sim, where: str = "dataset") -> Dataset:
     ValueError that names the problem and the fix."""
     check(dataset, where)
     obs_names, action_names = tuple(sim.obs_names), tuple(sim.action_names)
-    for kind, got, names in (("observed variables", dataset.n_obs, obs_names),
-                             ("actions", dataset.n_act, action_names)):
+    for kind, got, names in (
+        ("observed variables", dataset.n_obs, obs_names),
+        ("actions", dataset.n_act, action_names),
+    ):
         if got != len(names):
-            raise ValueError(f"{where} has {got} {kind} per step, and this system needs "
-                             f"{len(names)}: {list(names)}, in this order")
-    for kind, got, names in (("obs_names", dataset.obs_names, obs_names),
-                             ("action_names", dataset.action_names, action_names)):
+            raise ValueError(
+                f"{where} has {got} {kind} per step, and this system needs "
+                f"{len(names)}: {list(names)}, in this order"
+            )
+    for kind, got, names in (
+        ("obs_names", dataset.obs_names, obs_names),
+        ("action_names", dataset.action_names, action_names),
+    ):
         if got is None or got == names:
             continue
         if sorted(got) == sorted(names):
-            raise ValueError(f"{where}: {kind} {list(got)} are this system's, in another order: "
-                             f"reorder the variables (columns) to {list(names)}")
+            raise ValueError(
+                f"{where}: {kind} {list(got)} are this system's, in another order: "
+                f"reorder the variables (columns) to {list(names)}"
+            )
         wrong = [g for g in got if g not in names]
-        raise ValueError(f"{where}: {kind} {list(got)} do not match this system's {list(names)} "
-                         f"(unknown: {wrong}): rename them, in this order")
+        raise ValueError(
+            f"{where}: {kind} {list(got)} do not match this system's {list(names)} "
+            f"(unknown: {wrong}): rename them, in this order"
+        )
     _first_bad(dataset.obs, dataset.obs_names, "observation", where)
     _first_bad(dataset.actions, dataset.action_names, "action", where)
     timestep = float(sim.timestep)
@@ -236,8 +265,9 @@ def load(path: str | os.PathLike) -> Dataset:
     if not path.is_file():
         raise FileNotFoundError(f"no dataset file at {path}")
     if path.stat().st_size == 0:
-        raise ValueError(f"{path} is empty (0 bytes): it was not written, or written and cut "
-                         "off; write it again")
+        raise ValueError(
+            f"{path} is empty (0 bytes): it was not written, or written and cut off; write it again"
+        )
     dataset = _load_npz(path) if suffix == ".npz" else _load_csv(path)
     check(dataset, str(path))
     return dataset
@@ -276,8 +306,10 @@ def _umask() -> int:
 
 def _load_npz(path: Path) -> Dataset:
     def corrupt(err):
-        return ValueError(f"{path} is not a readable .npz archive (truncated or corrupt: "
-                          f"{type(err).__name__}: {err}); write it again from the source data")
+        return ValueError(
+            f"{path} is not a readable .npz archive (truncated or corrupt: "
+            f"{type(err).__name__}: {err}); write it again from the source data"
+        )
 
     with open(path, "rb") as f:
         magic = f.read(4)
@@ -286,35 +318,44 @@ def _load_npz(path: Path) -> Dataset:
     try:
         with np.load(path, allow_pickle=False) as z:
             keys = sorted(z.files)
-            arrays = {k: z[k] for k in ("obs", "actions", "dt", "obs_names", "action_names")
-                      if k in keys}
+            arrays = {
+                k: z[k] for k in ("obs", "actions", "dt", "obs_names", "action_names") if k in keys
+            }
     except ValueError as err:
         if "allow_pickle" in str(err):
-            raise ValueError(f"{path} holds Python objects (pickled arrays), which are not "
-                             "read, for safety: store plain float arrays and str arrays of "
-                             "names") from None
+            raise ValueError(
+                f"{path} holds Python objects (pickled arrays), which are not "
+                "read, for safety: store plain float arrays and str arrays of "
+                "names"
+            ) from None
         raise corrupt(err) from None
     except Exception as err:  # zipfile, zlib, EOF, header errors: all mean a damaged file
         raise corrupt(err) from None
     missing = [k for k in ("obs", "actions", "dt") if k not in arrays]
     if missing:
-        raise ValueError(f"{path} lacks the key(s) {missing}: a dataset .npz holds obs "
-                         "[E, T+1, n_obs], actions [E, T, n_act] and dt (seconds), with optional "
-                         f"obs_names and action_names; it has {keys}")
+        raise ValueError(
+            f"{path} lacks the key(s) {missing}: a dataset .npz holds obs "
+            "[E, T+1, n_obs], actions [E, T, n_act] and dt (seconds), with optional "
+            f"obs_names and action_names; it has {keys}"
+        )
     for key in ("obs", "actions", "dt"):
         if not np.issubdtype(arrays[key].dtype, np.number) or np.iscomplexobj(arrays[key]):
-            raise ValueError(f"{path}: '{key}' has dtype {arrays[key].dtype}; it must hold "
-                             "real numbers")
+            raise ValueError(
+                f"{path}: '{key}' has dtype {arrays[key].dtype}; it must hold real numbers"
+            )
     if arrays["dt"].size != 1:
-        raise ValueError(f"{path}: dt has shape {arrays['dt'].shape}; it must be one number "
-                         "(seconds between observations)")
+        raise ValueError(
+            f"{path}: dt has shape {arrays['dt'].shape}; it must be one number "
+            "(seconds between observations)"
+        )
     names = {}
     for key in ("obs_names", "action_names"):
         if key in arrays:
             value = arrays[key]
             if value.dtype.kind not in "US" or value.ndim != 1:
-                raise ValueError(f"{path}: '{key}' must be a 1-D array of str, not "
-                                 f"{value.dtype} {value.shape}")
+                raise ValueError(
+                    f"{path}: '{key}' must be a 1-D array of str, not {value.dtype} {value.shape}"
+                )
             names[key] = tuple(str(n) for n in value)
     return Dataset(arrays["obs"], arrays["actions"], float(arrays["dt"].reshape(())), **names)
 
@@ -324,9 +365,11 @@ def _csv_text(dataset: Dataset) -> str:
     action_names = dataset.action_names or tuple(str(i) for i in range(dataset.n_act))
     for name in obs_names:
         if name.startswith(ACTION_PREFIX) or name in ("episode", "t"):
-            raise ValueError(f"observation name '{name}' cannot be a CSV column: names starting "
-                             f"with '{ACTION_PREFIX}' mark actions, and episode and t are taken; "
-                             "rename it")
+            raise ValueError(
+                f"observation name '{name}' cannot be a CSV column: names starting "
+                f"with '{ACTION_PREFIX}' mark actions, and episode and t are taken; "
+                "rename it"
+            )
     header = ["episode", "t", *obs_names, *(ACTION_PREFIX + n for n in action_names)]
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
@@ -336,8 +379,9 @@ def _csv_text(dataset: Dataset) -> str:
     for e in range(dataset.n_episodes):
         for k in range(horizon + 1):
             acts = [repr(float(x)) for x in dataset.actions[e, k]] if k < horizon else blank
-            writer.writerow([str(e), repr(k * dataset.dt),
-                             *(repr(float(x)) for x in dataset.obs[e, k]), *acts])
+            writer.writerow(
+                [str(e), repr(k * dataset.dt), *(repr(float(x)) for x in dataset.obs[e, k]), *acts]
+            )
     return out.getvalue()
 
 
@@ -351,25 +395,33 @@ def _load_csv(path: Path) -> Dataset:
                     rows.append(row)
                     lines.append(reader.line_num)
     except (UnicodeDecodeError, csv.Error) as err:
-        raise ValueError(f"{path} is not a readable CSV text file ({err}): write it again as "
-                         "UTF-8 comma separated text") from None
+        raise ValueError(
+            f"{path} is not a readable CSV text file ({err}): write it again as "
+            "UTF-8 comma separated text"
+        ) from None
     if not rows:
         raise ValueError(f"{path} is empty: it has no header and no rows")
     header = [h.strip() for h in rows[0]]
     if header[:2] != ["episode", "t"]:
-        raise ValueError(f"{path}: the header starts with {header[:2]}; a dataset CSV starts with "
-                         "the columns episode,t then the observation and u_-prefixed action "
-                         "columns")
+        raise ValueError(
+            f"{path}: the header starts with {header[:2]}; a dataset CSV starts with "
+            "the columns episode,t then the observation and u_-prefixed action "
+            "columns"
+        )
     is_action = [h.startswith(ACTION_PREFIX) for h in header[2:]]
     n_obs = is_action.index(True) if True in is_action else len(is_action)
     n_act = len(is_action) - n_obs
     if n_act == 0:
-        raise ValueError(f"{path}: no action column: name each action column '{ACTION_PREFIX}"
-                         f"<actuator>' (e.g. {ACTION_PREFIX}slide), after the observations")
+        raise ValueError(
+            f"{path}: no action column: name each action column '{ACTION_PREFIX}"
+            f"<actuator>' (e.g. {ACTION_PREFIX}slide), after the observations"
+        )
     if not all(is_action[n_obs:]):
-        late = [h for h, a in zip(header[2 + n_obs:], is_action[n_obs:], strict=True) if not a]
-        raise ValueError(f"{path}: observation column(s) {late} come after action columns: put "
-                         f"every observation column before the {ACTION_PREFIX}-prefixed actions")
+        late = [h for h, a in zip(header[2 + n_obs :], is_action[n_obs:], strict=True) if not a]
+        raise ValueError(
+            f"{path}: observation column(s) {late} come after action columns: put "
+            f"every observation column before the {ACTION_PREFIX}-prefixed actions"
+        )
     if n_obs == 0:
         raise ValueError(f"{path}: no observation column between t and the action columns")
     data = rows[1:]
@@ -378,10 +430,12 @@ def _load_csv(path: Path) -> Dataset:
     width = len(header)
     for row, line in zip(data, lines[1:], strict=True):
         if len(row) != width:
-            raise ValueError(f"{path}, line {line}: {len(row)} fields where the header has "
-                             f"{width} (ragged row: the file is truncated or corrupt); every row "
-                             "needs every column, with the action cells of an episode's last row "
-                             "left empty")
+            raise ValueError(
+                f"{path}, line {line}: {len(row)} fields where the header has "
+                f"{width} (ragged row: the file is truncated or corrupt); every row "
+                "needs every column, with the action cells of an episode's last row "
+                "left empty"
+            )
     cells = np.array(data, dtype=str)
     episode_ids = np.char.strip(cells[:, 0])
     starts = np.flatnonzero(np.r_[True, episode_ids[1:] != episode_ids[:-1]])
@@ -389,35 +443,45 @@ def _load_csv(path: Path) -> Dataset:
     labels = episode_ids[starts]
     if len(set(labels.tolist())) != len(labels):
         again = next(lab for i, lab in enumerate(labels) if lab in labels[:i])
-        raise ValueError(f"{path}: the rows of episode '{again}' are not consecutive: sort the "
-                         "file by episode, then t")
+        raise ValueError(
+            f"{path}: the rows of episode '{again}' are not consecutive: sort the "
+            "file by episode, then t"
+        )
     lengths = np.diff(bounds)
     if (lengths != lengths[0]).any():
         e = int(np.flatnonzero(lengths != lengths[0])[0])
-        raise ValueError(f"{path}: episode '{labels[e]}' has {lengths[e]} rows and episode "
-                         f"'{labels[0]}' {lengths[0]}: every episode needs the same number of "
-                         "rows (T+1); cut them to a common length (a truncated file ends short)")
+        raise ValueError(
+            f"{path}: episode '{labels[e]}' has {lengths[e]} rows and episode "
+            f"'{labels[0]}' {lengths[0]}: every episode needs the same number of "
+            "rows (T+1); cut them to a common length (a truncated file ends short)"
+        )
     rows_per = int(lengths[0])
     if rows_per < 2:
-        raise ValueError(f"{path}: episodes have a single row; an episode needs at least two "
-                         "observations (T+1 >= 2 rows)")
+        raise ValueError(
+            f"{path}: episodes have a single row; an episode needs at least two "
+            "observations (T+1 >= 2 rows)"
+        )
     values = np.char.strip(cells[:, 1:])
     empty = values == ""
     last = np.zeros(len(data), dtype=bool)
     last[bounds[1:] - 1] = True
-    act_empty = empty[:, 1 + n_obs:]
+    act_empty = empty[:, 1 + n_obs :]
     if (~act_empty[last]).any():
         r = int(np.flatnonzero(last & ~act_empty.all(1))[0])
-        raise ValueError(f"{path}, line {lines[r + 1]}: the last row of episode "
-                         f"'{episode_ids[r]}' has action values; the last row of an episode holds "
-                         "its final observation, with no action after it: leave its action cells "
-                         "empty (or drop the action logged after the last observation)")
-    empty[last, 1 + n_obs:] = False
+        raise ValueError(
+            f"{path}, line {lines[r + 1]}: the last row of episode "
+            f"'{episode_ids[r]}' has action values; the last row of an episode holds "
+            "its final observation, with no action after it: leave its action cells "
+            "empty (or drop the action logged after the last observation)"
+        )
+    empty[last, 1 + n_obs :] = False
     if empty.any():
         r, c = (int(x) for x in np.argwhere(empty)[0])
-        raise ValueError(f"{path}, line {lines[r + 1]}: column '{header[c + 1]}' is empty; only "
-                         "the action cells of an episode's last row may be empty (write nan for "
-                         "a missing measurement)")
+        raise ValueError(
+            f"{path}, line {lines[r + 1]}: column '{header[c + 1]}' is empty; only "
+            "the action cells of an episode's last row may be empty (write nan for "
+            "a missing measurement)"
+        )
     values = np.where(last[:, None] & (np.arange(values.shape[1]) > n_obs), "nan", values)
     try:
         numbers = values.astype(np.float64)
@@ -427,8 +491,10 @@ def _load_csv(path: Path) -> Dataset:
                 try:
                     float(cell)
                 except ValueError:
-                    raise ValueError(f"{path}, line {lines[r + 1]}: column '{header[c + 1]}' "
-                                     f"holds '{cell}', which is not a number") from None
+                    raise ValueError(
+                        f"{path}, line {lines[r + 1]}: column '{header[c + 1]}' "
+                        f"holds '{cell}', which is not a number"
+                    ) from None
         raise
     n_ep = len(labels)
     numbers = numbers.reshape(n_ep, rows_per, -1)
@@ -436,20 +502,25 @@ def _load_csv(path: Path) -> Dataset:
     dt = float(t[0, 1] - t[0, 0])
     steps = np.diff(t, axis=1)
     if not np.isfinite(t).all() or not dt > 0:
-        raise ValueError(f"{path}: t must be finite and increase within each episode; the first "
-                         f"episode's first step is {dt} s")
+        raise ValueError(
+            f"{path}: t must be finite and increase within each episode; the first "
+            f"episode's first step is {dt} s"
+        )
     tol = DT_RTOL * dt + 8 * np.finfo(float).eps * float(np.abs(t).max())
     uneven = np.abs(steps - dt) > tol
     if uneven.any():
         e, k = (int(x) for x in np.argwhere(uneven)[0])
-        raise ValueError(f"{path}: t is not evenly spaced: episode '{labels[e]}' steps "
-                         f"{steps[e, k]} s from t = {t[e, k]}, and the first step is {dt} s; "
-                         "resample the data to a fixed step (and sort each episode by t)")
-    obs_names = tuple(header[2:2 + n_obs])
-    action_names = tuple(h[len(ACTION_PREFIX):] for h in header[2 + n_obs:])
+        raise ValueError(
+            f"{path}: t is not evenly spaced: episode '{labels[e]}' steps "
+            f"{steps[e, k]} s from t = {t[e, k]}, and the first step is {dt} s; "
+            "resample the data to a fixed step (and sort each episode by t)"
+        )
+    obs_names = tuple(header[2 : 2 + n_obs])
+    action_names = tuple(h[len(ACTION_PREFIX) :] for h in header[2 + n_obs :])
     if obs_names == tuple(f"{OBS_PLACEHOLDER}{i}" for i in range(n_obs)):
         obs_names = None
     if action_names == tuple(str(i) for i in range(n_act)):
         action_names = None
-    return Dataset(numbers[:, :, 1:1 + n_obs], numbers[:, :-1, 1 + n_obs:], dt,
-                   obs_names, action_names)
+    return Dataset(
+        numbers[:, :, 1 : 1 + n_obs], numbers[:, :-1, 1 + n_obs :], dt, obs_names, action_names
+    )

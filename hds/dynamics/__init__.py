@@ -64,10 +64,17 @@ def build(cfg, env, plant, key, out_dir) -> tuple[DynamicsModel, dict]:
         meta = read_meta(cfg.path)
         log.info("loaded the %s dynamics model from %s", model.kind, cfg.path)
         if cfg.model not in ("none", model.kind):
-            log.warning("dynamics.model = %s, but the model at %s is a %s model: using it as "
-                        "saved", cfg.model, cfg.path, model.kind)
-        return model, {"path": str(Path(cfg.path).expanduser().absolute()), "loaded": True,
-                       **meta.get("report", {})}
+            log.warning(
+                "dynamics.model = %s, but the model at %s is a %s model: using it as saved",
+                cfg.model,
+                cfg.path,
+                model.kind,
+            )
+        return model, {
+            "path": str(Path(cfg.path).expanduser().absolute()),
+            "loaded": True,
+            **meta.get("report", {}),
+        }
     k_data, k_fit = jax.random.split(key)
     if cfg.data:
         from hds.data import load as load_data
@@ -77,23 +84,35 @@ def build(cfg, env, plant, key, out_dir) -> tuple[DynamicsModel, dict]:
         source = {"data": str(cfg.data)}
     else:
         if plant is None:
-            raise ValueError("fitting a dynamics model needs data: give dynamics.data (a "
-                             "measured dataset), dynamics.path (a fitted model) or a plant")
+            raise ValueError(
+                "fitting a dynamics model needs data: give dynamics.data (a "
+                "measured dataset), dynamics.path (a fitted model) or a plant"
+            )
         data = collect_data(cfg, env, plant, k_data)
-        source = {"data": "plant", "excitation": cfg.excitation,
-                  "excitation_scale": cfg.excitation_scale}
+        source = {
+            "data": "plant",
+            "excitation": cfg.excitation,
+            "excitation_scale": cfg.excitation_scale,
+        }
     model, report = fit(cfg, env, data, key=k_fit)
     report.update(source)
     path = save(Path(out_dir), model, cfg, report)
     report.update({"path": str(path), "loaded": False})
+
     def fmt(x):
         return "nan" if x is None else f"{x:.3g}"
 
-    log.info("fitted the %s dynamics model in %.1f s, saved to %s; open-loop nrmse on held-out "
-             "episodes (model / constant velocity / simulator): %s", cfg.model, report["fit_s"],
-             path, ", ".join(f"k={k}: {fmt(v['model'])} / {fmt(v['baseline'])} / "
-                             f"{fmt(v.get('simulator'))}"
-                             for k, v in report["multistep"].items()))
+    log.info(
+        "fitted the %s dynamics model in %.1f s, saved to %s; open-loop nrmse on held-out "
+        "episodes (model / constant velocity / simulator): %s",
+        cfg.model,
+        report["fit_s"],
+        path,
+        ", ".join(
+            f"k={k}: {fmt(v['model'])} / {fmt(v['baseline'])} / {fmt(v.get('simulator'))}"
+            for k, v in report["multistep"].items()
+        ),
+    )
     return model, report
 
 

@@ -19,11 +19,16 @@ os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(prog="python -m hds.dynamics",
-                                     description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m hds.dynamics", description=__doc__.split("\n")[0]
+    )
     parser.add_argument("--out", help="save the fitted model to this directory")
-    parser.add_argument("--test-episodes", type=int, default=16,
-                        help="held-out episodes, recorded with another seed (default 16)")
+    parser.add_argument(
+        "--test-episodes",
+        type=int,
+        default=16,
+        help="held-out episodes, recorded with another seed (default 16)",
+    )
     parser.add_argument("--json", help="write the report and held-out errors to this file")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. dynamics=residual")
     args = parser.parse_args(argv)
@@ -56,15 +61,22 @@ def main(argv=None) -> dict:
     if args.out:
         report["path"] = str(dynamics.save(args.out, model, dcfg, report))
 
-    print(f"{dcfg.model} ({report['members']} member(s), hidden {report['hidden']}) on "
-          f"{cfg.real.plant} plant data: {report['transitions']['train']} training transitions, "
-          f"collected in {collect_s:.1f} s, fitted in {report['fit_s']:.1f} s "
-          f"({report['epochs_run']} epochs, best {report['best_epoch']})")
+    print(
+        f"{dcfg.model} ({report['members']} member(s), hidden {report['hidden']}) on "
+        f"{cfg.real.plant} plant data: {report['transitions']['train']} training transitions, "
+        f"collected in {collect_s:.1f} s, fitted in {report['fit_s']:.1f} s "
+        f"({report['epochs_run']} epochs, best {report['best_epoch']})"
+    )
     print(f"open-loop nrmse on {args.test_episodes} held-out episodes (lower is better):")
     print(f"{'k':>4} {'model':>9} {'const-vel':>10} {'simulator':>10}")
     for k, row in held_out.items():
-        print(f"{k:>4} " + " ".join(f"{_fmt(row[n]):>{w}}" for n, w in
-                                    (("model", 9), ("baseline", 10), ("simulator", 10))))
+        print(
+            f"{k:>4} "
+            + " ".join(
+                f"{_fmt(row[n]):>{w}}"
+                for n, w in (("model", 9), ("baseline", 10), ("simulator", 10))
+            )
+        )
     result = {"report": report, "held_out": held_out, "overrides": args.overrides}
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2) + "\n")

@@ -40,8 +40,9 @@ def _rollouts(step, starts, windows):
     return jax.vmap(roll)(starts, windows)
 
 
-def multistep_errors(step: Callable, obs, actions, ks: Sequence[int], angular: np.ndarray,
-                     names: Sequence[str]) -> dict:
+def multistep_errors(
+    step: Callable, obs, actions, ks: Sequence[int], angular: np.ndarray, names: Sequence[str]
+) -> dict:
     """{k: {"nrmse": float, "rmse": {name: float}}} for every k in `ks` not longer than the
     episodes (non-finite predictions give inf)."""
     obs, actions = np.asarray(obs, np.float32), np.asarray(actions, np.float32)
@@ -59,6 +60,8 @@ def multistep_errors(step: Callable, obs, actions, ks: Sequence[int], angular: n
         with np.errstate(over="ignore", invalid="ignore"):
             rmse = np.sqrt(np.mean(err.astype(np.float64) ** 2, axis=(0, 1)))
         rmse = np.where(np.isfinite(rmse), rmse, np.inf)
-        out[k] = {"nrmse": float(np.mean(rmse / scale)),
-                  "rmse": {n: float(v) for n, v in zip(names, rmse, strict=True)}}
+        out[k] = {
+            "nrmse": float(np.mean(rmse / scale)),
+            "rmse": {n: float(v) for n, v in zip(names, rmse, strict=True)},
+        }
     return out

@@ -61,8 +61,10 @@ class Normalizer:
     def fit(cls, x: np.ndarray, y: np.ndarray) -> Normalizer:
         def stats(a):
             mean, std = a.mean(0), a.std(0)
-            return (jnp.asarray(mean, jnp.float32),
-                    jnp.asarray(np.where(std > 1e-6, std, 1.0), jnp.float32))
+            return (
+                jnp.asarray(mean, jnp.float32),
+                jnp.asarray(np.where(std > 1e-6, std, 1.0), jnp.float32),
+            )
 
         return cls(*stats(x), *stats(y))
 
@@ -71,8 +73,12 @@ class Normalizer:
         return cls(jnp.zeros(n_in), jnp.ones(n_in), jnp.zeros(n_out), jnp.ones(n_out))
 
     def as_dict(self) -> dict:
-        return {"x_mean": self.x_mean, "x_std": self.x_std, "y_mean": self.y_mean,
-                "y_std": self.y_std}
+        return {
+            "x_mean": self.x_mean,
+            "x_std": self.x_std,
+            "y_mean": self.y_mean,
+            "y_std": self.y_std,
+        }
 
 
 def wrap_angles(delta: jax.Array, angular: np.ndarray) -> jax.Array:
@@ -129,7 +135,7 @@ class DynamicsModel:
         """What the network corrects: obs itself, or the simulator's next state (residual)."""
         if self.kind != "residual":
             return obs
-        state = self.sim.init(obs[: self.nq], obs[self.nq:], self.sim_params)
+        state = self.sim.init(obs[: self.nq], obs[self.nq :], self.sim_params)
         state = self.sim.step(self.sim_params, state, self.clip(u))
         return jnp.concatenate([state.q, state.qd])
 
@@ -159,8 +165,10 @@ class DynamicsModel:
 
     def reset(self, key):
         if self.task is None:
-            raise ValueError("this model has no task to draw initial states from: load or fit it "
-                             "with an env (hds.dynamics.load(path, env))")
+            raise ValueError(
+                "this model has no task to draw initial states from: load or fit it "
+                "with an env (hds.dynamics.load(path, env))"
+            )
         q, qd = self.task.initial(key)
         return jnp.concatenate([q, qd]).astype(jnp.float32)
 
@@ -171,7 +179,7 @@ class DynamicsModel:
         return state
 
     def qqd(self, state):
-        return state[: self.nq], state[self.nq:]
+        return state[: self.nq], state[self.nq :]
 
 
 def make_net(kind: str, hidden: Sequence[int], n_obs: int) -> MLP:
@@ -187,8 +195,9 @@ def init_params(net: MLP, key, n_in: int, members: int):
     return jax.vmap(lambda k: net.init(k, jnp.zeros(n_in)))(jax.random.split(key, members))
 
 
-def skeleton(kind: str, env, hidden: Sequence[int], members: int, params=None,
-             norm: Normalizer | None = None) -> DynamicsModel:
+def skeleton(
+    kind: str, env, hidden: Sequence[int], members: int, params=None, norm: Normalizer | None = None
+) -> DynamicsModel:
     """A model for `env`'s system; parameters default to a fresh init (key 0), normalisation
     to the identity."""
     if kind not in KINDS:
@@ -199,11 +208,16 @@ def skeleton(kind: str, env, hidden: Sequence[int], members: int, params=None,
     if params is None:
         params = init_params(net, jax.random.PRNGKey(0), n_in, members)
     return DynamicsModel(
-        kind=kind, net=net, params=params,
+        kind=kind,
+        net=net,
+        params=params,
         norm=norm if norm is not None else Normalizer.identity(n_in, sim.n_obs),
-        obs_names=tuple(sim.obs_names), action_names=tuple(sim.action_names),
-        angular=np.asarray(sim.angular, dtype=bool), dt=float(sim.dt),
-        ctrl_range=np.asarray(sim.ctrl_range, dtype=np.float32), task=env.task,
+        obs_names=tuple(sim.obs_names),
+        action_names=tuple(sim.action_names),
+        angular=np.asarray(sim.angular, dtype=bool),
+        dt=float(sim.dt),
+        ctrl_range=np.asarray(sim.ctrl_range, dtype=np.float32),
+        task=env.task,
         sim=sim if kind == "residual" else None,
         sim_params=env.params if kind == "residual" else None,
     )
@@ -230,7 +244,7 @@ class ConstantVelocity:
     nq: int
 
     def __call__(self, obs, u):
-        q, qd = obs[: self.nq], obs[self.nq:]
+        q, qd = obs[: self.nq], obs[self.nq :]
         return jnp.concatenate([q + self.dt * qd if qd.shape == q.shape else q, qd])
 
 

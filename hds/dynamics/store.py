@@ -16,9 +16,11 @@ from hds.dynamics.model import DynamicsModel, Normalizer, init_params, n_inputs,
 
 log = logging.getLogger(__name__)
 FORMAT = "hds.dynamics/1"
-HOW_TO_MAKE = ("fit one with `python -m hds.run method=hds dynamics=mlp` (it is saved to "
-               "<run dir>/dynamics; point dynamics.path there to reuse it), or in Python with "
-               "hds.dynamics.fit(...) then hds.dynamics.save(path, model, cfg, report)")
+HOW_TO_MAKE = (
+    "fit one with `python -m hds.run method=hds dynamics=mlp` (it is saved to "
+    "<run dir>/dynamics; point dynamics.path there to reuse it), or in Python with "
+    "hds.dynamics.fit(...) then hds.dynamics.save(path, model, cfg, report)"
+)
 
 
 def _checkpointer() -> ocp.Checkpointer:
@@ -41,14 +43,22 @@ def save(path, model: DynamicsModel, cfg=None, report: dict | None = None) -> Pa
         "config": _plain(cfg) if cfg is not None else None,
         "report": report or {},
     }
-    if path.exists() and not (path / "meta").is_dir() and (
-            not path.is_dir() or any(path.iterdir())):
-        raise FileExistsError(f"{path} exists and is not a saved dynamics model; saving would "
-                              "replace it: choose a new directory")
+    if (
+        path.exists()
+        and not (path / "meta").is_dir()
+        and (not path.is_dir() or any(path.iterdir()))
+    ):
+        raise FileExistsError(
+            f"{path} exists and is not a saved dynamics model; saving would "
+            "replace it: choose a new directory"
+        )
     state = {"params": model.params, "norm": model.norm.as_dict()}
     path.parent.mkdir(parents=True, exist_ok=True)
-    _checkpointer().save(path, args=ocp.args.Composite(state=ocp.args.StandardSave(state),
-                                                       meta=ocp.args.JsonSave(meta)), force=True)
+    _checkpointer().save(
+        path,
+        args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)),
+        force=True,
+    )
     return path
 
 
@@ -60,9 +70,11 @@ def read_meta(path) -> dict:
         raise FileNotFoundError(f"dynamics.path = {path} {what}: {HOW_TO_MAKE}")
     meta = _checkpointer().restore(path, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise ValueError(f"{path} is not a dynamics model of this version (format "
-                         f"{meta.get('format') if isinstance(meta, dict) else None!r}, expected "
-                         f"{FORMAT!r}): {HOW_TO_MAKE}")
+        raise ValueError(
+            f"{path} is not a dynamics model of this version (format "
+            f"{meta.get('format') if isinstance(meta, dict) else None!r}, expected "
+            f"{FORMAT!r}): {HOW_TO_MAKE}"
+        )
     return meta
 
 
@@ -79,27 +91,43 @@ def load(path, env) -> DynamicsModel:
     if not np.isclose(meta["dt"], sim.dt, rtol=1e-6):
         problems.append(f"it steps dt = {meta['dt']} s, this system {sim.dt} s")
     if problems:
-        raise ValueError(f"the dynamics model at {path} was fitted for another system: "
-                         f"{'; '.join(problems)}. Fit a model for this system (dynamics.path=null "
-                         "fits one from the plant) or load the right one")
+        raise ValueError(
+            f"the dynamics model at {path} was fitted for another system: "
+            f"{'; '.join(problems)}. Fit a model for this system (dynamics.path=null "
+            "fits one from the plant) or load the right one"
+        )
     if meta["kind"] == "residual" and meta.get("simulator") != _sim_meta(sim):
-        log.warning("the residual model at %s corrects the simulator %s; it is loaded onto %s",
-                    path, meta.get("simulator"), _sim_meta(sim))
+        log.warning(
+            "the residual model at %s corrects the simulator %s; it is loaded onto %s",
+            path,
+            meta.get("simulator"),
+            _sim_meta(sim),
+        )
 
     model = skeleton(meta["kind"], env, meta["hidden"], meta["members"])
     n_in = n_inputs(model.angular, model.n_obs, model.n_act)
-    like = {"params": jax.eval_shape(lambda: init_params(model.net, jax.random.PRNGKey(0), n_in,
-                                                         meta["members"])),
-            "norm": jax.eval_shape(lambda: Normalizer.identity(n_in, model.n_obs).as_dict())}
+    like = {
+        "params": jax.eval_shape(
+            lambda: init_params(model.net, jax.random.PRNGKey(0), n_in, meta["members"])
+        ),
+        "norm": jax.eval_shape(lambda: Normalizer.identity(n_in, model.n_obs).as_dict()),
+    }
     abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, like)
-    state = _checkpointer().restore(
-        path, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))).state
+    state = (
+        _checkpointer()
+        .restore(path, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract)))
+        .state
+    )
     return replace(model, params=state["params"], norm=Normalizer(**state["norm"]))
 
 
 def _sim_meta(sim) -> dict:
-    return {"xml": Path(sim.xml).name, "backend": sim.backend,
-            "timestep": float(sim.timestep), "frames": int(sim.frames)}
+    return {
+        "xml": Path(sim.xml).name,
+        "backend": sim.backend,
+        "timestep": float(sim.timestep),
+        "frames": int(sim.frames),
+    }
 
 
 def _plain(cfg) -> dict:

@@ -46,36 +46,53 @@ def as_arrays(data, actions=None, sim=None) -> tuple[np.ndarray, np.ndarray]:
             raise TypeError("give obs and actions arrays, or a Dataset (with .obs and .actions)")
         if sim is not None and getattr(data, "obs_names", None) is not None:
             from hds.data import check  # names and order must be the system's
+
             check(data)
-            for kind, got, want in (("obs_names", data.obs_names, sim.obs_names),
-                                    ("action_names", data.action_names, sim.action_names)):
+            for kind, got, want in (
+                ("obs_names", data.obs_names, sim.obs_names),
+                ("action_names", data.action_names, sim.action_names),
+            ):
                 if got is not None and tuple(got) != tuple(want):
-                    raise ValueError(f"the dataset's {kind} {list(got)} are not this system's "
-                                     f"{list(want)}: record data of this system, in this order")
+                    raise ValueError(
+                        f"the dataset's {kind} {list(got)} are not this system's "
+                        f"{list(want)}: record data of this system, in this order"
+                    )
         dt = getattr(data, "dt", None)
         if sim is not None and dt is not None and not np.isclose(float(dt), sim.dt, rtol=1e-6):
-            raise ValueError(f"the dataset is sampled every {dt} s and this system steps every "
-                             f"{sim.dt} s (env.timestep * env.frames_per_step): resample the "
-                             "data or change the env's step so they match")
+            raise ValueError(
+                f"the dataset is sampled every {dt} s and this system steps every "
+                f"{sim.dt} s (env.timestep * env.frames_per_step): resample the "
+                "data or change the env's step so they match"
+            )
         data, actions = data.obs, data.actions
     obs, actions = np.asarray(data, np.float32), np.asarray(actions, np.float32)
-    if obs.ndim != 3 or actions.ndim != 3 or obs.shape[0] != actions.shape[0] \
-            or obs.shape[1] != actions.shape[1] + 1:
-        raise ValueError(f"obs {obs.shape} and actions {actions.shape} must be [E, T+1, n_obs] "
-                         "and [E, T, n_act] for the same E episodes (one more observation than "
-                         "actions per episode)")
+    if (
+        obs.ndim != 3
+        or actions.ndim != 3
+        or obs.shape[0] != actions.shape[0]
+        or obs.shape[1] != actions.shape[1] + 1
+    ):
+        raise ValueError(
+            f"obs {obs.shape} and actions {actions.shape} must be [E, T+1, n_obs] "
+            "and [E, T, n_act] for the same E episodes (one more observation than "
+            "actions per episode)"
+        )
     if sim is not None and (obs.shape[2] != sim.n_obs or actions.shape[2] != sim.n_act):
-        raise ValueError(f"obs have {obs.shape[2]} variables and actions {actions.shape[2]}; "
-                         f"this system has {sim.n_obs} observations {list(sim.obs_names)} and "
-                         f"{sim.n_act} actions {list(sim.action_names)}")
+        raise ValueError(
+            f"obs have {obs.shape[2]} variables and actions {actions.shape[2]}; "
+            f"this system has {sim.n_obs} observations {list(sim.obs_names)} and "
+            f"{sim.n_act} actions {list(sim.action_names)}"
+        )
     return obs, actions
 
 
 def split_episodes(n_episodes: int, val_fraction: float, key) -> tuple[np.ndarray, np.ndarray]:
     """(train, validation) episode indices; at least one episode in each."""
     if n_episodes < 2:
-        raise ValueError(f"fitting needs at least 2 episodes (training and validation are split "
-                         f"by episode); got {n_episodes}")
+        raise ValueError(
+            f"fitting needs at least 2 episodes (training and validation are split "
+            f"by episode); got {n_episodes}"
+        )
     n_val = min(max(1, int(round(val_fraction * n_episodes))), n_episodes - 1)
     order = np.asarray(jax.random.permutation(key, n_episodes))
     return np.sort(order[n_val:]), np.sort(order[:n_val])
@@ -95,13 +112,16 @@ def _targets(model: DynamicsModel, base, o, u, o2, chunk: int = 1024) -> np.ndar
     pad = -n % chunk
     o_pad = np.concatenate([o, np.repeat(o[:1], pad, 0)])
     u_pad = np.concatenate([u, np.repeat(u[:1], pad, 0)])
-    parts = [np.asarray(base(o_pad[i:i + chunk], u_pad[i:i + chunk]))
-             for i in range(0, n + pad, chunk)]
+    parts = [
+        np.asarray(base(o_pad[i : i + chunk], u_pad[i : i + chunk]))
+        for i in range(0, n + pad, chunk)
+    ]
     return np.asarray(wrap_angles(jnp.asarray(o2 - np.concatenate(parts)[:n]), model.angular))
 
 
-def train_members(net, params, x, y, x_val, y_val, keys, *, learning_rate, minibatch, epochs,
-                  patience):
+def train_members(
+    net, params, x, y, x_val, y_val, keys, *, learning_rate, minibatch, epochs, patience
+):
     """Train K members (params stacked on axis 0, one data-order key each) on normalised (x, y);
     returns (best params, info) with info arrays [K]: best_val, best_epoch, epochs_run, and
     history [K, epochs, 2] (mean train loss, validation loss; NaN after the stop)."""
@@ -136,7 +156,10 @@ def train_members(net, params, x, y, x_val, y_val, keys, *, learning_rate, minib
             val = jnp.where(jnp.isfinite(val), val, jnp.inf)
             better = val < c["best_val"]
             return {
-                "params": p, "opt": o, "key": key, "epoch": c["epoch"] + 1,
+                "params": p,
+                "opt": o,
+                "key": key,
+                "epoch": c["epoch"] + 1,
                 "best": pick(better, p, c["best"]),
                 "best_val": jnp.where(better, val, c["best_val"]),
                 "best_epoch": jnp.where(better, c["epoch"], c["best_epoch"]),
@@ -148,10 +171,14 @@ def train_members(net, params, x, y, x_val, y_val, keys, *, learning_rate, minib
             return (c["epoch"] < epochs) & (c["wait"] < patience)
 
         start = {
-            "params": p0, "opt": optimizer.init(p0), "key": key, "epoch": jnp.array(0),
-            "best": p0, "best_val": jnp.where(jnp.isfinite(v := loss_fn(p0, x_val, y_val)), v,
-                                              jnp.inf),
-            "best_epoch": jnp.array(-1), "wait": jnp.array(0),
+            "params": p0,
+            "opt": optimizer.init(p0),
+            "key": key,
+            "epoch": jnp.array(0),
+            "best": p0,
+            "best_val": jnp.where(jnp.isfinite(v := loss_fn(p0, x_val, y_val)), v, jnp.inf),
+            "best_epoch": jnp.array(-1),
+            "wait": jnp.array(0),
             "history": jnp.full((epochs, 2), jnp.nan),
         }
         c = jax.lax.while_loop(more, body, start)
@@ -162,23 +189,26 @@ def train_members(net, params, x, y, x_val, y_val, keys, *, learning_rate, minib
     return jax.jit(jax.vmap(one, in_axes=(0, 0, None, None, None, None)))(params, keys, *data)
 
 
-def fit(cfg, env, obs, actions=None, key=None, compare_simulator: bool = True
-        ) -> tuple[DynamicsModel, dict]:
+def fit(
+    cfg, env, obs, actions=None, key=None, compare_simulator: bool = True
+) -> tuple[DynamicsModel, dict]:
     """Fit `cfg.model` (a DynamicsConfig) for `env`'s system on episodes `obs` [E, T+1, n_obs],
     `actions` [E, T, n_act] (or a Dataset as `obs`). Returns (model engine, report): the report
     (JSON-ready) holds sizes, losses, epochs and the open-loop k-step errors of the model and of
     the constant-velocity baseline on the validation episodes (and, with `compare_simulator`,
     of env's simulator alone: one more compile)."""
     if cfg.model not in ("mlp", "ensemble", "residual"):
-        raise ValueError(f"dynamics.model = {cfg.model!r} has nothing to fit; choose mlp, "
-                         "ensemble or residual")
+        raise ValueError(
+            f"dynamics.model = {cfg.model!r} has nothing to fit; choose mlp, ensemble or residual"
+        )
     start_time = time.perf_counter()
     key = jax.random.PRNGKey(0) if key is None else key
     obs, actions = as_arrays(obs, actions, env.sim)
     good = np.isfinite(obs).all((1, 2)) & np.isfinite(actions).all((1, 2))
     if not good.all():
-        log.warning("dropping %d of %d episodes with NaN or inf values", int((~good).sum()),
-                    len(good))
+        log.warning(
+            "dropping %d of %d episodes with NaN or inf values", int((~good).sum()), len(good)
+        )
         obs, actions = obs[good], actions[good]
     k_split, k_init, k_order = jax.random.split(key, 3)
     train_ep, val_ep = split_episodes(len(obs), cfg.val_fraction, k_split)
@@ -200,21 +230,35 @@ def fit(cfg, env, obs, actions=None, key=None, compare_simulator: bool = True
     n_in = x.shape[1]
     params = init_params(model.net, k_init, n_in, members)
     best, info = train_members(
-        model.net, params, nx(x), ny(y), nx(x_val), ny(y_val),
-        jax.random.split(k_order, members), learning_rate=cfg.learning_rate,
-        minibatch=cfg.minibatch, epochs=cfg.epochs, patience=cfg.patience)
+        model.net,
+        params,
+        nx(x),
+        ny(y),
+        nx(x_val),
+        ny(y_val),
+        jax.random.split(k_order, members),
+        learning_rate=cfg.learning_rate,
+        minibatch=cfg.minibatch,
+        epochs=cfg.epochs,
+        patience=cfg.patience,
+    )
     info = jax.tree.map(np.asarray, info)
     if not np.all(np.isfinite(info["best_val"])):
         raise FloatingPointError(
             "the dynamics model's validation loss never became finite: check the data for "
-            "exploding states, or lower dynamics.learning_rate")
+            "exploding states, or lower dynamics.learning_rate"
+        )
     model = replace(model, params=best, norm=norm)
     fit_s = time.perf_counter() - start_time
 
-    at_best = [h[int(b), 0] if b >= 0 else np.nan
-               for h, b in zip(info["history"], info["best_epoch"], strict=True)]
+    at_best = [
+        h[int(b), 0] if b >= 0 else np.nan
+        for h, b in zip(info["history"], info["best_epoch"], strict=True)
+    ]
     report = {
-        "model": cfg.model, "members": members, "hidden": [int(w) for w in cfg.hidden],
+        "model": cfg.model,
+        "members": members,
+        "hidden": [int(w) for w in cfg.hidden],
         "episodes": {"train": len(train_ep), "validation": len(val_ep)},
         "transitions": {"train": int(len(x)), "validation": int(len(x_val))},
         "epochs_run": [int(e) for e in info["epochs_run"]],
@@ -227,8 +271,9 @@ def fit(cfg, env, obs, actions=None, key=None, compare_simulator: bool = True
         spread = jax.jit(jax.vmap(model.disagreement))
         o, u, _ = _transitions(obs[val_ep], actions[val_ep])
         report["disagreement"] = _num(np.mean(np.asarray(spread(o, u))))
-    report["multistep"] = evaluate(model, obs[val_ep], actions[val_ep], cfg.eval_steps,
-                                   env if compare_simulator else None)
+    report["multistep"] = evaluate(
+        model, obs[val_ep], actions[val_ep], cfg.eval_steps, env if compare_simulator else None
+    )
     report["eval_s"] = round(time.perf_counter() - start_time - fit_s, 2)
     return model, report
 

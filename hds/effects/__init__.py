@@ -4,6 +4,13 @@ from hds.effects.apply import EffectParams, EffectSet, EffectSpec, place
 from hds.effects.library import LIBRARY, EffectType, Param, check_params, effect_type
 
 __all__ = [
-    "LIBRARY", "EffectParams", "EffectSet", "EffectSpec", "EffectType", "Param",
-    "check_params", "effect_type", "place",
+    "LIBRARY",
+    "EffectParams",
+    "EffectSet",
+    "EffectSpec",
+    "EffectType",
+    "Param",
+    "check_params",
+    "effect_type",
+    "place",
 ]

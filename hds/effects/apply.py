@@ -79,7 +79,9 @@ class EffectSet:
                 )
         for i, s in self.of("actuator_gain"):
             gain = params[i]["gain"]
-            sys = sys.replace(actuator=sys.actuator.replace(gear=sys.actuator.gear.at[s.index].multiply(gain)))
+            sys = sys.replace(
+                actuator=sys.actuator.replace(gear=sys.actuator.gear.at[s.index].multiply(gain))
+            )
             if hasattr(sys, "actuator_gear"):
                 sys = sys.replace(actuator_gear=sys.actuator_gear.at[s.index, 0].multiply(gain))
         return sys
@@ -171,4 +173,3 @@ def place(
         sites.append(Site(spec.name, spec.target, index, int(values.pop("steps", 0))))
         params.append({k: jnp.asarray(v, jnp.float32) for k, v in values.items()})
     return EffectSet(tuple(sites)), tuple(params)
-

@@ -1,4 +1,4 @@
-"""The simulated systems: an MJCF on a Brax backend (`system`) and what it is asked to do (`tasks`)."""
+"""The simulated systems: an MJCF on a Brax backend (`system`) and its tasks (`tasks`)."""
 
 from __future__ import annotations
 

@@ -173,8 +173,13 @@ def make_simulator(
     effect_set, params = place(effects, targets, friction_gap)
 
     for joint in targets["joint"]:  # effect forces enter as unlimited motors, on every backend
-        spec.add_actuator(name=_FORCE_PREFIX + joint, target=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT,
-                          ctrllimited=0, gear=[1, 0, 0, 0, 0, 0])
+        spec.add_actuator(
+            name=_FORCE_PREFIX + joint,
+            target=joint,
+            trntype=mujoco.mjtTrn.mjTRN_JOINT,
+            ctrllimited=0,
+            gear=[1, 0, 0, 0, 0, 0],
+        )
     with quiet_brax():
         from brax.io import mjcf
 

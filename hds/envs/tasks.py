@@ -30,7 +30,9 @@ class Task:
 
     def initial(self, key: jax.Array) -> tuple[jax.Array, jax.Array]:
         kq, kqd = jax.random.split(key)
-        q = self.q_mean + self.q_spread * jax.random.uniform(kq, self.q_mean.shape, minval=-1, maxval=1)
+        q = self.q_mean + self.q_spread * jax.random.uniform(
+            kq, self.q_mean.shape, minval=-1, maxval=1
+        )
         qd = self.qd_spread * jax.random.uniform(kqd, self.qd_spread.shape, minval=-1, maxval=1)
         return q, qd
 
@@ -53,13 +55,19 @@ def reference_reward(q, qd):
     best with the pole horizontal, not upright). Cart-pole only: q = [x, theta]."""
     x, theta = q[0], q[1]
     x_dot, theta_dot = qd[0], qd[1]
-    return -jnp.cos(theta) ** 2 - theta_dot**2 - 1.5 * x**2 - 0.5 * x_dot**2
+    return -(jnp.cos(theta) ** 2) - theta_dot**2 - 1.5 * x**2 - 0.5 * x_dot**2
 
 
 def make_task(cfg, angular: np.ndarray, nq: int, nv: int) -> Task:
     """Build a task from `env.task` config, checking every vector against the model's size."""
-    sizes = {"q_mean": nq, "q_spread": nq, "qd_spread": nv, "q_target": nq, "q_weight": nq,
-             "qd_weight": nv}
+    sizes = {
+        "q_mean": nq,
+        "q_spread": nq,
+        "qd_spread": nv,
+        "q_target": nq,
+        "q_weight": nq,
+        "qd_weight": nv,
+    }
     vectors = {}
     for name, size in sizes.items():
         value = np.asarray(getattr(cfg, name), dtype=np.float32)
@@ -71,5 +79,10 @@ def make_task(cfg, angular: np.ndarray, nq: int, nv: int) -> Task:
         vectors[name] = value
     if cfg.kind == "reference" and (nq, nv) != (2, 2):
         raise ValueError("env.task.kind=reference is the cart-pole's task: it needs nq = nv = 2")
-    return Task(kind=cfg.kind, horizon=int(cfg.horizon), effort=float(cfg.effort),
-                angular=angular, **vectors)
+    return Task(
+        kind=cfg.kind,
+        horizon=int(cfg.horizon),
+        effort=float(cfg.effort),
+        angular=angular,
+        **vectors,
+    )

@@ -1,4 +1,4 @@
-""""Real" plants: black boxes to reset, step, roll a policy out on and record data from.
+""" "Real" plants: black boxes to reset, step, roll a policy out on and record data from.
 
 Every plant works on a batch of B episodes with NumPy arrays and exposes:
   obs_names, action_names, dt, ctrl_range [n_act, 2]
@@ -10,8 +10,8 @@ No gradient is ever taken through a plant.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import jax
 import numpy as np
@@ -63,8 +63,9 @@ def make_plant(real_cfg, env_cfg):
     if real_cfg.plant == "brax":
         from hds.real.brax_plant import BraxPlant
 
-        return BraxPlant(make_env(env_cfg, effects=effects, sharpness=None,
-                                  friction_gap=real_cfg.friction_gap))
+        return BraxPlant(
+            make_env(env_cfg, effects=effects, sharpness=None, friction_gap=real_cfg.friction_gap)
+        )
     from hds.real.mujoco_plant import MujocoPlant
 
     return MujocoPlant(env_cfg, effects, friction_gap=real_cfg.friction_gap)

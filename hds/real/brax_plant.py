@@ -21,8 +21,9 @@ class BraxPlant:
         self._state = None
 
     def reset(self, q, qd):
-        self._state = self._init(jnp.asarray(q, jnp.float32), jnp.asarray(qd, jnp.float32),
-                                 self.env.params)
+        self._state = self._init(
+            jnp.asarray(q, jnp.float32), jnp.asarray(qd, jnp.float32), self.env.params
+        )
         return np.asarray(self._observe(self.env.params, self._state))
 
     def step(self, u):

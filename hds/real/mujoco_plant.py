@@ -37,8 +37,10 @@ def place_effects(spec: mujoco.MjSpec, effects, friction_gap: float = 1.0):
         elif site.name == "actuator_lag":
             actuator = spec.actuator(site.target)
             if actuator.dyntype != mujoco.mjtDyn.mjDYN_NONE:
-                raise ValueError(f"actuator_lag@{site.target}: the actuator already has "
-                                 f"dynamics ({actuator.dyntype.name}); remove them or the effect")
+                raise ValueError(
+                    f"actuator_lag@{site.target}: the actuator already has "
+                    f"dynamics ({actuator.dyntype.name}); remove them or the effect"
+                )
             actuator.dyntype = mujoco.mjtDyn.mjDYN_FILTEREXACT
             actuator.dynprm[0] = value["time_constant"]
             actuator.actearly = 1  # the force uses the updated filter state, as the simulator
@@ -102,8 +104,10 @@ class MujocoPlant:
     def step(self, u) -> np.ndarray:
         u = np.array(u, dtype=np.float64)  # a copy: the effects below edit it
         if u.shape != (len(self._data), self.model.nu):
-            raise ValueError(f"step expects u of shape [B, {self.model.nu}] with B from reset "
-                             f"({len(self._data)} episodes; call reset first), got {u.shape}")
+            raise ValueError(
+                f"step expects u of shape [B, {self.model.nu}] with B from reset "
+                f"({len(self._data)} episodes; call reset first), got {u.shape}"
+            )
         for i, s in self.effects.of("action_delay"):
             if s.steps > 0:
                 buf = self._delay[i]
@@ -121,8 +125,10 @@ class MujocoPlant:
         return self._observe()
 
     def state(self) -> tuple[np.ndarray, np.ndarray]:
-        return (np.stack([d.qpos.copy() for d in self._data]),
-                np.stack([d.qvel.copy() for d in self._data]))
+        return (
+            np.stack([d.qpos.copy() for d in self._data]),
+            np.stack([d.qvel.copy() for d in self._data]),
+        )
 
     def _observe(self) -> np.ndarray:
         obs = np.concatenate(self.state(), axis=1)

@@ -35,4 +35,6 @@ def read_json(path: str | Path):
     except FileNotFoundError:
         raise FileNotFoundError(f"{path} does not exist") from None
     except json.JSONDecodeError as err:
-        raise ValueError(f"{path} is not valid JSON ({err}); delete it or rerun to rewrite it") from None
+        raise ValueError(
+            f"{path} is not valid JSON ({err}); delete it or rerun to rewrite it"
+        ) from None

@@ -1,4 +1,4 @@
-"""Process-wide JAX set-up: the persistent compilation cache, so a second process skips compiling."""
+"""Process-wide JAX set-up: the persistent compilation cache (a second process skips compiling)."""
 
 from __future__ import annotations
 

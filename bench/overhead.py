@@ -1,0 +1,282 @@
+"""Section `overhead`: the trainer's epoch time over the bare engine cost of the same work.
+
+Bare engine = one jitted function doing only what the physics must do for an epoch's action
+improvement: value_and_grad of the open-loop return of the batch of rollouts, plus the
+line-search rollouts of every candidate step (vmapped), with no policy and no regression.
+The trainer's epoch additionally rolls the policy out in closed loop (one more forward batch)
+and regresses the policy onto the improved actions; both are timed on their own as well, so
+the ratio can be read as a sum.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from bench.common import REFERENCE, best_of, block, compose, steps_per_epoch, timed
+
+DEFAULT_BUDGET = {
+    "backends": ["analytic", "generalized"],
+    "line_search": 8,
+    "repeats": 5,  # timed calls per function (median); the trainer is timed per chunk of epochs
+    "chunk": 5,  # epochs per timed trainer call
+    "parts_backends": ["analytic"],  # where each stage is also timed alone (3 more compiles)
+    "target_ratio": 1.5,
+}
+
+
+def setup(backend: str, budget: dict):
+    from hds.algo.pods import make_train
+    from hds.envs import make_env
+
+    cfg = compose(
+        *REFERENCE,
+        f"env.backend={backend}",
+        f"algo.line_search={budget['line_search']}",
+        f"algo.chunk={budget['chunk']}",
+    )
+    env = make_env(cfg.env)
+    return cfg, env, make_train(cfg, env)
+
+
+def sample_batch(cfg, env, trainer, key):
+    """Initial states and the untrained policy's actions: the inputs of a first epoch."""
+    from hds.algo.rollout import policy_rollout
+
+    sim, task = env.sim, env.task
+    low, high = jnp.asarray(sim.ctrl_range[:, 0]), jnp.asarray(sim.ctrl_range[:, 1])
+    state = trainer.init(key, trainer.default_hparams)
+    k_reset, k_roll = jax.random.split(key)
+    starts = jax.vmap(env.reset)(jax.random.split(k_reset, cfg.algo.rollouts))
+    act = lambda o: trainer.policy.apply(state.policy, o)  # noqa: E731
+
+    @jax.jit
+    def rollouts(starts, keys):
+        return jax.vmap(
+            lambda s, k: policy_rollout(
+                env, env.params, task, act, s, k, 0.0, task.horizon, low, high
+            )
+        )(starts, keys)
+
+    keys = jax.random.split(k_roll, cfg.algo.rollouts)
+    return state, starts, keys, rollouts, block(rollouts(starts, keys))
+
+
+def time_trainer_epoch(trainer, state, repeats: int) -> dict:
+    """Median seconds per epoch of the compiled `run_chunk` (chunk epochs per call)."""
+    run_chunk = jax.jit(trainer.run_chunk)
+    hparams = trainer.default_hparams
+    with timed() as comp:
+        compiled = run_chunk.lower(state, hparams).compile()
+    holder = {"state": state}
+
+    def call():
+        holder["state"], metrics = block(compiled(holder["state"], hparams))
+
+    call()  # warm-up: first-call allocations
+    median, times = best_of(call, repeats)
+    return {
+        "epoch_s": median / trainer.chunk,
+        "compile_s": comp.s,
+        "calls_s": times,
+        "epochs_per_call": trainer.chunk,
+    }
+
+
+def bare_engine(cfg, env):
+    """The physics of one epoch's improvement, nothing else: grad of the batch's open-loop
+    returns, then every candidate's open-loop return."""
+    from hds import anneal
+    from hds.algo.rollout import open_loop_return
+
+    task, sim = env.task, env.sim
+    low, high = jnp.asarray(sim.ctrl_range[:, 0]), jnp.asarray(sim.ctrl_range[:, 1])
+    n = anneal.candidates(cfg.anneal.kind, cfg.algo.line_search)
+    scales = cfg.algo.step_size * 0.5 ** jnp.arange(n)
+
+    def ret(state, actions):
+        return open_loop_return(env, env.params, task, state, actions)
+
+    def work(starts, actions):
+        values, grads = jax.vmap(jax.value_and_grad(ret, argnums=1))(starts, actions)
+        cands = jnp.clip(actions[:, None] + scales[None, :, None, None] * grads[:, None], low, high)
+        cand_values = jax.vmap(lambda s, c: jax.vmap(lambda a: ret(s, a))(c))(starts, cands)
+        return values, cand_values
+
+    return jax.jit(work)
+
+
+def time_compiled(fn, args, repeats: int) -> dict:
+    with timed() as comp:
+        compiled = fn.lower(*args).compile()
+    call = lambda: block(compiled(*args))  # noqa: E731
+    call()
+    median, times = best_of(call, repeats)
+    return {"s": median, "compile_s": comp.s, "calls_s": times}
+
+
+def time_parts(cfg, env, trainer, state, starts, keys, rollouts, batch, repeats: int) -> dict:
+    """The trainer's three stages on their own: closed-loop policy rollout, improvement
+    (hds.algo.improve, vmapped, as in an epoch) and regression."""
+    from hds import anneal
+    from hds.algo.improve import ImproveSettings, improve
+    from hds.algo.regress import regress
+
+    sim, task, algo = env.sim, env.task, cfg.algo
+    low, high = jnp.asarray(sim.ctrl_range[:, 0]), jnp.asarray(sim.ctrl_range[:, 1])
+    obs, actions, _ = batch
+    settings = ImproveSettings(
+        algo.order,
+        algo.grad_clip,
+        algo.gn_damping,
+        anneal.candidates(cfg.anneal.kind, algo.line_search),
+        cfg.anneal.kind,
+    )
+
+    @jax.jit
+    def improve_all(starts, actions, key):
+        return jax.vmap(
+            lambda s, a, k: improve(
+                env,
+                env.params,
+                task,
+                s,
+                a,
+                k,
+                alpha=algo.step_size,
+                temperature=1.0,
+                cfg=settings,
+                low=low,
+                high=high,
+            )
+        )(starts, actions, jax.random.split(key, algo.rollouts))
+
+    import optax
+
+    optimizer = optax.adam(algo.learning_rate)
+
+    @jax.jit
+    def regress_all(params, opt_state, obs, targets, key):
+        return regress(
+            trainer.policy.apply,
+            optimizer,
+            params,
+            opt_state,
+            obs,
+            targets,
+            jnp.ones(obs.shape[0]),
+            key,
+            inner_epochs=algo.inner_epochs,
+            minibatch=algo.minibatch,
+            tol=algo.early_stop,
+        )
+
+    key = jax.random.PRNGKey(1)
+    flat_obs, flat_u = obs.reshape(-1, sim.n_obs), actions.reshape(-1, sim.n_act)
+    return {
+        "policy_rollout": time_compiled(rollouts, (starts, keys), repeats),
+        "improve": time_compiled(improve_all, (starts, actions, key), repeats),
+        "regress": time_compiled(
+            regress_all, (state.policy, state.opt_state, flat_obs, flat_u, key), repeats
+        ),
+    }
+
+
+def measure(backend: str, budget: dict) -> dict:
+    cfg, env, trainer = setup(backend, budget)
+    state, starts, keys, rollouts, batch = sample_batch(cfg, env, trainer, jax.random.PRNGKey(0))
+    trainer_epoch = time_trainer_epoch(trainer, state, max(1, budget["repeats"] // 2))
+    bare = time_compiled(bare_engine(cfg, env), (starts, batch[1]), budget["repeats"])
+    parts = (
+        time_parts(cfg, env, trainer, state, starts, keys, rollouts, batch, budget["repeats"])
+        if backend in budget["parts_backends"]
+        else {}
+    )
+    steps = steps_per_epoch(cfg)
+    bare_steps = steps["differentiated"] * (1 + steps["candidates"])
+    return {
+        "backend": backend,
+        "epoch_s": trainer_epoch["epoch_s"],
+        "bare_s": bare["s"],
+        "ratio": trainer_epoch["epoch_s"] / bare["s"],
+        "bare_steps_per_s": bare_steps / bare["s"],
+        "parts_s": {k: v["s"] for k, v in parts.items()},
+        "compile_s": {
+            "trainer_chunk": trainer_epoch["compile_s"],
+            "bare": bare["compile_s"],
+            **{k: v["compile_s"] for k, v in parts.items()},
+        },
+        "trainer": trainer_epoch,
+        "bare": bare,
+        "parts": parts,
+    }
+
+
+def run(budget: dict) -> dict:
+    results = [measure(b, budget) for b in budget["backends"]]
+    rows = []
+    for r in results:
+        p = r["parts_s"]
+        parts = (
+            [
+                p["policy_rollout"],
+                p["improve"],
+                p["regress"],
+                sum(p.values()),
+                f"{p['regress'] / sum(p.values()):.0%}",
+            ]
+            if p
+            else ["-"] * 5
+        )
+        rows.append(
+            [
+                r["backend"],
+                r["epoch_s"],
+                r["bare_s"],
+                f"{r['ratio']:.2f}x",
+                *parts,
+                r["bare_steps_per_s"],
+            ]
+        )
+    targets = [
+        {
+            "target": f"{r['backend']}: epoch <= {budget['target_ratio']}x bare engine",
+            "value": f"{r['ratio']:.2f}x",
+            "met": r["ratio"] <= budget["target_ratio"],
+        }
+        for r in results
+    ]
+    return {
+        "title": "trainer epoch over the bare engine cost",
+        "tables": [
+            {
+                "caption": "Seconds per epoch (reference configuration: 50 rollouts x 100 steps, "
+                f"line search {budget['line_search']}, 20 inner regression epochs); "
+                "medians of repeated calls",
+                "columns": [
+                    "backend",
+                    "trainer epoch s",
+                    "bare engine s",
+                    "ratio",
+                    "policy rollout s",
+                    "improve s",
+                    "regress s",
+                    "sum of parts s",
+                    "regress share of parts",
+                    "bare env-steps/s",
+                ],
+                "rows": rows,
+            }
+        ],
+        "targets": targets,
+        "notes": [
+            "Bare engine: jit(vmap(value_and_grad(open-loop return))) over the 50 sequences plus "
+            "vmap over the candidate step sizes of their open-loop returns; no policy, no "
+            "regression. Its env-steps/s counts (1 + candidates) x 50 x 100 steps.",
+            "Parts: the trainer's own functions (hds.algo.rollout.policy_rollout, "
+            "hds.algo.improve.improve, hds.algo.regress.regress) each jitted alone; an epoch "
+            "is about their sum. The trainer's epoch is timed as compiled run_chunk calls of "
+            f"{budget['chunk']} epochs.",
+        ],
+        "data": results,
+    }

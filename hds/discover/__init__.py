@@ -1,0 +1,28 @@
+"""Gap discovery: find where the simulator and measured data disagree, name the missing
+effects of the library, add them to the model, and show the gap shrink.
+
+  compare   replay measured actions from measured states: one-step and k-step residuals
+  locate    which state variables disagree, and on which features their residual depends
+  explain   every candidate effect fitted through the differentiable simulator (batched
+            Levenberg-Marquardt on k-step errors, delays enumerated); greedy forward
+            selection on held-out error
+  name      physical names, parameters with units and 95% CIs, explained and unexplained shares
+  add/show  corrected env config and MJCF, report.md / report.json / plots
+
+Python API:
+
+    from hds.discover import discover, write_report, DiscoverConfig
+    result = discover(dataset, env_cfg, DiscoverConfig(horizon=10))
+    result.missing_effects        # [NamedEffect(name, target, params, units, ci95, ...)]
+    write_report(result, env_cfg, "out/")
+
+Command line: python -m hds.discover data=PATH [env=...] [retrain=true] (conf/discover.yaml).
+"""
+
+from hds.discover.config import DiscoverAppConfig, DiscoverConfig
+from hds.discover.io import load_dataset
+from hds.discover.report import corrected_env, write_report
+from hds.discover.workflow import NamedEffect, Result, discover
+
+__all__ = ["DiscoverAppConfig", "DiscoverConfig", "NamedEffect", "Result", "corrected_env",
+           "discover", "load_dataset", "write_report"]

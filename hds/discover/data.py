@@ -1,0 +1,137 @@
+"""Measured data prepared for discovery: episodes stacked into device arrays, split into an
+identification and a held-out set (and an optional validation dataset), and cut into k-step
+windows. Every window set is padded to one length, so each compiled function sees one shape."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+import numpy as np
+
+from hds.data.format import Dataset, validate
+
+SETS = ("identification", "heldout", "validation")
+MIN_WINDOWS = 8  # fewer identification windows than this cannot identify anything
+PAD_TO = 64  # window counts are rounded up to a multiple of this
+
+
+@dataclass(frozen=True)
+class Windows:
+    episode: np.ndarray  # [W] int32, index into the stacked episodes
+    start: np.ndarray  # [W] int32, the step a window starts from
+    mask: np.ndarray  # [W] float32, 0 for padding
+    episodes: np.ndarray  # the stacked episodes of this set
+
+    @property
+    def count(self) -> int:
+        return int(self.mask.sum())
+
+
+@dataclass(eq=False)
+class Data:
+    obs: jnp.ndarray  # [E, T+1, n_obs] every episode of every set
+    acts: jnp.ndarray  # [E, pad + T, n_act] zeros before each episode (and after short ones)
+    scale: jnp.ndarray  # [n_obs] each variable's std on the identification set
+    noise: np.ndarray  # [n_obs] estimated measurement noise std (`noise_level`)
+    windows: dict  # set name -> Windows
+    horizon: int  # k
+    dt: float
+    obs_names: tuple[str, ...]
+    action_names: tuple[str, ...]
+    source: dict  # set name -> (dataset name, episode indices in that dataset)
+
+    def arrays(self, name: str) -> tuple:
+        w = self.windows[name]
+        return (self.obs, self.acts, jnp.asarray(w.episode), jnp.asarray(w.start),
+                jnp.asarray(w.mask), self.scale)
+
+
+def noise_level(obs: np.ndarray, order: int = 4) -> np.ndarray:
+    """[n_obs] measurement-noise std of each variable of obs [E, T+1, n_obs], estimated from
+    the median absolute deviation of its `order`-th time differences. Smooth motion has tiny
+    high differences and the rare kinks (an action switching) do not move a median, so what
+    is left is white noise, whose order-th difference has variance C(2 order, order) sigma^2.
+    """
+    if obs.shape[1] <= order:
+        return np.zeros(obs.shape[-1])
+    d = np.diff(obs, n=order, axis=1).reshape(-1, obs.shape[-1])
+    mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0) / 0.6745
+    return mad / np.sqrt(math.comb(2 * order, order))
+
+
+def split_episodes(n_episodes: int, heldout_fraction: float, seed: int):
+    """(identification, held-out) episode indices: a seeded shuffle, at least one in each."""
+    order = np.random.default_rng(seed).permutation(n_episodes)
+    n_held = min(n_episodes - 1, max(1, round(heldout_fraction * n_episodes)))
+    return np.sort(order[n_held:]), np.sort(order[:n_held])
+
+
+def check_size(dataset: Dataset, horizon: int, where: str = "dataset") -> None:
+    if dataset.n_episodes < 2 or dataset.horizon < horizon:
+        raise ValueError(
+            f"{where} is too short to identify anything: it has {dataset.n_episodes} episode(s) "
+            f"of {dataset.horizon} steps, and discovery needs at least 2 episodes (one is held "
+            f"out to judge each effect) of at least k = {horizon} steps (discover.horizon): "
+            "record more or longer episodes, split a long record into episodes, or lower "
+            "discover.horizon"
+        )
+
+
+def _starts(length: int, horizon: int, stride: int) -> np.ndarray:
+    return np.arange(0, length - horizon + 1, stride, dtype=np.int32)
+
+
+def prepare(dataset: Dataset, sim, pad: int, horizon: int, stride: int, heldout_fraction: float,
+            seed: int, validation: Dataset | None = None) -> Data:
+    """Check the datasets against the simulator and lay them out for the compiled functions."""
+    validate(dataset, sim, "dataset")
+    check_size(dataset, horizon)
+    if validation is not None:
+        validate(validation, sim, "validation dataset")
+        if validation.dt != dataset.dt:
+            raise ValueError(f"the validation dataset's dt = {validation.dt} s differs from the "
+                             f"dataset's {dataset.dt} s: resample one of them")
+        if validation.horizon < horizon:
+            raise ValueError(f"the validation dataset's episodes have {validation.horizon} "
+                             f"steps, fewer than k = {horizon} (discover.horizon)")
+    ident, held = split_episodes(dataset.n_episodes, heldout_fraction, seed)
+    parts = [dataset] + ([validation] if validation is not None else [])
+    t_max = max(d.horizon for d in parts)
+    obs, acts, lengths = [], [], []
+    for d in parts:
+        obs.append(np.pad(d.obs, ((0, 0), (0, t_max - d.horizon), (0, 0))))
+        acts.append(np.pad(d.actions, ((0, 0), (pad, t_max - d.horizon), (0, 0))))
+        lengths += [d.horizon] * d.n_episodes
+    obs, acts = np.concatenate(obs), np.concatenate(acts)
+    members = {"identification": ident, "heldout": held}
+    source = {"identification": ("dataset", ident), "heldout": ("dataset", held)}
+    if validation is not None:
+        members["validation"] = dataset.n_episodes + np.arange(validation.n_episodes)
+        source["validation"] = ("validation", np.arange(validation.n_episodes))
+    starts = {name: [(e, t) for e in eps for t in _starts(lengths[e], horizon, stride)]
+              for name, eps in members.items()}
+    if len(starts["identification"]) < MIN_WINDOWS:
+        raise ValueError(
+            f"the dataset is too short to identify anything: its identification episodes give "
+            f"{len(starts['identification'])} windows of k = {horizon} steps (at least "
+            f"{MIN_WINDOWS} are needed): record more or longer episodes, or lower "
+            "discover.horizon or discover.stride"
+        )
+    size = PAD_TO * -(-max(len(s) for s in starts.values()) // PAD_TO)
+    windows = {}
+    for name, pairs in starts.items():
+        pairs = np.array(pairs, dtype=np.int32).reshape(-1, 2)
+        n = len(pairs)
+        windows[name] = Windows(
+            episode=np.pad(pairs[:, 0], (0, size - n)), start=np.pad(pairs[:, 1], (0, size - n)),
+            mask=np.pad(np.ones(n, np.float32), (0, size - n)), episodes=members[name])
+    ident_obs = dataset.obs[ident].reshape(-1, dataset.n_obs)
+    std = ident_obs.std(axis=0)
+    scale = np.maximum(std, 1e-6 * std.max() + 1e-12)
+    return Data(obs=jnp.asarray(obs, jnp.float32), acts=jnp.asarray(acts, jnp.float32),
+                scale=jnp.asarray(scale, jnp.float32), noise=noise_level(dataset.obs[ident]),
+                windows=windows, horizon=int(horizon),
+                dt=dataset.dt, obs_names=tuple(sim.obs_names),
+                action_names=tuple(sim.action_names), source=source)

@@ -1,0 +1,214 @@
+"""The compiled core of discovery: k-step predictions, their errors, and batched
+Levenberg-Marquardt fits through the differentiable simulator.
+
+An `Engine` holds one superset `Model` and three jitted functions, each compiled once per
+data layout and reused for every candidate, every round and every call:
+
+  predict(theta, delay, data)                    -> [W, k, n_obs] k-step predictions
+  losses(theta [C, N], delay [C, n_act], data)   -> [C] mean squared normalized error
+  fit(theta0 [C, N], slots [C, M], delay [C, n_act], data)
+      -> theta [C, N], loss [C], H [C, M, M], G [C, E, M], iterations [C]
+
+`fit` runs C independent fits at once (vmap): candidate c moves only the entries `slots[c]`
+of theta (-1 pads), from theta0[c], with its own action delays. Each iteration linearizes the
+k-step residuals (forward mode: one tangent per fitted parameter, all windows of all
+identification episodes in one batch), solves the damped Gauss-Newton system and keeps the
+step only if the error falls. It returns the Gauss-Newton matrix H = J J^T and the per-episode
+gradients G[e] = J_e r_e at the optimum, from which `confidence_intervals` builds a
+cluster-robust (sandwich) covariance: windows of one episode overlap and their errors
+correlate, so episodes, not residuals, are the independent units.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, is_dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy import stats
+
+from hds.discover.model import Model, build_model
+
+TOLERANCE = 1e-4  # an accepted step that lowers the error by less than this share: converged
+ABS_TOLERANCE = 1e-9  # ... or by less than this (mean squared normalized error): converged
+LAMBDA0, LAMBDA_MAX = 1e-3, 1e4
+
+
+class Engine:
+    def __init__(self, model: Model, horizon: int):
+        self.model, self.horizon = model, int(horizon)
+        self.predict = jax.jit(self._predict)
+        self.losses = jax.jit(jax.vmap(self._loss, in_axes=(0, 0, None)))
+        self._fit = jax.jit(jax.vmap(self._fit_one, in_axes=(0, 0, 0, None, None, None)),
+                            static_argnums=(4, 5))
+
+    # -- single-candidate pieces (vmapped above) -------------------------------------------
+
+    def _predict(self, theta, delay, data):
+        obs, acts, episode, start = data[:4]
+        return self.model.predict(theta, delay, obs, acts, episode, start, self.horizon)
+
+    def _residuals(self, theta, delay, data, z=None):
+        return self.model.residuals(theta, delay, data, self.horizon, z)
+
+    def _loss(self, theta, delay, data):
+        r = self._residuals(theta, delay, data)
+        count = jnp.maximum(data[4].sum() * r.shape[1] * r.shape[2], 1.0)
+        return jnp.sum(r * r) / count
+
+    def _fit_one(self, theta0, slots, delay, data, iterations: int, estimate: bool):
+        """One candidate's fit. With `estimate`, each window's initial state is estimated
+        along (multiple shooting): z [W, n_obs], its offset from the measurement in units of
+        scale, with the measurement itself as one more residual (z). Noisy initial states
+        would otherwise bias the effects that damp their consequences (friction, damping).
+        The per-window unknowns are eliminated by a Schur complement, window by window."""
+        model = self.model
+        n_theta, n_obs, windows = model.n_theta, model.sim.n_obs, data[2].shape[0]
+        m = slots.shape[0]
+        valid = slots >= 0
+        basis = jax.nn.one_hot(jnp.where(valid, slots, 0), n_theta) * valid[:, None]
+        lower, upper = jnp.asarray(model.lower), jnp.asarray(model.upper)
+        both = valid[:, None] & valid[None, :]
+        n_z = n_obs if estimate else 0
+        # tangent directions: the fitted entries of theta, then (estimate) each state
+        # component of every window's initial state at once (windows are independent)
+        t_theta = jnp.concatenate([basis, jnp.zeros((n_z, n_theta))])
+        t_z = jnp.concatenate([jnp.zeros((m, windows, n_obs)),
+                               jnp.broadcast_to(jnp.eye(n_obs)[:n_z, None, :],
+                                                (n_z, windows, n_obs))])
+
+        def res(theta, z):
+            return self._residuals(theta, delay, data, z if estimate else None).reshape(
+                windows, -1)
+
+        def linear(theta, z):
+            r, jac = jax.vmap(lambda tt, tz: jax.jvp(res, (theta, z), (tt, tz)))(t_theta, t_z)
+            return r[0], jac[:m], jac[m:]  # [W, R], [M, W, R], [n_z, W, R]
+
+        def total(r, z):
+            return jnp.sum(r * r) + (jnp.sum(z * z) if estimate else 0.0)
+
+        def reduced(r, jt, jz, z, lam):
+            """The damped normal equations for theta, initial states eliminated, and the
+            back-substitution for the states: (S, g, states(dtheta))."""
+            g = jnp.einsum("mwr,wr->m", jt, r)
+            a = jnp.einsum("mwr,lwr->ml", jt, jt)
+            a = a + lam * jnp.diag(jnp.maximum(jnp.diag(a), 1e-9 * jnp.max(jnp.diag(a)) + 1e-30))
+            if not estimate:
+                return a, g, lambda dtheta: z
+            azz = jnp.einsum("iwr,jwr->wij", jz, jz) + jnp.eye(n_obs)
+            azz = azz + lam * jax.vmap(jnp.diag)(jnp.diagonal(azz, axis1=1, axis2=2))
+            azt = jnp.einsum("iwr,mwr->wim", jz, jt)
+            gz = jnp.einsum("iwr,wr->wi", jz, r) + z
+            kinv = jnp.linalg.inv(azz)
+            k_azt, k_gz = kinv @ azt, jnp.einsum("wij,wj->wi", kinv, gz)
+            a = a - jnp.einsum("wim,win->mn", azt, k_azt)
+            g = g - jnp.einsum("wim,wi->m", azt, k_gz)
+            return a, g, lambda dtheta: z - k_gz - jnp.einsum("wim,m->wi", k_azt, dtheta)
+
+        # One linearization per iteration, at the trial point: it gives the trial's error and,
+        # when the step is kept, the next Jacobian (iteration 0 takes theta0 as its trial).
+        def body(carry):
+            theta, z, r, jt, jz, lam, it, _ = carry
+            a, g, states = reduced(r, jt, jz, z, lam)
+            a = jnp.where(both, a, jnp.eye(m))
+            dtheta = jnp.linalg.solve(a, -jnp.where(valid, g, 0.0))
+            first = it == 0
+            trial = jnp.where(first, theta, jnp.clip(theta + dtheta @ basis, lower, upper))
+            z_trial = jnp.where(first, z, states(dtheta))
+            r_trial, jt_trial, jz_trial = linear(trial, z_trial)
+            loss, trial_loss = total(r, z), total(r_trial, z_trial)
+            better = first | (trial_loss < loss)  # False for NaN
+            gain = (loss - trial_loss) / jnp.maximum(loss, 1e-30)
+            lam = jnp.where(first, lam, jnp.where(better, jnp.maximum(lam * 0.3, 1e-9), lam * 5))
+            still = jnp.all(jnp.abs(trial - theta) <= 1e-7 * (jnp.abs(theta) + 1e-3))
+            small = (gain < TOLERANCE) | (loss - trial_loss < ABS_TOLERANCE * r.size)
+            stalled = False if estimate else still  # with states estimated, z may still move
+            done = (~first & ((better & small) | stalled)) | (lam > LAMBDA_MAX) | ~jnp.any(valid)
+            pick = lambda new, old: jnp.where(better, new, old)  # noqa: E731
+            return (pick(trial, theta), pick(z_trial, z), pick(r_trial, r), pick(jt_trial, jt),
+                    pick(jz_trial, jz), lam, it + 1, done)
+
+        def cond(carry):
+            return (carry[6] < iterations + 1) & ~carry[7]
+
+        n_res = self.horizon * n_obs
+        start = (theta0, jnp.zeros((windows, n_obs)), jnp.zeros((windows, n_res)),
+                 jnp.zeros((m, windows, n_res)), jnp.zeros((n_z, windows, n_res)),
+                 jnp.asarray(LAMBDA0, theta0.dtype), jnp.asarray(0), jnp.asarray(False))
+        theta, z, r, jt, jz, _, its, _ = jax.lax.while_loop(cond, body, start)
+        # the Gauss-Newton matrix (initial states profiled out) and the per-episode gradients
+        # at the optimum, for the confidence intervals
+        h, _, _ = reduced(r, jt, jz, z, 0.0)
+        per_window = jnp.einsum("mwr,wr->wm", jt, r)
+        per_episode = jax.ops.segment_sum(per_window, data[2], num_segments=data[0].shape[0])
+        count = jnp.maximum(data[4].sum() * n_res, 1.0)
+        return theta, jnp.sum(r * r) / count, h, per_episode, its - 1
+
+    # -- host-side entry points ------------------------------------------------------------
+
+    def fit(self, theta0, slots, delay, data, iterations: int, estimate: bool = False):
+        out = self._fit(jnp.asarray(theta0, jnp.float32), jnp.asarray(slots, jnp.int32),
+                        jnp.asarray(delay, jnp.int32), data, int(iterations), bool(estimate))
+        return tuple(np.asarray(x) for x in out)
+
+    def errors(self, theta, delay, data) -> np.ndarray:
+        """[C] normalized RMSE of each row of theta [C, N] with its delays [C, n_act]."""
+        mse = self.losses(jnp.asarray(theta, jnp.float32), jnp.asarray(delay, jnp.int32), data)
+        return np.sqrt(np.asarray(mse, dtype=np.float64))
+
+    def predictions(self, theta, delay, data) -> np.ndarray:
+        return np.asarray(self.predict(jnp.asarray(theta, jnp.float32),
+                                       jnp.asarray(delay, jnp.int32), data), dtype=np.float64)
+
+
+def confidence_intervals(theta: np.ndarray, h: np.ndarray, g: np.ndarray,
+                         level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
+    """Half-widths of `level` intervals of the fitted entries (H [M, M], G [E, M] of `fit`)
+    and their standard errors; inf where the data do not determine a parameter."""
+    g = g[np.any(g != 0, axis=1)]  # the episodes that took part
+    n = len(g)
+    m = len(theta)
+    if n < 2 or m == 0:
+        return np.full(m, np.inf), np.full(m, np.inf)
+    d = np.sqrt(np.maximum(np.diag(h), 0.0))
+    ok = d > 1e-12 * max(d.max(), 1e-30)
+    se = np.full(m, np.inf)
+    if ok.any():
+        hs = h[np.ix_(ok, ok)] / np.outer(d[ok], d[ok])  # scaled to unit diagonal
+        w, v = np.linalg.eigh(hs)
+        keep = w > 1e-8 * w.max()
+        inv = (v[:, keep] / w[keep]) @ v[:, keep].T
+        bread = inv / np.outer(d[ok], d[ok])
+        meat = g[:, ok].T @ g[:, ok] * n / (n - 1)
+        cov = bread @ meat @ bread
+        weak = np.abs(v[:, ~keep]).max(axis=1) > 1e-3 if (~keep).any() else np.zeros(ok.sum(),
+                                                                                      bool)
+        se_ok = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        se_ok[weak] = np.inf
+        se[ok] = se_ok
+    return stats.t.ppf(0.5 + level / 2, n - 1) * se, se
+
+
+_ENGINES: dict = {}
+
+
+def _config_key(env_cfg) -> str:
+    if is_dataclass(env_cfg):
+        return json.dumps(asdict(env_cfg), sort_keys=True, default=str)
+    from omegaconf import OmegaConf
+
+    return json.dumps(OmegaConf.to_container(env_cfg, resolve=True), sort_keys=True, default=str)
+
+
+def get_engine(env_cfg, dt: float, effects, max_delay: int, warmup: int, horizon: int) -> Engine:
+    """The engine for this simulator and layout, built once per process and then reused, so
+    repeated discoveries (tests, sweeps) compile nothing twice."""
+    key = (_config_key(env_cfg), round(float(dt), 12), tuple(effects), int(max_delay),
+           int(warmup), int(horizon))
+    if key not in _ENGINES:
+        _ENGINES[key] = Engine(build_model(env_cfg, dt, list(effects), max_delay, warmup),
+                               horizon)
+    return _ENGINES[key]

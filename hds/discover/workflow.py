@@ -1,0 +1,310 @@
+"""The whole workflow as a function: compare, locate, explain, name (step 4 lives here: it
+turns the selection into named effects with units, confidence intervals and shares)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hds.data.format import Dataset
+from hds.discover.compare import Errors, Residuals, compare
+from hds.discover.config import DiscoverConfig
+from hds.discover.data import Data, prepare
+from hds.discover.explain import Selection, State, forward_selection, intervals
+from hds.discover.fit import Engine, get_engine
+from hds.discover.locate import Location, locate
+from hds.effects.library import LIBRARY
+
+log = logging.getLogger("hds")
+
+PHYSICAL_NAMES = {
+    "coulomb_friction": "Coulomb (dry) friction",
+    "viscous_damping": "viscous friction",
+    "actuator_gain": "actuator gain error",
+    "actuator_offset": "actuator offset (a constant added to the control)",
+    "actuator_deadzone": "actuator dead zone",
+    "action_delay": "action delay (dead time)",
+    "actuator_lag": "first-order actuator lag",
+    "mass_scale": "mass error",
+    "sensor_bias": "sensor bias",
+}
+
+
+@dataclass
+class NamedEffect:
+    name: str  # effect of the library
+    target: str  # joint, actuator, body or observation
+    params: dict[str, float]
+    units: dict[str, str]
+    ci95: dict[str, list[float]]
+    explained_fraction: float  # share of the held-out k-step error (MSE) it removed
+    at_joint: dict[str, float] = field(default_factory=dict)  # control-unit values x gear
+
+    @property
+    def physical_name(self) -> str:
+        return PHYSICAL_NAMES.get(self.name, self.name)
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "target": self.target, "params": self.params,
+                "units": self.units, "ci95": self.ci95,
+                "explained_fraction": self.explained_fraction,
+                "physical_name": self.physical_name, "at_joint": self.at_joint,
+                "kind": LIBRARY[self.name].target_kind}
+
+    def as_effect(self) -> dict:
+        """The effect as an `env.effects` entry."""
+        return {"name": self.name, "target": self.target, "params": dict(self.params)}
+
+
+@dataclass
+class Result:
+    missing_effects: list[NamedEffect]
+    before: dict[str, tuple[Residuals, Errors]]  # per set (identification, heldout, validation)
+    after: dict[str, tuple[Residuals, Errors]]
+    candidates: list[dict]
+    unexplained_fraction: float
+    location: Location
+    selection: Selection
+    stopped: str
+    data: Data
+    engine: Engine
+    env_effects: list[dict]  # what the simulator already modelled
+    timing: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    tentative: list[NamedEffect] = field(default_factory=list)  # compensations, not named
+    remainder: Location | None = None  # locate on what the named effects leave
+    structured_unexplained: float = 0.0  # the unexplained share that features explain
+    initial_state: str = "measured"  # how the fits started each window
+    final: State | None = None  # the corrected model (theta, delays) of the named effects
+    backend: str = ""  # the physics backend the fits ran on
+    no_gap: bool = False  # the simulator already predicted the data (to min_improvement)
+    cfg: DiscoverConfig | None = None
+
+    def errors_on(self, dataset: Dataset, set_name: str = "heldout") -> tuple[Errors, Errors]:
+        """Errors before and after on another dataset with this one's layout and split, e.g.
+        a noise-free copy of noisy data (what the corrected model gains against the truth)."""
+        model, cfg = self.engine.model, self.cfg
+        data = prepare(dataset, model.sim, model.pad, cfg.horizon, cfg.stride,
+                       cfg.heldout_fraction, cfg.seed)
+        no_delay = np.zeros(len(model.sim.action_names), np.int32)
+        before = compare(self.engine, data, model.nominal, no_delay)[set_name][1]
+        after = compare(self.engine, data, self.final.theta, self.final.delay)[set_name][1]
+        return before, after
+
+    @property
+    def corrected_effects(self) -> list[dict]:
+        return self.env_effects + [e.as_effect() for e in self.missing_effects]
+
+    def error(self, which: str, set_name: str = "heldout") -> Errors:
+        return (self.before if which == "before" else self.after)[set_name][1]
+
+    def to_json(self) -> dict:
+        names = list(self.data.obs_names)
+        out = {
+            "missing_effects": [e.to_json() for e in self.missing_effects],
+            "error_before": self.error("before").to_json(names),
+            "error_after": self.error("after").to_json(names),
+            "candidates": self.candidates,
+            "unexplained_fraction": self.unexplained_fraction,
+            "gap_found": not self.no_gap,
+            "structured_unexplained_fraction": self.structured_unexplained,
+            "tentative_effects": [e.to_json() for e in self.tentative],
+            "noise_std": [float(x) for x in self.data.noise],
+            "noise_floor_nrmse": float(np.sqrt(np.mean(
+                (self.data.noise / np.asarray(self.data.scale, dtype=np.float64)) ** 2))),
+            "initial_state": self.initial_state,
+            "backend": self.backend,
+            "stopped": self.stopped,
+            "horizon_steps": self.data.horizon,
+            "dt": self.data.dt,
+            "episodes": {k: [int(e) for e in v[1]] for k, v in self.data.source.items()},
+            "errors": {s: {"before": self.before[s][1].to_json(names),
+                           "after": self.after[s][1].to_json(names)} for s in self.before},
+            "locate": self.location.table[:10],
+            "locate_after": self.remainder.table[:10] if self.remainder else [],
+            "corrected_effects": self.corrected_effects,
+            "warnings": self.warnings,
+            "timing_s": self.timing,
+        }
+        return out
+
+
+def discover(dataset: Dataset, env_cfg, cfg: DiscoverConfig | None = None,
+             validation: Dataset | None = None) -> Result:
+    """Find which effects of the library the simulator of `env_cfg` misses on `dataset`.
+
+    Episodes are split into identification and held-out sets; `validation` (optional) is a
+    further dataset whose errors are reported before and after, never fitted."""
+    cfg = cfg or DiscoverConfig()
+    cfg.check()
+    timing = {}
+    start = time.perf_counter()
+    backend = fit_backend(env_cfg, cfg.backend)
+    env_cfg = with_backend(env_cfg, backend)
+    engine = get_engine(env_cfg, dataset.dt, cfg.effects, cfg.max_delay, cfg.warmup, cfg.horizon)
+    model = engine.model
+    data = prepare(dataset, model.sim, model.pad, cfg.horizon, cfg.stride, cfg.heldout_fraction,
+                   cfg.seed, validation)
+    nominal, no_delay = model.nominal, np.zeros(len(model.sim.action_names), np.int32)
+    before = compare(engine, data, nominal, no_delay)
+    timing["compare"] = time.perf_counter() - start
+
+    t0 = time.perf_counter()
+    location = locate(data, model.sim, before["identification"][0], cfg.bins)
+    timing["locate"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    relative_noise = data.noise / np.asarray(data.scale, dtype=np.float64)
+    estimate = cfg.initial_state == "estimated" or (
+        cfg.initial_state == "auto" and float(np.median(relative_noise)) > cfg.noise_threshold)
+    log.info("initial states %s (estimated noise: %s of each signal's std)",
+             "estimated" if estimate else "measured", np.round(relative_noise, 4).tolist())
+    selection = forward_selection(engine, data.arrays("identification"),
+                                  data.arrays("heldout"), cfg, estimate)
+    # What the selected effects leave: if a feature still explains much of it, the gap has a
+    # structure no effect of the library has, and an effect that explains less than that
+    # structured remainder is a compensation for it, not a finding: it stays tentative.
+    full = compare(engine, data, selection.final.theta, selection.final.delay)
+    remainder = locate(data, model.sim, full["identification"][0], cfg.bins)
+    shares = explained_shares(selection)
+    structured = shares[-1] * structure(remainder)
+    named_count = next((i for i, s in enumerate(shares[:-1]) if s < structured),
+                       len(shares) - 1)
+    final = selection.states[named_count]
+    after = full if named_count == len(shares) - 1 else compare(engine, data, final.theta,
+                                                                 final.delay)
+    if named_count < len(shares) - 1:
+        remainder = locate(data, model.sim, after["identification"][0], cfg.bins)
+    timing["explain"] = time.perf_counter() - t0
+
+    effects = name_effects(model, selection.states[: named_count + 1], shares)
+    tentative = name_effects(model, selection.states, shares)[named_count:]
+    # no gap at all (the simulator already predicts the held-out data to min_improvement):
+    # nothing is left to explain
+    no_gap = selection.states[0].heldout_error < cfg.min_improvement
+    unexplained = 0.0 if no_gap else float(sum(shares[named_count:]))
+    candidates = [row for rows in selection.rounds for row in rows]
+    candidates.sort(key=lambda r: (r["round"], r["heldout_error"]))
+    result = Result(effects, before, after, candidates, unexplained, location, selection,
+                    selection.stopped, data, engine,
+                    [_effect_dict(e) for e in model.env_effects], timing)
+    result.tentative = tentative
+    result.remainder = remainder
+    result.structured_unexplained = float(unexplained * structure(remainder))
+    result.initial_state = "estimated" if estimate else "measured"
+    result.final, result.cfg, result.backend = final, cfg, backend
+    result.no_gap = no_gap
+    result.warnings = warnings(result, cfg)
+    timing["total"] = time.perf_counter() - start
+    return result
+
+
+def fit_backend(env_cfg, choice: str) -> str:
+    """The backend discovery simulates with (see DiscoverConfig.backend)."""
+    if choice == "env":
+        return env_cfg.backend
+    if choice != "auto":
+        return choice
+    if env_cfg.backend == "analytic":
+        return "analytic"
+    try:
+        from hds.envs.system import make_simulator
+
+        make_simulator(env_cfg.xml, backend="analytic", timestep=env_cfg.timestep)
+    except (ValueError, ImportError, ModuleNotFoundError) as err:
+        log.info("fitting on the env's backend %s (analytic: %s)", env_cfg.backend, err)
+        return env_cfg.backend
+    return "analytic"
+
+
+def with_backend(env_cfg, backend: str):
+    """The env config with another physics backend (a dataclass or a DictConfig)."""
+    if env_cfg.backend == backend:
+        return env_cfg
+    if dataclasses.is_dataclass(env_cfg):
+        return dataclasses.replace(env_cfg, backend=backend)
+    from omegaconf import OmegaConf
+
+    return OmegaConf.merge(env_cfg, {"backend": backend})
+
+
+def _effect_dict(spec) -> dict:
+    return {"name": spec.name, "target": spec.target, "params": dict(spec.params)}
+
+
+def structure(loc: Location) -> float:
+    """Share of a residual that single features explain: each variable's best eta^2, weighted
+    by the variable's share of the (normalized one-step) residual."""
+    best = {}
+    for row in loc.table:
+        best[row["variable"]] = max(best.get(row["variable"], 0.0), row["eta2"])
+    return float(sum(s * best.get(v, 0.0) for v, s in zip(loc.variables, loc.share)))
+
+
+def explained_shares(selection: Selection) -> list[float]:
+    """Each selected effect's share of the base model's held-out k-step MSE, in the order of
+    selection, then the share left unexplained (they sum to 1)."""
+    mse = [s.heldout_error**2 for s in selection.states]
+    base = mse[0]
+    if base <= 0:
+        return [0.0] * (len(mse) - 1) + [0.0]
+    return [(mse[i] - mse[i + 1]) / base for i in range(len(mse) - 1)] + [mse[-1] / base]
+
+
+def name_effects(model, states, shares) -> list[NamedEffect]:
+    """The effects of the last of `states` (a prefix of the selection) with values, units,
+    95% CIs and their shares of the held-out error."""
+    final = states[-1]
+    cis = intervals(model, final) if final.selected else {}
+    named = []
+    for i, cand in enumerate(final.selected):
+        if cand.name == "action_delay":
+            params = {"steps": int(final.delay[cand.actuator])}
+            units = {"steps": LIBRARY[cand.name].param("steps").unit}
+        else:
+            params = {p: _round(final.theta[s]) for p, s in zip(cand.params, cand.slots,
+                                                                  strict=True)}
+            units = {p: model.units[s] for p, s in zip(cand.params, cand.slots, strict=True)}
+        ci = {p: [_round(lo), _round(hi)] for p, (lo, hi) in cis.get(cand.key, {}).items()}
+        at_joint = {}
+        if LIBRARY[cand.name].target_kind == "actuator":  # a control offset as a joint force
+            gear = float(model.sim.sys.actuator.gear[model.sim.targets["actuator"][cand.target]])
+            at_joint = {p: _round(v * gear) for p, v in params.items()
+                        if units[p] == "control units"}
+        named.append(NamedEffect(cand.name, cand.target, params, units, ci, float(shares[i]),
+                                 at_joint))
+    return named
+
+
+def _round(x: float) -> float:
+    x = float(x)
+    return x if not np.isfinite(x) or x == 0 else float(f"{x:.6g}")
+
+
+def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
+    out = []
+    for e in result.tentative:
+        out.append(f"{e.name}@{e.target} lowered the held-out error ({e.explained_fraction:.0%}"
+                   " of it) but less than the structured remainder no effect explains: it is "
+                   "reported as tentative (a likely compensation), not as a missing effect")
+    if result.unexplained_fraction > cfg.unexplained_warning:
+        top = result.remainder.top
+        share = f"{result.unexplained_fraction:.0%} of the held-out prediction error (MSE)"
+        if result.structured_unexplained > cfg.unexplained_warning * 0.5 and top:
+            out.append(f"{share} stays unexplained by the library's effects, and it has a "
+                       f"structure: the residual of {top['variable']} depends on "
+                       f"{top['feature']} (eta^2 = {top['eta2']:.2f}); the simulator probably "
+                       "misses an effect outside the library")
+        else:
+            out.append(f"{share} stays unexplained, with no structure any feature reveals: "
+                       "measurement noise, or an effect the features do not show")
+    for e in result.missing_effects:
+        for p, (lo, hi) in e.ci95.items():
+            if not (np.isfinite(lo) and np.isfinite(hi)):
+                out.append(f"{e.name}@{e.target}.{p} is not determined by the data (its "
+                           "confidence interval is unbounded)")
+    return out
