@@ -1,17 +1,19 @@
 """`python -m bench.run [SECTION ...] [--set SECTION.KEY=VALUE ...]` (`make bench`).
 
-Sections (all by default, about 30 minutes on a 2-core CPU with the default budgets):
+Sections (all by default: about 30 minutes on a 2-core CPU with the default budgets, more when
+other processes compete for the cores):
   reference  the reference configuration end to end vs the reference implementation's 573 s
   overhead   the trainer's epoch over the bare engine cost of the same rollouts
   peers      brax's PPO and APG vs PODS and HDS: time and env steps to a return threshold
   scaling    seeds vmapped, horizon, rollouts per epoch: wall time and peak memory
   compile    cold and warm (persistent cache) compile, each in its own process
-  discovery  time to a gap-discovery report (skipped while hds.discover does not exist)
+  discovery  time to a gap-discovery report (skipped where hds.discover does not exist)
   gpu        skipped on CPU
 
 Budgets are each section's DEFAULT_BUDGET; override a key with --set, e.g.
   python -m bench.run reference --set reference.backends=analytic --set reference.seeds=5
-  python -m bench.run peers --set peers.ppo_timesteps=500000
+  python -m bench.run peers --set peers.tasks=cartpole_balance --set peers.pods_epochs=60
+  python -m bench.run discovery --set discovery.backends=analytic,generalized
 Values parse as JSON where they can (numbers, lists, true/false), else as a string; a
 comma-separated value becomes a list. Each section's result replaces only its own entry of
 bench/results.json, and bench/RESULTS.md is re-rendered from the whole file.

@@ -60,18 +60,33 @@ HIDDEN = {
     "bias_angle": effect("sensor_bias", "q_hinge", bias=0.1),
     "bias_velocity": effect("sensor_bias", "qd_slider", bias=0.2),
 }
-EVERY_EFFECT = ("coulomb_slider", "viscous_hinge", "gain", "offset", "deadzone", "delay", "lag",
-                "mass_pole", "bias_angle")
+EVERY_EFFECT = (
+    "coulomb_slider",
+    "viscous_hinge",
+    "gain",
+    "offset",
+    "deadzone",
+    "delay",
+    "lag",
+    "mass_pole",
+    "bias_angle",
+)
 CASES = [(kind, key) for key in EVERY_EFFECT for kind in KINDS] + [
-    ("mujoco", key) for key in HIDDEN if key not in EVERY_EFFECT]
+    ("mujoco", key) for key in HIDDEN if key not in EVERY_EFFECT
+]
 # Nominal values: every continuous effect of the library on the cart-pole, a no-op there.
-SWAPPABLE = [effect("coulomb_friction", j, force=0.0) for j in ("slider", "hinge")] + [
-    effect("viscous_damping", j, coefficient=0.0) for j in ("slider", "hinge")] + [
-    effect("actuator_gain", "slide", gain=1.0), effect("actuator_offset", "slide", offset=0.0),
-    effect("actuator_deadzone", "slide", width=0.0),
-    effect("actuator_lag", "slide", time_constant=0.0)] + [
-    effect("mass_scale", b, scale=1.0) for b in ("cart", "pole")] + [
-    effect("sensor_bias", o, bias=0.0) for o in ("q_slider", "q_hinge", "qd_slider", "qd_hinge")]
+SWAPPABLE = (
+    [effect("coulomb_friction", j, force=0.0) for j in ("slider", "hinge")]
+    + [effect("viscous_damping", j, coefficient=0.0) for j in ("slider", "hinge")]
+    + [
+        effect("actuator_gain", "slide", gain=1.0),
+        effect("actuator_offset", "slide", offset=0.0),
+        effect("actuator_deadzone", "slide", width=0.0),
+        effect("actuator_lag", "slide", time_constant=0.0),
+    ]
+    + [effect("mass_scale", b, scale=1.0) for b in ("cart", "pole")]
+    + [effect("sensor_bias", o, bias=0.0) for o in ("q_slider", "q_hinge", "qd_slider", "qd_hinge")]
+)
 
 
 @pytest.fixture(scope="module")
@@ -117,13 +132,15 @@ def record(plant, task, seed: int = 0, noise: float = 0.0) -> Dataset:
     rng = np.random.default_rng(seed)
     q0 = np.c_[rng.uniform(-0.5, 0.5, E), rng.uniform(-np.pi, np.pi, E)]
     qd0 = rng.uniform(-0.5, 0.5, (E, 2))
-    u = random_steps(seed + 1, E, T, plant.dt, plant.ctrl_range, min_hold=0.1, max_hold=0.5,
-                     scale=0.15)
+    u = random_steps(
+        seed + 1, E, T, plant.dt, plant.ctrl_range, min_hold=0.1, max_hold=0.5, scale=0.15
+    )
     data = collect(plant, task, q0, qd0, u)
     if noise:
         spread = data.obs.max(axis=(0, 1)) - data.obs.min(axis=(0, 1))
         data.obs = data.obs + noise * spread * np.random.default_rng(seed + 7).normal(
-            size=data.obs.shape)
+            size=data.obs.shape
+        )
     return data
 
 
@@ -145,6 +162,7 @@ def shrink(before, after) -> float:
 
 
 # One hidden effect, both plants -----------------------------------------------------------------
+
 
 def test_the_cases_cover_every_effect_of_the_library():
     assert {HIDDEN[key]["name"] for key in EVERY_EFFECT} == set(LIBRARY)
@@ -179,6 +197,7 @@ def test_names_two_hidden_effects(plants, task, env_cfg, kind):
 
 
 # Outside the library, and noise ---------------------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def spring_cfg(env_cfg, tmp_path_factory):
@@ -250,19 +269,33 @@ def test_emps_names_coulomb_viscous_and_offset_within_ten_percent():
 
 # The command line, the report, the corrected model ----------------------------------------------
 
+
 def test_command_line_writes_the_report_and_hds_run_accepts_the_corrected_model(
-        plants, task, env_cfg, tmp_path):
-    data_path = save(record(plants("mujoco", [HIDDEN["coulomb_slider"]]), task),
-                     tmp_path / "measured.npz")
+    plants, task, env_cfg, tmp_path
+):
+    data_path = save(
+        record(plants("mujoco", [HIDDEN["coulomb_slider"]]), task), tmp_path / "measured.npz"
+    )
     out = tmp_path / "run"
-    proc = subprocess.run([sys.executable, "-m", "hds.discover", f"data={data_path}",
-                           "env.backend=analytic", f"hydra.run.dir={out}"], cwd=ROOT,
-                          capture_output=True, text=True, env={**os.environ, "WANDB_MODE":
-                                                                "offline"})
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "hds.discover",
+            f"data={data_path}",
+            "env.backend=analytic",
+            f"hydra.run.dir={out}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "WANDB_MODE": "offline"},
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     report = json.loads((out / "report.json").read_text())
     assert [(e["name"], e["target"]) for e in report["missing_effects"]] == [
-        ("coulomb_friction", "slider")]
+        ("coulomb_friction", "slider")
+    ]
     found = report["missing_effects"][0]
     assert found["params"]["force"] == pytest.approx(15.0, rel=0.15)
     lo, hi = found["ci95"]["force"]
@@ -271,7 +304,8 @@ def test_command_line_writes_the_report_and_hds_run_accepts_the_corrected_model(
     for key in ("one_step_rmse", "rollout_rmse"):
         assert len(report["error_before"][key]) == len(report["error_after"][key]) == 4
     assert report["candidates"] and {"name", "target", "params", "heldout_error"} <= set(
-        report["candidates"][0])
+        report["candidates"][0]
+    )
     assert 0.0 <= report["unexplained_fraction"] < 0.1
     text = (out / "report.md").read_text()
     assert "Coulomb" in text and "plots/trajectories_heldout.png" in text
@@ -281,8 +315,7 @@ def test_command_line_writes_the_report_and_hds_run_accepts_the_corrected_model(
     config_dir = Path(report["corrected_config"]).parents[1]
     name = Path(report["corrected_config"]).stem
     with_config = make_config(f"hydra.searchpath=[file://{config_dir}]", f"env={name}")
-    assert [(e.name, e.target) for e in with_config.env.effects] == [
-        ("coulomb_friction", "slider")]
+    assert [(e.name, e.target) for e in with_config.env.effects] == [("coulomb_friction", "slider")]
     assert make_env(with_config.env).sim.effects.sites[0].name == "coulomb_friction"
     # the MJCF carries the friction as MuJoCo's own frictionloss
     import mujoco
@@ -292,6 +325,7 @@ def test_command_line_writes_the_report_and_hds_run_accepts_the_corrected_model(
 
 
 # Clear errors -------------------------------------------------------------------------------
+
 
 def test_a_malformed_file_is_a_clear_error(tmp_path):
     path = tmp_path / "broken.npz"
@@ -308,11 +342,15 @@ def test_dt_not_a_multiple_of_the_timestep_is_a_clear_error(plants, task, env_cf
 
 
 @pytest.mark.parametrize("episodes, steps", [(1, 80), (12, 5)])
-def test_too_short_to_identify_anything_is_a_clear_error(plants, task, env_cfg, episodes,
-                                                         steps):
+def test_too_short_to_identify_anything_is_a_clear_error(plants, task, env_cfg, episodes, steps):
     data = record(plants("mujoco"), task)
-    short = Dataset(data.obs[:episodes, : steps + 1], data.actions[:episodes, :steps], data.dt,
-                    data.obs_names, data.action_names)
+    short = Dataset(
+        data.obs[:episodes, : steps + 1],
+        data.actions[:episodes, :steps],
+        data.dt,
+        data.obs_names,
+        data.action_names,
+    )
     with pytest.raises(ValueError, match="too short to identify anything"):
         discover(short, env_cfg, CFG)
 
@@ -321,8 +359,10 @@ def test_write_report_from_the_api(plants, task, env_cfg, tmp_path):
     result = discover(record(plants("brax", [HIDDEN["gain"]]), task), env_cfg, CFG)
     report = write_report(result, env_cfg, tmp_path)
     assert report["missing_effects"][0]["name"] == "actuator_gain"
-    assert json.loads((tmp_path / "report.json").read_text())["missing_effects"] == \
-        report["missing_effects"]
+    assert (
+        json.loads((tmp_path / "report.json").read_text())["missing_effects"]
+        == report["missing_effects"]
+    )
     assert (tmp_path / "corrected.xml").read_text().startswith("<!-- Corrected by hds.discover")
 
 
@@ -334,10 +374,18 @@ def test_retrain_shrinks_the_policys_sim2real_gap(plants, task, env_cfg, tmp_pat
 
     hidden = HIDDEN["coulomb_slider"]
     result = discover(record(plants("mujoco", [hidden]), task), env_cfg, CFG)
-    cfg = make_config("env.backend=analytic", "real=mujoco",
-                      f"real.effects.0.params.force={hidden['params']['force']}",
-                      "algo.epochs=2", "algo.chunk=2", "algo.rollouts=8", "algo.inner_epochs=2",
-                      "env.task.horizon=30", "eval_episodes=8", "logger=none")
+    cfg = make_config(
+        "env.backend=analytic",
+        "real=mujoco",
+        f"real.effects.0.params.force={hidden['params']['force']}",
+        "algo.epochs=2",
+        "algo.chunk=2",
+        "algo.rollouts=8",
+        "algo.inner_epochs=2",
+        "env.task.horizon=30",
+        "eval_episodes=8",
+        "logger=none",
+    )
     gaps = {r["method"]: r for r in retrain(cfg, corrected_env(env_cfg, result), tmp_path)["rows"]}
     assert set(gaps) == {"original", "corrected"}
     assert abs(gaps["corrected"]["gap"]) < 0.5 * abs(gaps["original"]["gap"])

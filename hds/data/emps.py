@@ -41,20 +41,25 @@ def read_mat(path: str | Path) -> dict[str, np.ndarray]:
 
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"no EMPS file at {path} (the benchmark's files live in "
-                                f"{DEFAULT_DIR})")
+        raise FileNotFoundError(
+            f"no EMPS file at {path} (the benchmark's files live in {DEFAULT_DIR})"
+        )
     try:
         raw = loadmat(str(path))
     except Exception as err:  # scipy raises several types for damaged files
-        raise ValueError(f"{path} is not a readable MATLAB file ({type(err).__name__}: {err})"
-                         ) from None
+        raise ValueError(
+            f"{path} is not a readable MATLAB file ({type(err).__name__}: {err})"
+        ) from None
     missing = [k for k in ("t", "qm", "vir", "gtau") if k not in raw]
     if missing:
         present = sorted(k for k in raw if not k.startswith("__"))
-        raise ValueError(f"{path} lacks the EMPS signal(s) {missing}: an EMPS file holds t, qm, "
-                         f"vir, gtau (and qg, kp, kv); it has {present}")
-    signals = {k: np.asarray(v, dtype=np.float64).ravel() for k, v in raw.items()
-               if not k.startswith("__")}
+        raise ValueError(
+            f"{path} lacks the EMPS signal(s) {missing}: an EMPS file holds t, qm, "
+            f"vir, gtau (and qg, kp, kv); it has {present}"
+        )
+    signals = {
+        k: np.asarray(v, dtype=np.float64).ravel() for k, v in raw.items() if not k.startswith("__")
+    }
     n = len(signals["t"])
     for k in ("qm", "vir"):
         if len(signals[k]) != n or not np.isfinite(signals[k]).all():
@@ -68,15 +73,18 @@ def estimate_velocity(q: np.ndarray, dt: float, cutoff: float = 100.0, order: in
 
     nyquist = 0.5 / dt
     if not 0 < cutoff < nyquist:
-        raise ValueError(f"cutoff = {cutoff} Hz must lie in (0, {nyquist}) Hz, the Nyquist "
-                         f"frequency of dt = {dt} s")
+        raise ValueError(
+            f"cutoff = {cutoff} Hz must lie in (0, {nyquist}) Hz, the Nyquist "
+            f"frequency of dt = {dt} s"
+        )
     b, a = butter(order, cutoff / nyquist)
     smooth = filtfilt(b, a, q)
     return smooth, np.gradient(smooth, dt)
 
 
-def load(path: str | Path, dt: float = 0.005, segment: float = 1.0, cutoff: float = 100.0,
-         order: int = 4) -> Dataset:
+def load(
+    path: str | Path, dt: float = 0.005, segment: float = 1.0, cutoff: float = 100.0, order: int = 4
+) -> Dataset:
     """An EMPS record as episodes of `segment` seconds sampled every `dt` seconds."""
     signals = read_mat(path)
     t = signals["t"]
@@ -93,14 +101,15 @@ def load(path: str | Path, dt: float = 0.005, segment: float = 1.0, cutoff: floa
     q, qd = estimate_velocity(signals["qm"], SAMPLE_DT, cutoff, order)
     vir = signals["vir"]
     n_intervals = (len(q) - 1) // factor  # whole decimated intervals in the record
-    obs = np.stack([q, qd], axis=1)[: n_intervals * factor + 1: factor]
+    obs = np.stack([q, qd], axis=1)[: n_intervals * factor + 1 : factor]
     actions = vir[: n_intervals * factor].reshape(n_intervals, factor).mean(axis=1)
     episodes = n_intervals // steps
     if episodes < 1:
-        raise ValueError(f"{path} holds {n_intervals * dt:.3g} s, less than one segment of "
-                         f"{segment} s")
-    ep_obs = np.stack([obs[e * steps: (e + 1) * steps + 1] for e in range(episodes)])
-    ep_act = np.stack([actions[e * steps: (e + 1) * steps, None] for e in range(episodes)])
+        raise ValueError(
+            f"{path} holds {n_intervals * dt:.3g} s, less than one segment of {segment} s"
+        )
+    ep_obs = np.stack([obs[e * steps : (e + 1) * steps + 1] for e in range(episodes)])
+    ep_act = np.stack([actions[e * steps : (e + 1) * steps, None] for e in range(episodes)])
     return Dataset(ep_obs, ep_act, dt, OBS_NAMES, ACTION_NAMES)
 
 

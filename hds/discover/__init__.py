@@ -24,5 +24,13 @@ from hds.discover.io import load_dataset
 from hds.discover.report import corrected_env, write_report
 from hds.discover.workflow import NamedEffect, Result, discover
 
-__all__ = ["DiscoverAppConfig", "DiscoverConfig", "NamedEffect", "Result", "corrected_env",
-           "discover", "load_dataset", "write_report"]
+__all__ = [
+    "DiscoverAppConfig",
+    "DiscoverConfig",
+    "NamedEffect",
+    "Result",
+    "corrected_env",
+    "discover",
+    "load_dataset",
+    "write_report",
+]

@@ -40,8 +40,15 @@ def main(dcfg) -> float:
         from hds.discover.retrain import retrain
 
         gaps = retrain(cfg, corrected_env(cfg.env, result), out_dir)
-    write_report(result, cfg.env, out_dir, cfg.discover.plot_episodes, cfg.discover.bins, gaps,
-                 data_name=str(cfg.data))
+    write_report(
+        result,
+        cfg.env,
+        out_dir,
+        cfg.discover.plot_episodes,
+        cfg.discover.bins,
+        gaps,
+        data_name=str(cfg.data),
+    )
     from hds.discover.io import print_summary
 
     print_summary(result, out_dir)

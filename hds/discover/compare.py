@@ -20,9 +20,12 @@ class Errors:
     normalized: float  # RMSE of k-step errors, each variable in units of its std
 
     def to_json(self, names) -> dict:
-        return {"one_step_rmse": [float(x) for x in self.one_step_rmse],
-                "rollout_rmse": [float(x) for x in self.rollout_rmse],
-                "rollout_nrmse": float(self.normalized), "names": list(names)}
+        return {
+            "one_step_rmse": [float(x) for x in self.one_step_rmse],
+            "rollout_rmse": [float(x) for x in self.rollout_rmse],
+            "rollout_nrmse": float(self.normalized),
+            "names": list(names),
+        }
 
 
 @dataclass
@@ -57,8 +60,11 @@ def residuals(engine: Engine, data: Data, set_name: str, theta, delay) -> Residu
 def errors(res: Residuals, scale) -> Errors:
     scale = np.asarray(scale, dtype=np.float64)
     rollout = np.sqrt(np.mean(res.rollout**2, axis=(0, 1)))
-    return Errors(one_step_rmse=np.sqrt(np.mean(res.one_step**2, axis=0)), rollout_rmse=rollout,
-                  normalized=float(np.sqrt(np.mean((rollout / scale) ** 2))))
+    return Errors(
+        one_step_rmse=np.sqrt(np.mean(res.one_step**2, axis=0)),
+        rollout_rmse=rollout,
+        normalized=float(np.sqrt(np.mean((rollout / scale) ** 2))),
+    )
 
 
 def compare(engine: Engine, data: Data, theta, delay) -> dict[str, tuple[Residuals, Errors]]:

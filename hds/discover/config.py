@@ -60,8 +60,10 @@ class DiscoverConfig:
         from hds.envs.system import BACKENDS
 
         if self.backend not in ("auto", "env", *BACKENDS):
-            raise ValueError(f"discover.backend = {self.backend!r} is not allowed; choose one of "
-                             f"{['auto', 'env', *BACKENDS]}")
+            raise ValueError(
+                f"discover.backend = {self.backend!r} is not allowed; choose one of "
+                f"{['auto', 'env', *BACKENDS]}"
+            )
         _in_range("discover.heldout_fraction", self.heldout_fraction, 0.01, 0.9)
         _in_range("discover.horizon", self.horizon, 1)
         _in_range("discover.stride", self.stride, 1)
@@ -69,23 +71,29 @@ class DiscoverConfig:
         _in_range("discover.max_delay", self.max_delay, 0, 50)
         _in_range("discover.max_effects", self.max_effects, 0)
         if any(int(b) < 1 for b in self.slot_buckets):
-            raise ValueError(f"discover.slot_buckets = {list(self.slot_buckets)} must be positive "
-                             "numbers of effects")
+            raise ValueError(
+                f"discover.slot_buckets = {list(self.slot_buckets)} must be positive "
+                "numbers of effects"
+            )
         _in_range("discover.stop_margin", self.stop_margin, 0.0, 1.0)
         _in_range("discover.min_improvement", self.min_improvement, 0.0)
         _in_range("discover.min_share", self.min_share, 0.0, 1.0)
         _in_range("discover.iterations", self.iterations, 1)
         if self.initial_state not in ("auto", "measured", "estimated"):
-            raise ValueError(f"discover.initial_state = {self.initial_state!r} is not allowed; "
-                             "choose one of ['auto', 'measured', 'estimated']")
+            raise ValueError(
+                f"discover.initial_state = {self.initial_state!r} is not allowed; "
+                "choose one of ['auto', 'measured', 'estimated']"
+            )
         _in_range("discover.noise_threshold", self.noise_threshold, 0.0)
         _in_range("discover.unexplained_warning", self.unexplained_warning, 0.0, 1.0)
         _in_range("discover.bins", self.bins, 2)
         _in_range("discover.plot_episodes", self.plot_episodes, 0)
         unknown = [e for e in self.effects if e not in LIBRARY]
         if unknown:
-            raise ValueError(f"discover.effects has unknown effects {unknown}; the library has: "
-                             f"{', '.join(LIBRARY)}")
+            raise ValueError(
+                f"discover.effects has unknown effects {unknown}; the library has: "
+                f"{', '.join(LIBRARY)}"
+            )
 
 
 @dataclass

@@ -44,8 +44,14 @@ class Data:
 
     def arrays(self, name: str) -> tuple:
         w = self.windows[name]
-        return (self.obs, self.acts, jnp.asarray(w.episode), jnp.asarray(w.start),
-                jnp.asarray(w.mask), self.scale)
+        return (
+            self.obs,
+            self.acts,
+            jnp.asarray(w.episode),
+            jnp.asarray(w.start),
+            jnp.asarray(w.mask),
+            self.scale,
+        )
 
 
 def noise_level(obs: np.ndarray, order: int = 4) -> np.ndarray:
@@ -83,19 +89,31 @@ def _starts(length: int, horizon: int, stride: int) -> np.ndarray:
     return np.arange(0, length - horizon + 1, stride, dtype=np.int32)
 
 
-def prepare(dataset: Dataset, sim, pad: int, horizon: int, stride: int, heldout_fraction: float,
-            seed: int, validation: Dataset | None = None) -> Data:
+def prepare(
+    dataset: Dataset,
+    sim,
+    pad: int,
+    horizon: int,
+    stride: int,
+    heldout_fraction: float,
+    seed: int,
+    validation: Dataset | None = None,
+) -> Data:
     """Check the datasets against the simulator and lay them out for the compiled functions."""
     validate(dataset, sim, "dataset")
     check_size(dataset, horizon)
     if validation is not None:
         validate(validation, sim, "validation dataset")
         if validation.dt != dataset.dt:
-            raise ValueError(f"the validation dataset's dt = {validation.dt} s differs from the "
-                             f"dataset's {dataset.dt} s: resample one of them")
+            raise ValueError(
+                f"the validation dataset's dt = {validation.dt} s differs from the "
+                f"dataset's {dataset.dt} s: resample one of them"
+            )
         if validation.horizon < horizon:
-            raise ValueError(f"the validation dataset's episodes have {validation.horizon} "
-                             f"steps, fewer than k = {horizon} (discover.horizon)")
+            raise ValueError(
+                f"the validation dataset's episodes have {validation.horizon} "
+                f"steps, fewer than k = {horizon} (discover.horizon)"
+            )
     ident, held = split_episodes(dataset.n_episodes, heldout_fraction, seed)
     parts = [dataset] + ([validation] if validation is not None else [])
     t_max = max(d.horizon for d in parts)
@@ -110,8 +128,10 @@ def prepare(dataset: Dataset, sim, pad: int, horizon: int, stride: int, heldout_
     if validation is not None:
         members["validation"] = dataset.n_episodes + np.arange(validation.n_episodes)
         source["validation"] = ("validation", np.arange(validation.n_episodes))
-    starts = {name: [(e, t) for e in eps for t in _starts(lengths[e], horizon, stride)]
-              for name, eps in members.items()}
+    starts = {
+        name: [(e, t) for e in eps for t in _starts(lengths[e], horizon, stride)]
+        for name, eps in members.items()
+    }
     if len(starts["identification"]) < MIN_WINDOWS:
         raise ValueError(
             f"the dataset is too short to identify anything: its identification episodes give "
@@ -125,13 +145,23 @@ def prepare(dataset: Dataset, sim, pad: int, horizon: int, stride: int, heldout_
         pairs = np.array(pairs, dtype=np.int32).reshape(-1, 2)
         n = len(pairs)
         windows[name] = Windows(
-            episode=np.pad(pairs[:, 0], (0, size - n)), start=np.pad(pairs[:, 1], (0, size - n)),
-            mask=np.pad(np.ones(n, np.float32), (0, size - n)), episodes=members[name])
+            episode=np.pad(pairs[:, 0], (0, size - n)),
+            start=np.pad(pairs[:, 1], (0, size - n)),
+            mask=np.pad(np.ones(n, np.float32), (0, size - n)),
+            episodes=members[name],
+        )
     ident_obs = dataset.obs[ident].reshape(-1, dataset.n_obs)
     std = ident_obs.std(axis=0)
     scale = np.maximum(std, 1e-6 * std.max() + 1e-12)
-    return Data(obs=jnp.asarray(obs, jnp.float32), acts=jnp.asarray(acts, jnp.float32),
-                scale=jnp.asarray(scale, jnp.float32), noise=noise_level(dataset.obs[ident]),
-                windows=windows, horizon=int(horizon),
-                dt=dataset.dt, obs_names=tuple(sim.obs_names),
-                action_names=tuple(sim.action_names), source=source)
+    return Data(
+        obs=jnp.asarray(obs, jnp.float32),
+        acts=jnp.asarray(acts, jnp.float32),
+        scale=jnp.asarray(scale, jnp.float32),
+        noise=noise_level(dataset.obs[ident]),
+        windows=windows,
+        horizon=int(horizon),
+        dt=dataset.dt,
+        obs_names=tuple(sim.obs_names),
+        action_names=tuple(sim.action_names),
+        source=source,
+    )

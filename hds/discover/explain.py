@@ -81,13 +81,18 @@ def forward_selection(engine: Engine, ident, heldout, cfg, estimate: bool = Fals
     `estimate`: fit each window's initial state too (noisy data)."""
     model = engine.model
     sw = _slot_width(model)
-    sizes = sorted({b * sw for b in cfg.slot_buckets if b < cfg.max_effects}
-                   | {max(cfg.max_effects, 1) * sw})
+    sizes = sorted(
+        {b * sw for b in cfg.slot_buckets if b < cfg.max_effects} | {max(cfg.max_effects, 1) * sw}
+    )
     n_act = len(model.sim.action_names)
     base_theta, base_delay = model.nominal.copy(), np.zeros(n_act, np.int32)
-    state = State([], base_theta, base_delay,
-                  float(engine.errors(base_theta[None], base_delay[None], heldout)[0]),
-                  float(engine.errors(base_theta[None], base_delay[None], ident)[0]))
+    state = State(
+        [],
+        base_theta,
+        base_delay,
+        float(engine.errors(base_theta[None], base_delay[None], heldout)[0]),
+        float(engine.errors(base_theta[None], base_delay[None], ident)[0]),
+    )
     states, rounds = [state], []
     stopped = f"reached discover.max_effects = {cfg.max_effects}"
     if not model.candidates:
@@ -96,17 +101,22 @@ def forward_selection(engine: Engine, ident, heldout, cfg, estimate: bool = Fals
         # a few sizes of the fitted set (each a compile; each slot a tangent per iteration)
         width = next(w for w in sizes if w >= len(state.slots) + sw)
         theta0, slots, delay = _batch(model, state, width)
-        theta, loss, h, g, its = engine.fit(theta0, slots, delay, ident, cfg.iterations,
-                                            estimate)
+        theta, loss, h, g, its = engine.fit(theta0, slots, delay, ident, cfg.iterations, estimate)
         held = engine.errors(theta, delay, heldout)
         rows = []
         for i, cand in enumerate(model.candidates):
-            rows.append({
-                "name": cand.name, "target": cand.target, "round": round_index,
-                "params": candidate_params(model, cand, theta[i], delay[i]),
-                "heldout_error": float(held[i]), "identification_error": float(np.sqrt(loss[i])),
-                "new": cand.key not in state.keys, "iterations": int(its[i]),
-            })
+            rows.append(
+                {
+                    "name": cand.name,
+                    "target": cand.target,
+                    "round": round_index,
+                    "params": candidate_params(model, cand, theta[i], delay[i]),
+                    "heldout_error": float(held[i]),
+                    "identification_error": float(np.sqrt(loss[i])),
+                    "new": cand.key not in state.keys,
+                    "iterations": int(its[i]),
+                }
+            )
         rounds.append(rows)
         # the selected effects refitted together (a candidate already selected adds nothing
         # new: its row is a longer refit of the current model, or another delay length)
@@ -114,8 +124,17 @@ def forward_selection(engine: Engine, ident, heldout, cfg, estimate: bool = Fals
         if refits:
             i = min(refits, key=lambda j: held[j])
             if held[i] < state.heldout_error:
-                state = _state(model, state.selected, theta[i], delay[i], held[i], loss[i], h[i],
-                               g[i], slots[i])
+                state = _state(
+                    model,
+                    state.selected,
+                    theta[i],
+                    delay[i],
+                    held[i],
+                    loss[i],
+                    h[i],
+                    g[i],
+                    slots[i],
+                )
                 states[-1] = state
         fresh = [i for i, c in enumerate(model.candidates) if c.key not in state.keys]
         if not fresh:
@@ -124,21 +143,35 @@ def forward_selection(engine: Engine, ident, heldout, cfg, estimate: bool = Fals
         best = min(fresh, key=lambda j: held[j])
         drop = state.heldout_error - held[best]
         needed = max(cfg.stop_margin * state.heldout_error, cfg.min_improvement)
-        share = (state.heldout_error**2 - held[best] ** 2) / max(states[0].heldout_error**2,
-                                                                  1e-30)
+        share = (state.heldout_error**2 - held[best] ** 2) / max(
+            states[0].heldout_error ** 2, 1e-30
+        )
         label = model.candidates[best].label
         if not drop >= needed:
-            stopped = (f"the best remaining candidate, {label}, lowers held-out error by "
-                       f"{max(drop, 0.0):.3g} (normalized RMSE), less than the margin "
-                       f"{needed:.3g}")
+            stopped = (
+                f"the best remaining candidate, {label}, lowers held-out error by "
+                f"{max(drop, 0.0):.3g} (normalized RMSE), less than the margin "
+                f"{needed:.3g}"
+            )
             break
         if not share >= cfg.min_share:
-            stopped = (f"the best remaining candidate, {label}, explains {share:.2%} of the "
-                       f"original held-out error, less than discover.min_share = "
-                       f"{cfg.min_share:.2%}")
+            stopped = (
+                f"the best remaining candidate, {label}, explains {share:.2%} of the "
+                f"original held-out error, less than discover.min_share = "
+                f"{cfg.min_share:.2%}"
+            )
             break
-        state = _state(model, state.selected + [model.candidates[best]], theta[best],
-                       delay[best], held[best], loss[best], h[best], g[best], slots[best])
+        state = _state(
+            model,
+            state.selected + [model.candidates[best]],
+            theta[best],
+            delay[best],
+            held[best],
+            loss[best],
+            h[best],
+            g[best],
+            slots[best],
+        )
         states.append(state)
     return Selection(states, rounds, stopped)
 
@@ -146,8 +179,16 @@ def forward_selection(engine: Engine, ident, heldout, cfg, estimate: bool = Fals
 def _state(model, selected, theta, delay, held, loss, h, g, slots) -> State:
     slots = [int(s) for s in slots if s >= 0]
     m = len(slots)
-    return State(list(selected), np.asarray(theta), np.asarray(delay), float(held),
-                 float(np.sqrt(loss)), h[:m, :m], g[:, :m], slots)
+    return State(
+        list(selected),
+        np.asarray(theta),
+        np.asarray(delay),
+        float(held),
+        float(np.sqrt(loss)),
+        h[:m, :m],
+        g[:, :m],
+        slots,
+    )
 
 
 def intervals(model, state: State) -> dict[str, dict[str, list[float]]]:

@@ -41,8 +41,9 @@ class Engine:
         self.model, self.horizon = model, int(horizon)
         self.predict = jax.jit(self._predict)
         self.losses = jax.jit(jax.vmap(self._loss, in_axes=(0, 0, None)))
-        self._fit = jax.jit(jax.vmap(self._fit_one, in_axes=(0, 0, 0, None, None, None)),
-                            static_argnums=(4, 5))
+        self._fit = jax.jit(
+            jax.vmap(self._fit_one, in_axes=(0, 0, 0, None, None, None)), static_argnums=(4, 5)
+        )
 
     # -- single-candidate pieces (vmapped above) -------------------------------------------
 
@@ -75,13 +76,15 @@ class Engine:
         # tangent directions: the fitted entries of theta, then (estimate) each state
         # component of every window's initial state at once (windows are independent)
         t_theta = jnp.concatenate([basis, jnp.zeros((n_z, n_theta))])
-        t_z = jnp.concatenate([jnp.zeros((m, windows, n_obs)),
-                               jnp.broadcast_to(jnp.eye(n_obs)[:n_z, None, :],
-                                                (n_z, windows, n_obs))])
+        t_z = jnp.concatenate(
+            [
+                jnp.zeros((m, windows, n_obs)),
+                jnp.broadcast_to(jnp.eye(n_obs)[:n_z, None, :], (n_z, windows, n_obs)),
+            ]
+        )
 
         def res(theta, z):
-            return self._residuals(theta, delay, data, z if estimate else None).reshape(
-                windows, -1)
+            return self._residuals(theta, delay, data, z if estimate else None).reshape(windows, -1)
 
         def linear(theta, z):
             r, jac = jax.vmap(lambda tt, tz: jax.jvp(res, (theta, z), (tt, tz)))(t_theta, t_z)
@@ -128,16 +131,31 @@ class Engine:
             stalled = False if estimate else still  # with states estimated, z may still move
             done = (~first & ((better & small) | stalled)) | (lam > LAMBDA_MAX) | ~jnp.any(valid)
             pick = lambda new, old: jnp.where(better, new, old)  # noqa: E731
-            return (pick(trial, theta), pick(z_trial, z), pick(r_trial, r), pick(jt_trial, jt),
-                    pick(jz_trial, jz), lam, it + 1, done)
+            return (
+                pick(trial, theta),
+                pick(z_trial, z),
+                pick(r_trial, r),
+                pick(jt_trial, jt),
+                pick(jz_trial, jz),
+                lam,
+                it + 1,
+                done,
+            )
 
         def cond(carry):
             return (carry[6] < iterations + 1) & ~carry[7]
 
         n_res = self.horizon * n_obs
-        start = (theta0, jnp.zeros((windows, n_obs)), jnp.zeros((windows, n_res)),
-                 jnp.zeros((m, windows, n_res)), jnp.zeros((n_z, windows, n_res)),
-                 jnp.asarray(LAMBDA0, theta0.dtype), jnp.asarray(0), jnp.asarray(False))
+        start = (
+            theta0,
+            jnp.zeros((windows, n_obs)),
+            jnp.zeros((windows, n_res)),
+            jnp.zeros((m, windows, n_res)),
+            jnp.zeros((n_z, windows, n_res)),
+            jnp.asarray(LAMBDA0, theta0.dtype),
+            jnp.asarray(0),
+            jnp.asarray(False),
+        )
         theta, z, r, jt, jz, _, its, _ = jax.lax.while_loop(cond, body, start)
         # the Gauss-Newton matrix (initial states profiled out) and the per-episode gradients
         # at the optimum, for the confidence intervals
@@ -150,8 +168,14 @@ class Engine:
     # -- host-side entry points ------------------------------------------------------------
 
     def fit(self, theta0, slots, delay, data, iterations: int, estimate: bool = False):
-        out = self._fit(jnp.asarray(theta0, jnp.float32), jnp.asarray(slots, jnp.int32),
-                        jnp.asarray(delay, jnp.int32), data, int(iterations), bool(estimate))
+        out = self._fit(
+            jnp.asarray(theta0, jnp.float32),
+            jnp.asarray(slots, jnp.int32),
+            jnp.asarray(delay, jnp.int32),
+            data,
+            int(iterations),
+            bool(estimate),
+        )
         return tuple(np.asarray(x) for x in out)
 
     def errors(self, theta, delay, data) -> np.ndarray:
@@ -160,12 +184,15 @@ class Engine:
         return np.sqrt(np.asarray(mse, dtype=np.float64))
 
     def predictions(self, theta, delay, data) -> np.ndarray:
-        return np.asarray(self.predict(jnp.asarray(theta, jnp.float32),
-                                       jnp.asarray(delay, jnp.int32), data), dtype=np.float64)
+        return np.asarray(
+            self.predict(jnp.asarray(theta, jnp.float32), jnp.asarray(delay, jnp.int32), data),
+            dtype=np.float64,
+        )
 
 
-def confidence_intervals(theta: np.ndarray, h: np.ndarray, g: np.ndarray,
-                         level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
+def confidence_intervals(
+    theta: np.ndarray, h: np.ndarray, g: np.ndarray, level: float = 0.95
+) -> tuple[np.ndarray, np.ndarray]:
     """Half-widths of `level` intervals of the fitted entries (H [M, M], G [E, M] of `fit`)
     and their standard errors; inf where the data do not determine a parameter."""
     g = g[np.any(g != 0, axis=1)]  # the episodes that took part
@@ -184,8 +211,7 @@ def confidence_intervals(theta: np.ndarray, h: np.ndarray, g: np.ndarray,
         bread = inv / np.outer(d[ok], d[ok])
         meat = g[:, ok].T @ g[:, ok] * n / (n - 1)
         cov = bread @ meat @ bread
-        weak = np.abs(v[:, ~keep]).max(axis=1) > 1e-3 if (~keep).any() else np.zeros(ok.sum(),
-                                                                                      bool)
+        weak = np.abs(v[:, ~keep]).max(axis=1) > 1e-3 if (~keep).any() else np.zeros(ok.sum(), bool)
         se_ok = np.sqrt(np.maximum(np.diag(cov), 0.0))
         se_ok[weak] = np.inf
         se[ok] = se_ok
@@ -206,9 +232,14 @@ def _config_key(env_cfg) -> str:
 def get_engine(env_cfg, dt: float, effects, max_delay: int, warmup: int, horizon: int) -> Engine:
     """The engine for this simulator and layout, built once per process and then reused, so
     repeated discoveries (tests, sweeps) compile nothing twice."""
-    key = (_config_key(env_cfg), round(float(dt), 12), tuple(effects), int(max_delay),
-           int(warmup), int(horizon))
+    key = (
+        _config_key(env_cfg),
+        round(float(dt), 12),
+        tuple(effects),
+        int(max_delay),
+        int(warmup),
+        int(horizon),
+    )
     if key not in _ENGINES:
-        _ENGINES[key] = Engine(build_model(env_cfg, dt, list(effects), max_delay, warmup),
-                               horizon)
+        _ENGINES[key] = Engine(build_model(env_cfg, dt, list(effects), max_delay, warmup), horizon)
     return _ENGINES[key]

@@ -24,9 +24,16 @@ def load_dataset(path: str | Path, emps_cfg=None) -> Dataset:
     if p.suffix.lower() == ".mat":
         from hds.data import emps
 
-        options = {} if emps_cfg is None else {"dt": emps_cfg.dt, "segment": emps_cfg.segment,
-                                                "cutoff": emps_cfg.cutoff,
-                                                "order": emps_cfg.order}
+        options = (
+            {}
+            if emps_cfg is None
+            else {
+                "dt": emps_cfg.dt,
+                "segment": emps_cfg.segment,
+                "cutoff": emps_cfg.cutoff,
+                "order": emps_cfg.order,
+            }
+        )
         return emps.load(p, **options)
     return data_format.load(p)
 
@@ -40,14 +47,18 @@ def print_summary(result, out_dir: Path) -> None:
     for col in ("effect", "target", "parameters (95% CI)", "explained"):
         table.add_column(col)
     for e in result.missing_effects:
-        params = ", ".join(f"{p}={v:.4g} {e.units.get(p, '')}" +
-                           (f" [{e.ci95[p][0]:.4g}, {e.ci95[p][1]:.4g}]" if p in e.ci95 else "")
-                           for p, v in e.params.items())
+        params = ", ".join(
+            f"{p}={v:.4g} {e.units.get(p, '')}"
+            + (f" [{e.ci95[p][0]:.4g}, {e.ci95[p][1]:.4g}]" if p in e.ci95 else "")
+            for p, v in e.params.items()
+        )
         table.add_row(e.name, e.target, params, f"{e.explained_fraction:.1%}")
     console.print(table)
     b, a = result.error("before"), result.error("after")
-    console.print(f"held-out k-step error (normalized RMSE): {b.normalized:.4g} -> "
-                  f"{a.normalized:.4g}; unexplained {result.unexplained_fraction:.1%}")
+    console.print(
+        f"held-out k-step error (normalized RMSE): {b.normalized:.4g} -> "
+        f"{a.normalized:.4g}; unexplained {result.unexplained_fraction:.1%}"
+    )
     for w in result.warnings:
         console.print(f"[yellow]warning:[/yellow] {w}")
     console.print(f"report: {out_dir / 'report.md'}")

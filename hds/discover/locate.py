@@ -98,7 +98,14 @@ def locate(data: Data, sim, res: Residuals, bins: int) -> Location:
     for i, var in enumerate(sim.obs_names):
         for name, values in feats.items():
             eta2 = eta_squared(values, res.one_step[:, i], bins)
-            table.append({"variable": var, "feature": name, "eta2": eta2,
-                          "share": float(share[i]), "score": eta2 * float(share[i])})
+            table.append(
+                {
+                    "variable": var,
+                    "feature": name,
+                    "eta2": eta2,
+                    "share": float(share[i]),
+                    "score": eta2 * float(share[i]),
+                }
+            )
     table.sort(key=lambda row: -row["score"])
     return Location(list(sim.obs_names), share, table, feats, res.one_step)

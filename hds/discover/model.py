@@ -175,19 +175,31 @@ def candidate_specs(sim, effects: list[str], existing: set[str]) -> list[tuple[s
 def build_model(env_cfg, dt: float, effects: list[str], max_delay: int, warmup: int) -> Model:
     """The superset model of an `env` config for data sampled every dt seconds."""
     env_effects = [as_spec(e) for e in env_cfg.effects]
-    probe, _ = make_simulator(env_cfg.xml, backend=env_cfg.backend, timestep=env_cfg.timestep,
-                              effects=env_effects)
+    probe, _ = make_simulator(
+        env_cfg.xml, backend=env_cfg.backend, timestep=env_cfg.timestep, effects=env_effects
+    )
     frames = round(dt / probe.timestep)
     existing = {e.key for e in env_effects}
-    continuous = [(n, t) for n, t in candidate_specs(probe, effects, existing)
-                  if n != "action_delay"]
+    continuous = [
+        (n, t) for n, t in candidate_specs(probe, effects, existing) if n != "action_delay"
+    ]
     specs = env_effects + [{"name": n, "target": t, "params": {}} for n, t in continuous]
-    sim, base = make_simulator(env_cfg.xml, backend=env_cfg.backend, timestep=env_cfg.timestep,
-                               frames=frames, effects=specs, sharpness=env_cfg.sharpness)
-    joint_type = {sim.obs_names[i][2:]: ("hinge" if sim.angular[i] else "slide")
-                  for i in range(sim.nq)}
-    obs_unit = {n: ("rad" if joint_type.get(n.split("_", 1)[-1]) == "hinge" else "m")
-                + ("/s" if n.startswith("qd_") else "") for n in sim.obs_names}
+    sim, base = make_simulator(
+        env_cfg.xml,
+        backend=env_cfg.backend,
+        timestep=env_cfg.timestep,
+        frames=frames,
+        effects=specs,
+        sharpness=env_cfg.sharpness,
+    )
+    joint_type = {
+        sim.obs_names[i][2:]: ("hinge" if sim.angular[i] else "slide") for i in range(sim.nq)
+    }
+    obs_unit = {
+        n: ("rad" if joint_type.get(n.split("_", 1)[-1]) == "hinge" else "m")
+        + ("/s" if n.startswith("qd_") else "")
+        for n in sim.obs_names
+    }
 
     where, candidates, nominal, start, lower, upper, units = [], [], [], [], [], [], []
     n_env = len(env_effects)
@@ -201,24 +213,35 @@ def build_model(env_cfg, dt: float, effects: list[str], max_delay: int, warmup: 
             slots[p.name] = len(nominal)
             lo, hi = FIT_BOUNDS.get((site.name, p.name), (p.lower, p.upper))
             nominal.append(p.nominal)
-            start.append(p.nominal + START_IN_TIMESTEPS.get((site.name, p.name), 0.0)
-                         * sim.timestep)
+            start.append(
+                p.nominal + START_IN_TIMESTEPS.get((site.name, p.name), 0.0) * sim.timestep
+            )
             lower.append(lo)
             upper.append(hi)
-            units.append(_unit(site.name, p.name, etype.target_kind, site.target, joint_type,
-                               obs_unit))
+            units.append(
+                _unit(site.name, p.name, etype.target_kind, site.target, joint_type, obs_unit)
+            )
         where.append(slots)
-        candidates.append(Candidate(site.name, site.target, tuple(slots.values()),
-                                    tuple(slots)))
+        candidates.append(Candidate(site.name, site.target, tuple(slots.values()), tuple(slots)))
     if "action_delay" in effects:
         for target, a in sim.targets[ACTUATOR].items():
             if f"action_delay@{target}" in existing:
                 continue
-            candidates += [Candidate("action_delay", target, actuator=a, steps=s)
-                           for s in range(1, max_delay + 1)]
-    return Model(sim=sim, base=base, where=tuple(where), candidates=tuple(candidates),
-                 nominal=np.array(nominal, np.float32), start=np.array(start, np.float32),
-                 lower=np.array(lower, np.float32), upper=np.array(upper, np.float32),
-                 units=tuple(units), env_effects=tuple(env_effects), max_delay=int(max_delay),
-                 warmup=int(warmup))
-
+            candidates += [
+                Candidate("action_delay", target, actuator=a, steps=s)
+                for s in range(1, max_delay + 1)
+            ]
+    return Model(
+        sim=sim,
+        base=base,
+        where=tuple(where),
+        candidates=tuple(candidates),
+        nominal=np.array(nominal, np.float32),
+        start=np.array(start, np.float32),
+        lower=np.array(lower, np.float32),
+        upper=np.array(upper, np.float32),
+        units=tuple(units),
+        env_effects=tuple(env_effects),
+        max_delay=int(max_delay),
+        warmup=int(warmup),
+    )

@@ -17,8 +17,10 @@ def errors(before: Errors, after: Errors, names, scale, title: str) -> plt.Figur
     scale = np.asarray(scale, dtype=float)
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.4))
     x = np.arange(len(names))
-    for ax, key, label in ((axes[0], "one_step_rmse", "one-step"),
-                           (axes[1], "rollout_rmse", "k-step rollout")):
+    for ax, key, label in (
+        (axes[0], "one_step_rmse", "one-step"),
+        (axes[1], "rollout_rmse", "k-step rollout"),
+    ):
         for offset, err, tag in ((-0.2, before, "before"), (0.2, after, "after")):
             ax.bar(x + offset, getattr(err, key) / scale, width=0.38, label=tag)
         ax.set_xticks(x, names, rotation=20)
@@ -37,11 +39,15 @@ def locate(loc: Location, bins: int) -> plt.Figure:
         eta[loc.variables.index(row["variable"]), feats.index(row["feature"])] = row["eta2"]
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.2), gridspec_kw={"width_ratios": [1.2, 1]})
     im = axes[0].imshow(eta, vmin=0, vmax=1, cmap="viridis", aspect="auto")
-    axes[0].set_yticks(range(len(loc.variables)),
-                       [f"{v} ({s:.0%})" for v, s in zip(loc.variables, loc.share)])
+    axes[0].set_yticks(
+        range(len(loc.variables)), [f"{v} ({s:.0%})" for v, s in zip(loc.variables, loc.share)]
+    )
     axes[0].set_xticks(range(len(feats)), feats, rotation=35, ha="right", fontsize=7)
-    axes[0].set_title("eta^2: share of each one-step residual a feature explains\n"
-                      "(variable: its share of the residual)", fontsize=9)
+    axes[0].set_title(
+        "eta^2: share of each one-step residual a feature explains\n"
+        "(variable: its share of the residual)",
+        fontsize=9,
+    )
     fig.colorbar(im, ax=axes[0])
     top = loc.top
     ax = axes[1]
@@ -61,8 +67,7 @@ def locate(loc: Location, bins: int) -> plt.Figure:
         ax.axhline(0, color="k", lw=0.5)
         ax.set_xlabel(top["feature"])
         ax.set_ylabel(f"one-step residual of {top['variable']}")
-        ax.set_title(f"most telling: eta^2 = {top['eta2']:.2f} (measured - simulated)",
-                     fontsize=9)
+        ax.set_title(f"most telling: eta^2 = {top['eta2']:.2f} (measured - simulated)", fontsize=9)
         ax.legend()
     fig.tight_layout()
     return fig
@@ -80,24 +85,35 @@ def _chain(res: Residuals, episode: int, horizon: int):
     return chosen
 
 
-def trajectories(obs: np.ndarray, dt: float, before: Residuals, after: Residuals, episodes,
-                 names, horizon: int, title: str) -> plt.Figure:
+def trajectories(
+    obs: np.ndarray,
+    dt: float,
+    before: Residuals,
+    after: Residuals,
+    episodes,
+    names,
+    horizon: int,
+    title: str,
+) -> plt.Figure:
     """Measured, simulated-before and simulated-after, the simulator restarted from the
     measured state every k steps (dots), for a few held-out episodes."""
     episodes = list(episodes)
     n = len(names)
-    fig, axes = plt.subplots(n, max(len(episodes), 1), figsize=(5.5 * max(len(episodes), 1),
-                                                                1.9 * n), squeeze=False)
+    fig, axes = plt.subplots(
+        n, max(len(episodes), 1), figsize=(5.5 * max(len(episodes), 1), 1.9 * n), squeeze=False
+    )
     for col, e in enumerate(episodes):
         t = np.arange(obs.shape[1]) * dt
         for i, name in enumerate(names):
             ax = axes[i, col]
             ax.plot(t, obs[e, :, i], color="k", lw=1.2, label="measured")
-            for res, color, label in ((before, "tab:red", "simulated before"),
-                                      (after, "tab:blue", "simulated after")):
+            for res, color, label in (
+                (before, "tab:red", "simulated before"),
+                (after, "tab:blue", "simulated after"),
+            ):
                 for j, r in enumerate(_chain(res, e, horizon)):
                     s = res.start[r]
-                    tt = t[s: s + horizon + 1]
+                    tt = t[s : s + horizon + 1]
                     yy = np.concatenate([[obs[e, s, i]], res.predicted[r, :, i]])
                     ax.plot(tt, yy, color=color, lw=1.0, label=label if j == 0 else None)
                     ax.plot(tt[:1], yy[:1], ".", color="k", ms=3)
@@ -114,12 +130,13 @@ def trajectories(obs: np.ndarray, dt: float, before: Residuals, after: Residuals
 def candidates(rows: list[dict], base_error: float, selected: set[str]) -> plt.Figure:
     """Held-out error of every candidate fitted alone (round 1)."""
     rows = sorted(rows, key=lambda r: r["heldout_error"])
-    labels = [f"{r['name']}@{r['target']}" + (f"={r['params']['steps']}"
-                                               if r["name"] == "action_delay" else "")
-              for r in rows]
+    labels = [
+        f"{r['name']}@{r['target']}"
+        + (f"={r['params']['steps']}" if r["name"] == "action_delay" else "")
+        for r in rows
+    ]
     fig, ax = plt.subplots(figsize=(7, 0.28 * len(rows) + 1.2))
-    colors = ["tab:green" if f"{r['name']}@{r['target']}" in selected else "tab:gray"
-              for r in rows]
+    colors = ["tab:green" if f"{r['name']}@{r['target']}" in selected else "tab:gray" for r in rows]
     ax.barh(range(len(rows)), [r["heldout_error"] for r in rows], color=colors)
     ax.axvline(base_error, color="tab:red", lw=1, label="simulator as it is")
     ax.set_yticks(range(len(rows)), labels, fontsize=7)

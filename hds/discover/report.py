@@ -16,9 +16,13 @@ from hds.discover.workflow import Result
 from hds.plots import save as save_figure
 from hds.utils.io import atomic_write_bytes, atomic_write_json
 
-NATIVE = {"coulomb_friction": "joint frictionloss", "viscous_damping": "joint damping",
-          "actuator_gain": "actuator gear", "actuator_lag": "actuator dyntype filterexact",
-          "mass_scale": "body mass and inertia"}
+NATIVE = {
+    "coulomb_friction": "joint frictionloss",
+    "viscous_damping": "joint damping",
+    "actuator_gain": "actuator gear",
+    "actuator_lag": "actuator dyntype filterexact",
+    "mass_scale": "body mass and inertia",
+}
 
 
 def _container(env_cfg) -> dict:
@@ -40,9 +44,11 @@ def write_config(env_cfg, result: Result, out_dir: Path) -> Path:
     --config-dir <out_dir>/conf env=<name>_corrected`."""
     env = corrected_env(env_cfg, result)
     path = Path(out_dir) / "conf" / "env" / f"{env['name']}.yaml"
-    header = ("# The simulator corrected by gap discovery (hds.discover): the original env with "
-              "the named effects.\n# Use it with: python -m hds.run --config-dir "
-              f"{path.parent.parent} env={env['name']}\n")
+    header = (
+        "# The simulator corrected by gap discovery (hds.discover): the original env with "
+        "the named effects.\n# Use it with: python -m hds.run --config-dir "
+        f"{path.parent.parent} env={env['name']}\n"
+    )
     atomic_write_bytes(path, (header + OmegaConf.to_yaml(OmegaConf.create(env))).encode())
     return path
 
@@ -54,14 +60,16 @@ def write_mjcf(env_cfg, result: Result, out_dir: Path) -> Path:
     effects = result.corrected_effects
     spec = mujoco_spec(env_cfg, effects)
     xml = spec.to_xml()
-    native = [f"{e['name']}@{e['target']} ({NATIVE[e['name']]})" for e in effects
-              if e["name"] in NATIVE]
-    other = [f"{e['name']}@{e['target']} {e['params']}" for e in effects
-             if e["name"] not in NATIVE]
-    comment = ("<!-- Corrected by hds.discover. MuJoCo-native here: "
-               f"{', '.join(native) or 'none'}. Not expressible in MJCF (apply them in the "
-               f"controller or sensor path, as hds.real.MujocoPlant does): "
-               f"{', '.join(other) or 'none'}. -->\n")
+    native = [
+        f"{e['name']}@{e['target']} ({NATIVE[e['name']]})" for e in effects if e["name"] in NATIVE
+    ]
+    other = [f"{e['name']}@{e['target']} {e['params']}" for e in effects if e["name"] not in NATIVE]
+    comment = (
+        "<!-- Corrected by hds.discover. MuJoCo-native here: "
+        f"{', '.join(native) or 'none'}. Not expressible in MJCF (apply them in the "
+        f"controller or sensor path, as hds.real.MujocoPlant does): "
+        f"{', '.join(other) or 'none'}. -->\n"
+    )
     path = Path(out_dir) / "corrected.xml"
     atomic_write_bytes(path, (comment + xml).encode())
     return path
@@ -72,9 +80,13 @@ def write_plots(result: Result, out_dir: Path, plot_episodes: int, bins: int) ->
     out = {}
     figs = {"locate": plots.locate(result.location, bins)}
     for name in result.before:
-        figs[f"errors_{name}"] = plots.errors(result.error("before", name),
-                                              result.error("after", name), data.obs_names,
-                                              data.scale, name)
+        figs[f"errors_{name}"] = plots.errors(
+            result.error("before", name),
+            result.error("after", name),
+            data.obs_names,
+            data.scale,
+            name,
+        )
     obs = np.asarray(data.obs, dtype=np.float64)
     for name in ("heldout", "validation"):
         if name not in result.before:
@@ -82,12 +94,21 @@ def write_plots(result: Result, out_dir: Path, plot_episodes: int, bins: int) ->
         episodes = data.windows[name].episodes[:plot_episodes]
         if len(episodes):
             figs[f"trajectories_{name}"] = plots.trajectories(
-                obs, data.dt, result.before[name][0], result.after[name][0], episodes,
-                data.obs_names, data.horizon, name)
+                obs,
+                data.dt,
+                result.before[name][0],
+                result.after[name][0],
+                episodes,
+                data.obs_names,
+                data.horizon,
+                name,
+            )
     if result.selection.rounds:
         figs["candidates"] = plots.candidates(
-            result.selection.rounds[0], result.selection.states[0].heldout_error,
-            {f"{e.name}@{e.target}" for e in result.missing_effects})
+            result.selection.rounds[0],
+            result.selection.states[0].heldout_error,
+            {f"{e.name}@{e.target}" for e in result.missing_effects},
+        )
     import matplotlib.pyplot as plt
 
     for name, fig in figs.items():
@@ -100,116 +121,188 @@ def _fmt(x: float) -> str:
     return f"{x:.4g}" if np.isfinite(x) else "inf"
 
 
-def markdown(result: Result, files: dict, config_path: Path, mjcf_path: Path, out_dir: Path,
-             retrain: dict | None = None, data_name: str = "") -> str:
+def markdown(
+    result: Result,
+    files: dict,
+    config_path: Path,
+    mjcf_path: Path,
+    out_dir: Path,
+    retrain: dict | None = None,
+    data_name: str = "",
+) -> str:
     data = result.data
     names = list(data.obs_names)
     lines = ["# Gap discovery report", ""]
     if data_name:
-        lines += [f"Data: `{data_name}`, {len(data.windows['identification'].episodes)} "
-                  f"identification and {len(data.windows['heldout'].episodes)} held-out "
-                  f"episodes, dt = {data.dt:g} s, k = {data.horizon} steps "
-                  f"({data.horizon * data.dt:g} s).", ""]
+        lines += [
+            f"Data: `{data_name}`, {len(data.windows['identification'].episodes)} "
+            f"identification and {len(data.windows['heldout'].episodes)} held-out "
+            f"episodes, dt = {data.dt:g} s, k = {data.horizon} steps "
+            f"({data.horizon * data.dt:g} s).",
+            "",
+        ]
     lines += ["## Missing effects", ""]
     if result.missing_effects:
-        lines += ["| effect | where | parameters (95% CI) | share of the gap explained |",
-                  "| --- | --- | --- | --- |"]
+        lines += [
+            "| effect | where | parameters (95% CI) | share of the gap explained |",
+            "| --- | --- | --- | --- |",
+        ]
         for e in result.missing_effects:
             params = "; ".join(
-                f"{p} = {_fmt(v)} {e.units.get(p, '')} "
-                f"[{_fmt(e.ci95[p][0])}, {_fmt(e.ci95[p][1])}]" if p in e.ci95 else
-                f"{p} = {_fmt(v)} {e.units.get(p, '')}" for p, v in e.params.items())
+                f"{p} = {_fmt(v)} {e.units.get(p, '')} [{_fmt(e.ci95[p][0])}, {_fmt(e.ci95[p][1])}]"
+                if p in e.ci95
+                else f"{p} = {_fmt(v)} {e.units.get(p, '')}"
+                for p, v in e.params.items()
+            )
             if e.at_joint:
-                params += " (" + "; ".join(f"{_fmt(v)} N or N m at the joint"
-                                          for v in e.at_joint.values()) + ")"
-            lines.append(f"| {e.physical_name} (`{e.name}`) | {e.target} | {params} | "
-                         f"{e.explained_fraction:.1%} |")
+                params += (
+                    " ("
+                    + "; ".join(f"{_fmt(v)} N or N m at the joint" for v in e.at_joint.values())
+                    + ")"
+                )
+            lines.append(
+                f"| {e.physical_name} (`{e.name}`) | {e.target} | {params} | "
+                f"{e.explained_fraction:.1%} |"
+            )
     elif result.no_gap:
-        lines.append(f"None: the simulator already predicts the held-out data to "
-                     f"{result.selection.states[0].heldout_error:.2g} signal stds (normalized "
-                     "RMSE): there is no gap to explain.")
+        lines.append(
+            f"None: the simulator already predicts the held-out data to "
+            f"{result.selection.states[0].heldout_error:.2g} signal stds (normalized "
+            "RMSE): there is no gap to explain."
+        )
     else:
-        lines.append("None: no effect of the library lowers the held-out error by a "
-                     "meaningful margin.")
+        lines.append(
+            "None: no effect of the library lowers the held-out error by a meaningful margin."
+        )
     if result.tentative:
-        lines += ["", "Tentative (they lower the error, but less than the structured remainder "
-                  "no effect of the library explains: likely compensations, not findings):"]
+        lines += [
+            "",
+            "Tentative (they lower the error, but less than the structured remainder "
+            "no effect of the library explains: likely compensations, not findings):",
+        ]
         for e in result.tentative:
-            params = ", ".join(f"{p} = {_fmt(v)} {e.units.get(p, '')}"
-                               for p, v in e.params.items())
-            lines.append(f"- {e.physical_name} (`{e.name}`) on {e.target}: {params} "
-                         f"({e.explained_fraction:.1%})")
+            params = ", ".join(f"{p} = {_fmt(v)} {e.units.get(p, '')}" for p, v in e.params.items())
+            lines.append(
+                f"- {e.physical_name} (`{e.name}`) on {e.target}: {params} "
+                f"({e.explained_fraction:.1%})"
+            )
     noise = np.sqrt(np.mean((data.noise / np.asarray(data.scale, dtype=float)) ** 2))
-    lines += ["", f"Unexplained: {result.unexplained_fraction:.1%} of the held-out k-step "
-              f"prediction error (MSE) remains; features explain "
-              f"{result.structured_unexplained:.1%} of the original error in that remainder. "
-              f"Estimated measurement noise: {noise:.3g} signal stds (normalized RMSE floor); "
-              f"initial states of the fits: {result.initial_state}; physics backend of the "
-              f"fits: {result.backend}.",
-              f"Selection stopped: {result.stopped}.", ""]
+    lines += [
+        "",
+        f"Unexplained: {result.unexplained_fraction:.1%} of the held-out k-step "
+        f"prediction error (MSE) remains; features explain "
+        f"{result.structured_unexplained:.1%} of the original error in that remainder. "
+        f"Estimated measurement noise: {noise:.3g} signal stds (normalized RMSE floor); "
+        f"initial states of the fits: {result.initial_state}; physics backend of the "
+        f"fits: {result.backend}.",
+        f"Selection stopped: {result.stopped}.",
+        "",
+    ]
     for w in result.warnings:
         lines += [f"> **Warning**: {w}", ""]
-    lines += ["## Error before and after", "",
-              "RMSE per state variable, one step and over k-step rollouts from measured states.",
-              "", "| set | variable | one-step before | one-step after | k-step before | "
-              "k-step after |", "| --- | --- | --- | --- | --- | --- |"]
+    lines += [
+        "## Error before and after",
+        "",
+        "RMSE per state variable, one step and over k-step rollouts from measured states.",
+        "",
+        "| set | variable | one-step before | one-step after | k-step before | k-step after |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
     for s in result.before:
         b, a = result.error("before", s), result.error("after", s)
         for i, n in enumerate(names):
-            lines.append(f"| {s} | {n} | {_fmt(b.one_step_rmse[i])} | "
-                         f"{_fmt(a.one_step_rmse[i])} | {_fmt(b.rollout_rmse[i])} | "
-                         f"{_fmt(a.rollout_rmse[i])} |")
-        lines.append(f"| {s} | all (normalized) | | | {_fmt(b.normalized)} | "
-                     f"{_fmt(a.normalized)} |")
+            lines.append(
+                f"| {s} | {n} | {_fmt(b.one_step_rmse[i])} | "
+                f"{_fmt(a.one_step_rmse[i])} | {_fmt(b.rollout_rmse[i])} | "
+                f"{_fmt(a.rollout_rmse[i])} |"
+            )
+        lines.append(
+            f"| {s} | all (normalized) | | | {_fmt(b.normalized)} | {_fmt(a.normalized)} |"
+        )
     lines += [""]
-    for key in ("errors_heldout", "trajectories_heldout", "errors_validation",
-                "trajectories_validation"):
+    for key in (
+        "errors_heldout",
+        "trajectories_heldout",
+        "errors_validation",
+        "trajectories_validation",
+    ):
         if key in files:
             lines += [f"![{key}](plots/{files[key].name})", ""]
-    lines += ["## Where the simulator and the data disagree", "",
-              "Share of each variable's one-step residual explained by a feature (eta^2), "
-              "weighted by the variable's share of the total residual:", "",
-              "| variable | feature | eta^2 | variable's share |", "| --- | --- | --- | --- |"]
+    lines += [
+        "## Where the simulator and the data disagree",
+        "",
+        "Share of each variable's one-step residual explained by a feature (eta^2), "
+        "weighted by the variable's share of the total residual:",
+        "",
+        "| variable | feature | eta^2 | variable's share |",
+        "| --- | --- | --- | --- |",
+    ]
     for row in result.location.table[:6]:
-        lines.append(f"| {row['variable']} | {row['feature']} | {row['eta2']:.2f} | "
-                     f"{row['share']:.0%} |")
-    lines += ["", "![locate](plots/locate.png)", "", "## Candidates", "",
-              "Every candidate effect, fitted (with the effects already selected) on the "
-              "identification episodes, judged on the held-out ones:", "",
-              "| round | effect | target | fitted | held-out error |",
-              "| --- | --- | --- | --- | --- |"]
+        lines.append(
+            f"| {row['variable']} | {row['feature']} | {row['eta2']:.2f} | {row['share']:.0%} |"
+        )
+    lines += [
+        "",
+        "![locate](plots/locate.png)",
+        "",
+        "## Candidates",
+        "",
+        "Every candidate effect, fitted (with the effects already selected) on the "
+        "identification episodes, judged on the held-out ones:",
+        "",
+        "| round | effect | target | fitted | held-out error |",
+        "| --- | --- | --- | --- | --- |",
+    ]
     for r in result.candidates:
         if not r["new"]:
             continue
         fitted = ", ".join(f"{k} = {_fmt(v)}" for k, v in r["params"].items())
-        lines.append(f"| {r['round']} | {r['name']} | {r['target']} | {fitted} | "
-                     f"{r['heldout_error']:.4g} |")
-    lines += ["", f"(The simulator as it is: {result.selection.states[0].heldout_error:.4g}.)",
-              ""]
+        lines.append(
+            f"| {r['round']} | {r['name']} | {r['target']} | {fitted} | {r['heldout_error']:.4g} |"
+        )
+    lines += ["", f"(The simulator as it is: {result.selection.states[0].heldout_error:.4g}.)", ""]
     if "candidates" in files:
         lines += ["![candidates](plots/candidates.png)", ""]
     rel = config_path.relative_to(out_dir) if config_path.is_relative_to(out_dir) else config_path
-    lines += ["## The corrected model", "",
-              f"- config: `{rel}`; train on it with "
-              f"`python -m hds.run --config-dir {config_path.parent.parent} "
-              f"env={config_path.stem}`",
-              f"- MJCF with the MuJoCo-native equivalents: `{mjcf_path.name}`", ""]
+    lines += [
+        "## The corrected model",
+        "",
+        f"- config: `{rel}`; train on it with "
+        f"`python -m hds.run --config-dir {config_path.parent.parent} "
+        f"env={config_path.stem}`",
+        f"- MJCF with the MuJoCo-native equivalents: `{mjcf_path.name}`",
+        "",
+    ]
     if retrain:
-        lines += ["## Sim2real gap of PODS before and after", "",
-                  "| trained on | return on its simulator | return on the plant | gap |",
-                  "| --- | --- | --- | --- |"]
+        lines += [
+            "## Sim2real gap of PODS before and after",
+            "",
+            "| trained on | return on its simulator | return on the plant | gap |",
+            "| --- | --- | --- | --- |",
+        ]
         for r in retrain["rows"]:
-            lines.append(f"| {r['method']} | {r['sim_return']:.1f} | {r['real_return']:.1f} | "
-                         f"{r['gap']:.1f} |")
+            lines.append(
+                f"| {r['method']} | {r['sim_return']:.1f} | {r['real_return']:.1f} | "
+                f"{r['gap']:.1f} |"
+            )
         lines += ["", "![gaps](plots/sim2real.png)", ""]
     t = result.timing
-    lines += [f"Time: {t.get('total', 0.0):.1f} s (compare {t.get('compare', 0.0):.1f}, "
-              f"explain {t.get('explain', 0.0):.1f})."]
+    lines += [
+        f"Time: {t.get('total', 0.0):.1f} s (compare {t.get('compare', 0.0):.1f}, "
+        f"explain {t.get('explain', 0.0):.1f})."
+    ]
     return "\n".join(lines) + "\n"
 
 
-def write_report(result: Result, env_cfg, out_dir, plot_episodes: int = 2, bins: int = 8,
-                 retrain: dict | None = None, data_name: str = "") -> dict:
+def write_report(
+    result: Result,
+    env_cfg,
+    out_dir,
+    plot_episodes: int = 2,
+    bins: int = 8,
+    retrain: dict | None = None,
+    data_name: str = "",
+) -> dict:
     """Write every output to out_dir; returns report.json's content."""
     out_dir = Path(out_dir)
     config_path = write_config(env_cfg, result, out_dir)
@@ -224,8 +317,9 @@ def write_report(result: Result, env_cfg, out_dir, plot_episodes: int = 2, bins:
     report = result.to_json()
     report["corrected_config"] = str(config_path)
     report["corrected_mjcf"] = str(mjcf_path)
-    report["run_command"] = (f"python -m hds.run --config-dir {config_path.parent.parent} "
-                             f"env={config_path.stem}")
+    report["run_command"] = (
+        f"python -m hds.run --config-dir {config_path.parent.parent} env={config_path.stem}"
+    )
     if retrain:
         report["retrain"] = retrain
     atomic_write_json(out_dir / "report.json", _finite(report))

@@ -37,12 +37,15 @@ def retrain(cfg, corrected_env: dict, out_dir: Path) -> dict:
         log.info("retrain: PODS on the %s simulator", method)
         params, _, timing, logger, trainer = train(cfg, env, Path(out_dir), f"pods_{method}")
         evaluator = Evaluator(env, trainer.policy, plant, cfg.eval_episodes, cfg.seed + 10_000)
-        method_rows = gap_rows(method, batch_of(cfg), evaluator.sim_returns(params),
-                               evaluator.real_returns(params))
+        method_rows = gap_rows(
+            method, batch_of(cfg), evaluator.sim_returns(params), evaluator.real_returns(params)
+        )
         if logger:
             logger.finish(method_rows, {})
         rows += method_rows
-    plant_desc = {"plant": cfg.real.plant, "friction_gap": cfg.real.friction_gap,
-                  "effects": [OmegaConf.to_container(OmegaConf.structured(e))
-                              for e in cfg.real.effects]}
+    plant_desc = {
+        "plant": cfg.real.plant,
+        "friction_gap": cfg.real.friction_gap,
+        "effects": [OmegaConf.to_container(OmegaConf.structured(e)) for e in cfg.real.effects],
+    }
     return {"plant": plant_desc, "rows": rows}

@@ -49,11 +49,17 @@ class NamedEffect:
         return PHYSICAL_NAMES.get(self.name, self.name)
 
     def to_json(self) -> dict:
-        return {"name": self.name, "target": self.target, "params": self.params,
-                "units": self.units, "ci95": self.ci95,
-                "explained_fraction": self.explained_fraction,
-                "physical_name": self.physical_name, "at_joint": self.at_joint,
-                "kind": LIBRARY[self.name].target_kind}
+        return {
+            "name": self.name,
+            "target": self.target,
+            "params": self.params,
+            "units": self.units,
+            "ci95": self.ci95,
+            "explained_fraction": self.explained_fraction,
+            "physical_name": self.physical_name,
+            "at_joint": self.at_joint,
+            "kind": LIBRARY[self.name].target_kind,
+        }
 
     def as_effect(self) -> dict:
         """The effect as an `env.effects` entry."""
@@ -88,8 +94,9 @@ class Result:
         """Errors before and after on another dataset with this one's layout and split, e.g.
         a noise-free copy of noisy data (what the corrected model gains against the truth)."""
         model, cfg = self.engine.model, self.cfg
-        data = prepare(dataset, model.sim, model.pad, cfg.horizon, cfg.stride,
-                       cfg.heldout_fraction, cfg.seed)
+        data = prepare(
+            dataset, model.sim, model.pad, cfg.horizon, cfg.stride, cfg.heldout_fraction, cfg.seed
+        )
         no_delay = np.zeros(len(model.sim.action_names), np.int32)
         before = compare(self.engine, data, model.nominal, no_delay)[set_name][1]
         after = compare(self.engine, data, self.final.theta, self.final.delay)[set_name][1]
@@ -114,16 +121,24 @@ class Result:
             "structured_unexplained_fraction": self.structured_unexplained,
             "tentative_effects": [e.to_json() for e in self.tentative],
             "noise_std": [float(x) for x in self.data.noise],
-            "noise_floor_nrmse": float(np.sqrt(np.mean(
-                (self.data.noise / np.asarray(self.data.scale, dtype=np.float64)) ** 2))),
+            "noise_floor_nrmse": float(
+                np.sqrt(
+                    np.mean((self.data.noise / np.asarray(self.data.scale, dtype=np.float64)) ** 2)
+                )
+            ),
             "initial_state": self.initial_state,
             "backend": self.backend,
             "stopped": self.stopped,
             "horizon_steps": self.data.horizon,
             "dt": self.data.dt,
             "episodes": {k: [int(e) for e in v[1]] for k, v in self.data.source.items()},
-            "errors": {s: {"before": self.before[s][1].to_json(names),
-                           "after": self.after[s][1].to_json(names)} for s in self.before},
+            "errors": {
+                s: {
+                    "before": self.before[s][1].to_json(names),
+                    "after": self.after[s][1].to_json(names),
+                }
+                for s in self.before
+            },
             "locate": self.location.table[:10],
             "locate_after": self.remainder.table[:10] if self.remainder else [],
             "corrected_effects": self.corrected_effects,
@@ -133,8 +148,9 @@ class Result:
         return out
 
 
-def discover(dataset: Dataset, env_cfg, cfg: DiscoverConfig | None = None,
-             validation: Dataset | None = None) -> Result:
+def discover(
+    dataset: Dataset, env_cfg, cfg: DiscoverConfig | None = None, validation: Dataset | None = None
+) -> Result:
     """Find which effects of the library the simulator of `env_cfg` misses on `dataset`.
 
     Episodes are split into identification and held-out sets; `validation` (optional) is a
@@ -147,8 +163,16 @@ def discover(dataset: Dataset, env_cfg, cfg: DiscoverConfig | None = None,
     env_cfg = with_backend(env_cfg, backend)
     engine = get_engine(env_cfg, dataset.dt, cfg.effects, cfg.max_delay, cfg.warmup, cfg.horizon)
     model = engine.model
-    data = prepare(dataset, model.sim, model.pad, cfg.horizon, cfg.stride, cfg.heldout_fraction,
-                   cfg.seed, validation)
+    data = prepare(
+        dataset,
+        model.sim,
+        model.pad,
+        cfg.horizon,
+        cfg.stride,
+        cfg.heldout_fraction,
+        cfg.seed,
+        validation,
+    )
     nominal, no_delay = model.nominal, np.zeros(len(model.sim.action_names), np.int32)
     before = compare(engine, data, nominal, no_delay)
     timing["compare"] = time.perf_counter() - start
@@ -160,11 +184,16 @@ def discover(dataset: Dataset, env_cfg, cfg: DiscoverConfig | None = None,
     t0 = time.perf_counter()
     relative_noise = data.noise / np.asarray(data.scale, dtype=np.float64)
     estimate = cfg.initial_state == "estimated" or (
-        cfg.initial_state == "auto" and float(np.median(relative_noise)) > cfg.noise_threshold)
-    log.info("initial states %s (estimated noise: %s of each signal's std)",
-             "estimated" if estimate else "measured", np.round(relative_noise, 4).tolist())
-    selection = forward_selection(engine, data.arrays("identification"),
-                                  data.arrays("heldout"), cfg, estimate)
+        cfg.initial_state == "auto" and float(np.median(relative_noise)) > cfg.noise_threshold
+    )
+    log.info(
+        "initial states %s (estimated noise: %s of each signal's std)",
+        "estimated" if estimate else "measured",
+        np.round(relative_noise, 4).tolist(),
+    )
+    selection = forward_selection(
+        engine, data.arrays("identification"), data.arrays("heldout"), cfg, estimate
+    )
     # What the selected effects leave: if a feature still explains much of it, the gap has a
     # structure no effect of the library has, and an effect that explains less than that
     # structured remainder is a compensation for it, not a finding: it stays tentative.
@@ -172,11 +201,11 @@ def discover(dataset: Dataset, env_cfg, cfg: DiscoverConfig | None = None,
     remainder = locate(data, model.sim, full["identification"][0], cfg.bins)
     shares = explained_shares(selection)
     structured = shares[-1] * structure(remainder)
-    named_count = next((i for i, s in enumerate(shares[:-1]) if s < structured),
-                       len(shares) - 1)
+    named_count = next((i for i, s in enumerate(shares[:-1]) if s < structured), len(shares) - 1)
     final = selection.states[named_count]
-    after = full if named_count == len(shares) - 1 else compare(engine, data, final.theta,
-                                                                 final.delay)
+    after = (
+        full if named_count == len(shares) - 1 else compare(engine, data, final.theta, final.delay)
+    )
     if named_count < len(shares) - 1:
         remainder = locate(data, model.sim, after["identification"][0], cfg.bins)
     timing["explain"] = time.perf_counter() - t0
@@ -189,9 +218,20 @@ def discover(dataset: Dataset, env_cfg, cfg: DiscoverConfig | None = None,
     unexplained = 0.0 if no_gap else float(sum(shares[named_count:]))
     candidates = [row for rows in selection.rounds for row in rows]
     candidates.sort(key=lambda r: (r["round"], r["heldout_error"]))
-    result = Result(effects, before, after, candidates, unexplained, location, selection,
-                    selection.stopped, data, engine,
-                    [_effect_dict(e) for e in model.env_effects], timing)
+    result = Result(
+        effects,
+        before,
+        after,
+        candidates,
+        unexplained,
+        location,
+        selection,
+        selection.stopped,
+        data,
+        engine,
+        [_effect_dict(e) for e in model.env_effects],
+        timing,
+    )
     result.tentative = tentative
     result.remainder = remainder
     result.structured_unexplained = float(unexplained * structure(remainder))
@@ -266,17 +306,20 @@ def name_effects(model, states, shares) -> list[NamedEffect]:
             params = {"steps": int(final.delay[cand.actuator])}
             units = {"steps": LIBRARY[cand.name].param("steps").unit}
         else:
-            params = {p: _round(final.theta[s]) for p, s in zip(cand.params, cand.slots,
-                                                                  strict=True)}
+            params = {
+                p: _round(final.theta[s]) for p, s in zip(cand.params, cand.slots, strict=True)
+            }
             units = {p: model.units[s] for p, s in zip(cand.params, cand.slots, strict=True)}
         ci = {p: [_round(lo), _round(hi)] for p, (lo, hi) in cis.get(cand.key, {}).items()}
         at_joint = {}
         if LIBRARY[cand.name].target_kind == "actuator":  # a control offset as a joint force
             gear = float(model.sim.sys.actuator.gear[model.sim.targets["actuator"][cand.target]])
-            at_joint = {p: _round(v * gear) for p, v in params.items()
-                        if units[p] == "control units"}
-        named.append(NamedEffect(cand.name, cand.target, params, units, ci, float(shares[i]),
-                                 at_joint))
+            at_joint = {
+                p: _round(v * gear) for p, v in params.items() if units[p] == "control units"
+            }
+        named.append(
+            NamedEffect(cand.name, cand.target, params, units, ci, float(shares[i]), at_joint)
+        )
     return named
 
 
@@ -288,23 +331,31 @@ def _round(x: float) -> float:
 def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
     out = []
     for e in result.tentative:
-        out.append(f"{e.name}@{e.target} lowered the held-out error ({e.explained_fraction:.0%}"
-                   " of it) but less than the structured remainder no effect explains: it is "
-                   "reported as tentative (a likely compensation), not as a missing effect")
+        out.append(
+            f"{e.name}@{e.target} lowered the held-out error ({e.explained_fraction:.0%}"
+            " of it) but less than the structured remainder no effect explains: it is "
+            "reported as tentative (a likely compensation), not as a missing effect"
+        )
     if result.unexplained_fraction > cfg.unexplained_warning:
         top = result.remainder.top
         share = f"{result.unexplained_fraction:.0%} of the held-out prediction error (MSE)"
         if result.structured_unexplained > cfg.unexplained_warning * 0.5 and top:
-            out.append(f"{share} stays unexplained by the library's effects, and it has a "
-                       f"structure: the residual of {top['variable']} depends on "
-                       f"{top['feature']} (eta^2 = {top['eta2']:.2f}); the simulator probably "
-                       "misses an effect outside the library")
+            out.append(
+                f"{share} stays unexplained by the library's effects, and it has a "
+                f"structure: the residual of {top['variable']} depends on "
+                f"{top['feature']} (eta^2 = {top['eta2']:.2f}); the simulator probably "
+                "misses an effect outside the library"
+            )
         else:
-            out.append(f"{share} stays unexplained, with no structure any feature reveals: "
-                       "measurement noise, or an effect the features do not show")
+            out.append(
+                f"{share} stays unexplained, with no structure any feature reveals: "
+                "measurement noise, or an effect the features do not show"
+            )
     for e in result.missing_effects:
         for p, (lo, hi) in e.ci95.items():
             if not (np.isfinite(lo) and np.isfinite(hi)):
-                out.append(f"{e.name}@{e.target}.{p} is not determined by the data (its "
-                           "confidence interval is unbounded)")
+                out.append(
+                    f"{e.name}@{e.target}.{p} is not determined by the data (its "
+                    "confidence interval is unbounded)"
+                )
     return out
