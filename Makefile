@@ -7,7 +7,7 @@ export WANDB_MODE ?= offline
 export WANDB_SILENT ?= true
 export XLA_PYTHON_CLIENT_PREALLOCATE ?= false
 
-.PHONY: install run test bench lint sweep clean
+.PHONY: install run test bench lint sweep study clean
 
 $(STAMP): pyproject.toml
 	@test -d $(VENV) || $(PY) -m venv $(VENV)
@@ -32,6 +32,14 @@ lint: $(STAMP)
 
 sweep: $(STAMP)
 	$(BIN)/python -m hds.run -m +experiment=sim2real_friction real.friction_gap=0,0.5,1,2
+
+# The study of experiments/sim2real_friction: the sweep (resumable: finished jobs are skipped;
+# delete $(STUDY_RUN) to start over), then its report, figures and GIF (job 18: PODS at the
+# largest friction gap) into experiments/sim2real_friction/results.
+STUDY_RUN := outputs/study/sim2real_friction
+study: $(STAMP)
+	$(BIN)/python -m hds.run +experiment=sim2real_study hydra.sweep.dir=$(STUDY_RUN)
+	$(BIN)/python -m hds.report $(STUDY_RUN) --out experiments/sim2real_friction/results --gif 18
 
 clean:
 	rm -rf $(VENV) outputs/runs outputs/multiruns

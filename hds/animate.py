@@ -61,8 +61,13 @@ def animate(
     return path
 
 
-def animate_run(run_dir: Path, method: str | None = None, seed_index: int = 0) -> Path:
-    """Rebuild a finished run from its config.yaml and last checkpoint; animate one episode."""
+def animate_run(
+    run_dir: Path, method: str | None = None, seed_index: int = 0, out_dir: Path | None = None
+) -> Path:
+    """Rebuild a finished run from its config.yaml and last checkpoint; animate one episode
+    into out_dir (default: the run's plots/)."""
+    from hds.run import method_name
+
     config_path = run_dir / "config.yaml"
     if not config_path.is_file():
         raise FileNotFoundError(
@@ -71,7 +76,7 @@ def animate_run(run_dir: Path, method: str | None = None, seed_index: int = 0) -
         )
     cfg = load_config(config_path)
     env, plant = make_env(cfg.env), make_plant(cfg.real, cfg.env)
-    method = method or cfg.algo.name
+    method = method or method_name(cfg)
     trainer = make_train(cfg, env)
     keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(cfg.seeds))
     like = jax.vmap(trainer.init, in_axes=(0, None))(keys, trainer.default_hparams)
@@ -89,7 +94,7 @@ def animate_run(run_dir: Path, method: str | None = None, seed_index: int = 0) -
         real_eps.obs[0],
         env.sim.obs_names,
         env.sim.dt,
-        run_dir / "plots" / f"{method}_sim_vs_real.gif",
+        Path(out_dir or run_dir / "plots") / f"{method}_sim_vs_real.gif",
         titles=(
             f"simulator: return {sim_eps.returns[0]:.0f}",
             f"{cfg.real.plant} plant: return {real_eps.returns[0]:.0f}",

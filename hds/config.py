@@ -13,7 +13,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from hds.effects.library import check_params, effect_type
+from hds.effects.library import LIBRARY, check_params, effect_type
 from hds.envs.system import BACKENDS
 
 
@@ -105,13 +105,15 @@ class AlgoConfig:
     line_search: int = 8  # candidate step sizes alpha / 2^k, k < line_search, evaluated at once
     grad_clip: float = 1e3  # global-norm clip of each action gradient
     gn_damping: float = 1e-3  # Levenberg damping of the Gauss-Newton solve
+    improve_steps: int = 1  # action-improvement steps per epoch before regressing (PODS: 1)
     early_stop: float = 0.0  # stop regressing once the loss improves less than this
     hidden: list[int] = field(default_factory=lambda: [64, 64])
     chunk: int = 5  # epochs per compiled chunk, between host-side logs and checkpoints
 
     def check(self):
         _one_of("algo.order", self.order, ("first", "second"))
-        for key in ("epochs", "rollouts", "inner_epochs", "minibatch", "line_search", "chunk"):
+        counts = ("epochs", "rollouts", "inner_epochs", "minibatch", "line_search", "chunk")
+        for key in (*counts, "improve_steps"):
             _in_range(f"algo.{key}", getattr(self, key), 1)
         for key in ("learning_rate", "step_size", "grad_clip"):
             _in_range(f"algo.{key}", getattr(self, key), 1e-12)
@@ -189,6 +191,80 @@ class DynamicsConfig:
 
 
 @dataclass
+class DiscoverConfig:
+    # physics backend of the fits: auto = the closed-form analytic backend where it supports
+    # the model (it compiles and runs orders of magnitude faster than brax's on CPU and agrees
+    # with MuJoCo to float32 round-off), else the env's; env = always the env's; or a name.
+    # The corrected config keeps the env's own backend.
+    backend: str = "auto"
+    heldout_fraction: float = 0.25  # share of episodes held out (selection and reported errors)
+    horizon: int = 10  # k: steps of the multi-step (k-step) predictions that are fitted
+    stride: int = 1  # a k-step window starts every `stride` steps
+    warmup: int = 25  # past actions replayed into stateful effects (delay, lag) before a window
+    max_delay: int = 5  # action delays of 1 .. max_delay steps are enumerated; 0: none
+    effects: list[str] = field(default_factory=lambda: list(LIBRARY))  # candidate effect types
+    max_effects: int = 4  # most effects named
+    # Fits of up to b effects at once (the selected ones and a candidate) compile for b slots
+    # for each b listed, and for max_effects: fewer sizes, fewer compiles; a slot more costs a
+    # forward-mode tangent per iteration.
+    slot_buckets: list[int] = field(default_factory=lambda: [3])
+    stop_margin: float = 0.05  # an effect must lower held-out error by this share to be added
+    min_improvement: float = 1e-3  # ... and by this much (normalized RMSE, signal stds)
+    min_share: float = 0.005  # ... and explain at least this share of the original error (MSE)
+    iterations: int = 30  # most Levenberg-Marquardt iterations per fit
+    # initial state of each fitted window: measured (as recorded), estimated along with the
+    # effects (multiple shooting: unbiased under measurement noise, slower), or auto:
+    # estimated when the median over variables of the estimated measurement noise exceeds
+    # noise_threshold (share of a std): sensor noise shows on every channel, while the kinks
+    # of stick-slip friction raise only the velocities' estimates
+    initial_state: str = "auto"
+    noise_threshold: float = 0.004
+    unexplained_warning: float = 0.3  # report a likely missing out-of-library effect above this
+    min_motion: float = 0.2  # warn when a joint with named friction moves in fewer samples
+    seed: int = 0  # the split of episodes into identification and held-out sets
+    bins: int = 8  # bins of each feature when locating where the residual depends on it
+    plot_episodes: int = 2  # held-out episodes drawn in the trajectory plot
+
+    def check(self):
+        if self.backend not in ("auto", "env", *BACKENDS):
+            raise ValueError(
+                f"discover.backend = {self.backend!r} is not allowed; choose one of "
+                f"{['auto', 'env', *BACKENDS]}"
+            )
+        _in_range("discover.heldout_fraction", self.heldout_fraction, 0.01, 0.9)
+        _in_range("discover.horizon", self.horizon, 1)
+        _in_range("discover.stride", self.stride, 1)
+        _in_range("discover.warmup", self.warmup, 0)
+        _in_range("discover.max_delay", self.max_delay, 0, 50)
+        _in_range("discover.max_effects", self.max_effects, 0)
+        if any(int(b) < 1 for b in self.slot_buckets):
+            raise ValueError(
+                f"discover.slot_buckets = {list(self.slot_buckets)} must be positive "
+                "numbers of effects"
+            )
+        _in_range("discover.stop_margin", self.stop_margin, 0.0, 1.0)
+        _in_range("discover.min_improvement", self.min_improvement, 0.0)
+        _in_range("discover.min_share", self.min_share, 0.0, 1.0)
+        _in_range("discover.iterations", self.iterations, 1)
+        if self.initial_state not in ("auto", "measured", "estimated"):
+            raise ValueError(
+                f"discover.initial_state = {self.initial_state!r} is not allowed; "
+                "choose one of ['auto', 'measured', 'estimated']"
+            )
+        _in_range("discover.noise_threshold", self.noise_threshold, 0.0)
+        _in_range("discover.unexplained_warning", self.unexplained_warning, 0.0, 1.0)
+        _in_range("discover.min_motion", self.min_motion, 0.0, 1.0)
+        _in_range("discover.bins", self.bins, 2)
+        _in_range("discover.plot_episodes", self.plot_episodes, 0)
+        unknown = [e for e in self.effects if e not in LIBRARY]
+        if unknown:
+            raise ValueError(
+                f"discover.effects has unknown effects {unknown}; the library has: "
+                f"{', '.join(LIBRARY)}"
+            )
+
+
+@dataclass
 class LoggerConfig:
     wandb: bool = True
     mode: str = "offline"
@@ -206,19 +282,17 @@ class SweepConfig:
 
     step_size: list[float] = field(default_factory=list)
     noise_scale: list[float] = field(default_factory=list)
+    noise_decay: list[float] = field(default_factory=list)  # noise=exponential only
 
     def check(self):
-        for key in ("step_size", "noise_scale"):
+        for key, _ in self.items():
             if any(v < 0 for v in getattr(self, key)):
                 raise ValueError(f"sweep.{key} = {getattr(self, key)} must be non-negative")
 
     def items(self):
         """(name, values) of the settings swept."""
-        return [
-            (k, v)
-            for k, v in (("step_size", self.step_size), ("noise_scale", self.noise_scale))
-            if v
-        ]
+        names = ("step_size", "noise_scale", "noise_decay")
+        return [(k, getattr(self, k)) for k in names if getattr(self, k)]
 
 
 @dataclass
@@ -233,12 +307,23 @@ class Config:
     seed: int = 0
     seeds: int = 1  # seeds trained together, vmapped in one program
     name: str = "default"
-    oracle: bool = True  # with real=brax, also train on the real dynamics: the best achievable
+    # what the policy trains on: nominal (env as configured); corrected (env plus the effects
+    # gap discovery names on data measured on the plant: the `discover` node); real (env plus
+    # the plant's own effects, friction smoothed: the oracle, the best achievable real return)
+    simulator: str = "nominal"
+    oracle: bool = True  # with real=brax, also train an oracle beside the run's own policy
     eval_episodes: int = 32  # initial states shared by the simulator and plant evaluations
     checkpoints_kept: int = 3
     sweep: SweepConfig = field(default_factory=lambda: SweepConfig())
+    discover: DiscoverConfig = field(default_factory=DiscoverConfig)
 
     def check(self):
+        _one_of("simulator", self.simulator, ("nominal", "corrected", "real"))
+        if self.sweep.noise_decay and self.noise.schedule != "exponential":
+            raise ValueError(
+                f"sweep.noise_decay sweeps the exponential schedule's decay, but "
+                f"noise.schedule = {self.noise.schedule}; choose noise=exponential"
+            )
         _in_range("seeds", self.seeds, 1)
         _in_range("eval_episodes", self.eval_episodes, 1)
         _in_range("checkpoints_kept", self.checkpoints_kept, 1)

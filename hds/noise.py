@@ -13,12 +13,13 @@ import jax.numpy as jnp
 import optax
 
 
-def schedule(cfg, epochs: int, scale):
-    """sigma(epoch); `scale` may be a traced value, so noise sweeps can be vmapped."""
+def schedule(cfg, epochs: int, scale, decay):
+    """sigma(epoch); `scale` and `decay` may be traced values, so noise sweeps can be vmapped
+    (optax's exponential_decay inspects its rate in Python, so that one is written out)."""
     if cfg.schedule == "none":
         return lambda epoch: jnp.zeros(())
     if cfg.schedule == "exponential":
-        return optax.exponential_decay(scale, transition_steps=1, decay_rate=cfg.decay)
+        return lambda epoch: scale * decay**epoch
     if cfg.schedule == "linear":
         return optax.linear_schedule(scale, cfg.final, transition_steps=max(epochs - 1, 1))
     return lambda epoch: (

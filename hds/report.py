@@ -103,25 +103,41 @@ def write_csv(rows: list[dict], path: Path) -> None:
     atomic_write_bytes(path, buf.getvalue().encode())
 
 
-def discovery_sections(root: Path) -> list[str]:
+def discovery_sections(root: Path, out: Path) -> list[str]:
+    """A section per gap-discovery report below root; its figures are linked in place, or
+    copied into out/plots/ when the report is written elsewhere (out != root)."""
     sections = []
     for path in sorted(root.rglob("report.json")):
-        found = read_json(path).get("missing_effects", [])
-        names = ", ".join(f"{e['name']}@{e['target']}" for e in found) or "none"
+        report = read_json(path)
+        found = report.get("missing_effects", [])
+        names = (
+            ", ".join(
+                f"{e['name']}@{e['target']} ({', '.join(f'{k} {v:.4g}' for k, v in e['params'].items())})"
+                for e in found
+            )
+            or "none"
+        )
         rel = path.parent.relative_to(root)
-        images = [
-            f"![{p.stem}]({rel / 'plots' / p.name})"
-            for p in sorted((path.parent / "plots").glob("*.png"))
-        ]
+        images = []
+        for png in sorted((path.parent / "plots").glob("*.png")):
+            if out == root:
+                link = rel / "plots" / png.name
+            else:
+                link = Path("plots") / f"discovery_{'_'.join(rel.parts)}_{png.name}"
+                atomic_write_bytes(out / link, png.read_bytes())
+            images.append(f"![{png.stem}]({link})")
+        full = f"Full report: [{rel / 'report.md'}]({rel / 'report.md'})" if out == root else ""
         sections.append(
-            f"### Gap discovery: {rel}\n\nMissing effects named: {names}. "
-            f"Full report: [{rel / 'report.md'}]({rel / 'report.md'})\n\n" + "\n".join(images)
+            f"### Gap discovery: {rel}\n\nMissing effects named: {names}. {full}\n\n"
+            + "\n".join(images)
         )
     return sections
 
 
-def build(root: str | Path) -> Path:
+def build(root: str | Path, out: str | Path | None = None) -> Path:
+    """Write the report of the run or sweep at root into out (default: root itself)."""
     root = Path(root)
+    out = root if out is None else Path(out)
     if not root.is_dir():
         raise FileNotFoundError(f"{root} is not a directory; give a run or sweep directory")
     rows, histories = collect_rows(root)
@@ -133,8 +149,8 @@ def build(root: str | Path) -> Path:
     if len({r["friction_gap"] for r in rows}) > 1:
         figures["report_gap_vs_friction"] = plots.gap_vs_friction(summary)
     for name, fig in figures.items():
-        plots.save(fig, root / "plots" / f"{name}.png")
-    write_csv(rows, root / "report.csv")
+        plots.save(fig, out / "plots" / f"{name}.png")
+    write_csv(rows, out / "report.csv")
     text = [
         f"# Report: {root.name}",
         "",
@@ -146,8 +162,8 @@ def build(root: str | Path) -> Path:
         "",
     ]
     text += [f"![{name}](plots/{name}.png)" for name in figures]
-    text += [""] + discovery_sections(root)
-    path = atomic_write_bytes(root / "report.md", ("\n".join(text) + "\n").encode())
+    text += [""] + discovery_sections(root, out)
+    path = atomic_write_bytes(out / "report.md", ("\n".join(text) + "\n").encode())
     return path
 
 
@@ -157,23 +173,34 @@ def main(argv=None) -> None:
     )
     parser.add_argument("directory", help="a run or sweep directory written by python -m hds.run")
     parser.add_argument(
-        "--gif", action="store_true", help="also animate one episode, sim beside real"
+        "--gif",
+        nargs="?",
+        const="",
+        metavar="JOB",
+        help="also animate one episode, sim beside real, of the run (of a sweep: of its job "
+        "JOB, default its first job)",
+    )
+    parser.add_argument(
+        "--out", help="write the report here instead of into the directory (figures copied)"
     )
     args = parser.parse_args(argv)
-    path = build(args.directory)
+    path = build(args.directory, args.out)
     print(f"wrote {path}")
-    if args.gif:  # a run directory, or a sweep's first job
+    if args.gif is not None:
         from hds.animate import animate_run
 
         root = Path(args.directory)
         runs = (
             [root]
             if (root / "config.yaml").is_file()
-            else sorted(p.parent for p in root.glob("*/config.yaml"))
+            else sorted((p.parent for p in root.glob("*/config.yaml")), key=lambda p: p.name)
         )
+        if args.gif:
+            runs = [root / args.gif]
         if not runs:
             raise FileNotFoundError(f"no run directory (with config.yaml) in {root} to animate")
-        print(f"wrote {animate_run(runs[0])}")
+        out = Path(args.out) / "plots" if args.out else None
+        print(f"wrote {animate_run(runs[0], out_dir=out)}")
 
 
 if __name__ == "__main__":

@@ -60,15 +60,12 @@ def _shard(tree):
     return jax.device_put(tree, sharding)
 
 
-def train(cfg: Config, env, out_dir: Path, method: str, model=None, effects=None):
+def train(cfg: Config, env, out_dir: Path, method: str, model=None):
     """Train the batch of `batch_of(cfg)` together; returns (policy params [batch, ...], history,
     timing, logger, trainer). Resumes from out_dir/checkpoints/<method> when it has a checkpoint."""
     trainer = make_train(cfg, env, model)
     runs = batch_of(cfg)
-    hparams = dict(trainer.default_hparams)
-    if effects is not None:
-        hparams["effects"] = effects
-    hparams = jax.tree.map(lambda x: jnp.stack([x] * len(runs)), hparams)
+    hparams = jax.tree.map(lambda x: jnp.stack([x] * len(runs)), trainer.default_hparams)
     for key, _ in cfg.sweep.items():
         hparams[key] = jnp.asarray([r[key] for r in runs], jnp.float32)
     keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray([r["seed"] for r in runs]))
@@ -126,6 +123,50 @@ def dynamics_model(cfg: Config, env, plant, out_dir: Path):
     return build(cfg.dynamics, env, plant, jax.random.PRNGKey(cfg.seed), out_dir / "dynamics")
 
 
+def method_name(cfg: Config) -> str:
+    """The label of the run's rows: its algorithm, learned model and simulator (pods, hds+mlp,
+    pods+corrected, oracle)."""
+    if cfg.simulator == "real":
+        return "oracle" if cfg.algo.name == "pods" else f"{cfg.algo.name}+oracle"
+    parts = [cfg.algo.name]
+    if cfg.dynamics.model != "none" and cfg.dynamics.beta > 0:
+        parts.append(cfg.dynamics.model)
+    if cfg.simulator == "corrected":
+        parts.append("corrected")
+    return "+".join(parts)
+
+
+def real_dynamics(cfg: Config):
+    """The simulator with the plant's own effects (friction smoothed so it differentiates)."""
+    return make_env(cfg.env, effects=list(cfg.real.effects), friction_gap=cfg.real.friction_gap)
+
+
+def corrected_simulator(cfg: Config, env, plant, out_dir: Path):
+    """The simulator plus the effects gap discovery names on data measured on the plant (the
+    same data a learned model of this seed is fitted on); its report goes to out_dir/discovery.
+    Returns (env, JSON-ready summary of the findings)."""
+    from hds.discover import corrected_env, discover, write_report
+    from hds.discover.retrain import env_config
+    from hds.dynamics import measured_data
+
+    data, source = measured_data(
+        cfg.dynamics, env, plant, jax.random.split(jax.random.PRNGKey(cfg.seed))[0]
+    )
+    result = discover(data, cfg.env, cfg.discover)
+    write_report(
+        result, cfg.env, out_dir / "discovery", cfg.discover.plot_episodes, cfg.discover.bins
+    )
+    found = [e.to_json() for e in result.missing_effects]
+    log.info(
+        "gap discovery named: %s",
+        ", ".join(f"{e['name']}@{e['target']} {e['params']}" for e in found) or "nothing",
+    )
+    for warning in result.warnings:
+        log.warning("gap discovery: %s", warning)
+    summary = {**source, "effects": found, "warnings": result.warnings}
+    return make_env(env_config(corrected_env(cfg.env, result))), summary
+
+
 def run(cfg: Config, out_dir: Path) -> dict:
     """The whole run; returns the summary also written to out_dir/summary.json. A directory
     that already has its summary.json is a finished job (of a sweep started again): skipped."""
@@ -136,20 +177,24 @@ def run(cfg: Config, out_dir: Path) -> dict:
     env = make_env(cfg.env)
     plant = make_plant(cfg.real, cfg.env)
     model, model_report = dynamics_model(cfg, env, plant, out_dir)
-    methods = [(cfg.algo.name, env, model, None)]
-    if cfg.oracle and cfg.real.plant == "brax":
-        # The same algorithm trained on the real dynamics (friction smoothed to differentiate).
-        oracle = make_env(
-            cfg.env, effects=list(cfg.real.effects), friction_gap=cfg.real.friction_gap
-        )
-        methods.append(("oracle", oracle, None, None))
+    train_env, discovery = env, {}
+    if cfg.simulator == "real":
+        train_env = real_dynamics(cfg)
+    elif cfg.simulator == "corrected":
+        train_env, discovery = corrected_simulator(cfg, env, plant, out_dir)
+    methods = [(method_name(cfg), train_env, model)]
+    if cfg.oracle and cfg.real.plant == "brax" and cfg.simulator != "real":
+        methods.append(("oracle", real_dynamics(cfg), None))
 
     rows, histories, timings = [], {}, {}
-    for method, train_env, method_model, effects in methods:
+    for method, method_env, method_model in methods:
         params, history, timing, logger, trainer = train(
-            cfg, train_env, out_dir, method, method_model, effects
+            cfg, method_env, out_dir, method, method_model
         )
-        evaluator = Evaluator(env, trainer.policy, plant, cfg.eval_episodes, cfg.seed + 10_000)
+        # sim return: on the simulator the policy trained on (what it was promised)
+        evaluator = Evaluator(
+            method_env, trainer.policy, plant, cfg.eval_episodes, cfg.seed + 10_000
+        )
         method_rows = gap_rows(
             method, batch_of(cfg), evaluator.sim_returns(params), evaluator.real_returns(params)
         )
@@ -174,6 +219,7 @@ def run(cfg: Config, out_dir: Path) -> dict:
         "rows": rows,
         "timing": timings,
         "dynamics": model_report,
+        "discovery": discovery,
         "real": {"plant": cfg.real.plant, "friction_gap": cfg.real.friction_gap},
         "history": histories,
     }

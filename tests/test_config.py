@@ -51,6 +51,10 @@ def test_every_experiment_composes(experiment):
             "choose one of ['generalized', 'spring', 'positional', 'mjx', 'analytic']",
         ),
         ("algo.order=third", "algo.order = 'third' is not allowed"),
+        ("simulator=exact", "simulator = 'exact' is not allowed; choose one of ['nominal'"),
+        ("sweep.noise_decay=[0.5]", "sweep.noise_decay sweeps the exponential schedule's decay"),
+        ("sweep.step_size=[-0.5]", "sweep.step_size = [-0.5] must be non-negative"),
+        ("discover.horizon=0", "discover.horizon = 0 is out of range"),
         ("real.effects=[{name: ice, target: slider}]", "unknown effect 'ice'; the library has"),
         (
             "real.effects=[{name: coulomb_friction, target: slider, params: {force: -2}}]",
@@ -70,6 +74,24 @@ def test_bad_values_fail_at_composition(override, message):
     with pytest.raises(ValueError, match=None) as err:
         make_config(override)
     assert message in str(err.value)
+
+
+def test_method_presets_choose_the_groups_and_the_row_label():
+    from hds.run import method_name
+
+    expected = {
+        "pods": ("pods", "none", "none", "nominal", "pods"),
+        "hds": ("hds", "exponential", "mlp", "nominal", "hds+mlp"),
+        "hds_ensemble": ("hds", "exponential", "ensemble", "nominal", "hds+ensemble"),
+        "hds_residual": ("hds", "exponential", "residual", "nominal", "hds+residual"),
+        "pods_corrected": ("pods", "none", "none", "corrected", "pods+corrected"),
+        "oracle": ("pods", "none", "none", "real", "oracle"),
+    }
+    assert set(expected) == set(options("method"))
+    for method, want in expected.items():
+        cfg = make_config(f"method={method}")
+        got = (cfg.algo.name, cfg.noise.schedule, cfg.dynamics.model, cfg.simulator)
+        assert (*got, method_name(cfg)) == want
 
 
 @pytest.mark.parametrize("override", ["env.frictoin=1", "algo.epochz=3"])

@@ -177,6 +177,15 @@ def test_names_the_hidden_effect_and_its_value(plants, task, env_cfg, kind, key)
     assert shrink(result.error("before"), result.error("after")) >= 3.0
     assert result.missing_effects[0].explained_fraction > 0.9
     assert result.unexplained_fraction < 0.1
+    assert not any("not identified" in w for w in result.warnings)
+
+
+def test_friction_the_data_never_overcome_is_flagged_not_trusted(plants, task, env_cfg):
+    """Coulomb friction above every force of the excitation (+-45 N) holds the cart still:
+    any friction law fits that, so whatever is named comes with a warning to excite harder."""
+    stuck = effect("coulomb_friction", "slider", force=100.0)
+    result = discover(record(plants("mujoco", [stuck]), task), env_cfg, CFG)
+    assert any("slider" in w and "not identified" in w for w in result.warnings)
 
 
 @pytest.mark.parametrize("kind", KINDS)

@@ -45,18 +45,26 @@ def hds_run_cli(*args, env_vars=None, timeout=900):
     return proc
 
 
-def test_a_vmapped_sweep_gives_the_numbers_of_separate_runs(tmp_path):
-    cfg = make_config(*TINY, "sweep.step_size=[0.01,0.04]")
+@pytest.mark.parametrize(
+    "swept, setting, metric, base",
+    [
+        ("step_size", "algo.step_size", "step_size", ()),
+        ("noise_decay", "noise.decay", "noise", ("noise=exponential", "noise.scale=0.3")),
+    ],
+)
+def test_a_vmapped_sweep_gives_the_numbers_of_separate_runs(tmp_path, swept, setting, metric, base):
+    values = (0.1, 0.5) if swept == "noise_decay" else (0.01, 0.04)
+    cfg = make_config(*TINY, *base, f"sweep.{swept}=[{values[0]},{values[1]}]")
     env = make_env(cfg.env)
     together, history, *_ = hds_run.train(cfg, env, tmp_path / "vmapped", "pods")
-    for i, step in enumerate((0.01, 0.04)):
+    for i, value in enumerate(values):
         alone, alone_history, *_ = hds_run.train(
-            make_config(*TINY, f"algo.step_size={step}"), env, tmp_path / f"alone{i}", "pods"
+            make_config(*TINY, *base, f"{setting}={value}"), env, tmp_path / f"alone{i}", "pods"
         )
         for a, b in zip(jax.tree.leaves(together), jax.tree.leaves(alone)):
             np.testing.assert_allclose(a[i], b[0], rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(history["return"][i], alone_history["return"][0], rtol=1e-5)
-    assert not np.allclose(history["step_size"][0], history["step_size"][1])
+    assert not np.allclose(history[metric][0], history[metric][1])
 
 
 def test_the_batch_is_sharded_across_two_host_devices(tmp_path):
@@ -130,6 +138,17 @@ def test_hds_report_on_a_sweep(restarted_sweep):
     assert "| pods | 1.0 | 2 |" in report  # both jobs: same method and friction gap
     assert (sweep / "report.csv").read_text().count("\n") == 3  # header and one row per job
     assert (sweep / "plots" / "report_sim_vs_real.png").is_file()
+
+
+def test_hds_report_elsewhere_with_an_animation(restarted_sweep, tmp_path):
+    from hds.report import main
+
+    sweep, *_ = restarted_sweep
+    main([str(sweep), "--out", str(tmp_path), "--gif", "1"])
+    assert (tmp_path / "report.md").read_text().count("| pods |") == 1
+    assert (tmp_path / "report.csv").is_file()
+    gif = tmp_path / "plots" / "pods_sim_vs_real.gif"
+    assert gif.read_bytes()[:6] == b"GIF89a"
 
 
 @pytest.mark.parametrize("launcher", ["local_processes", "local_submitit"])

@@ -63,7 +63,10 @@ def make_train(cfg, env, model=None) -> Trainer:
     low, high = jnp.asarray(sim.ctrl_range[:, 0]), jnp.asarray(sim.ctrl_range[:, 1])
     policy = make_policy(algo.hidden, sim)
     optimizer = optax.adam(algo.learning_rate)
-    sigma = lambda hp, epoch: noise.schedule(cfg.noise, algo.epochs, hp["noise_scale"])(epoch)  # noqa: E731
+
+    def sigma(hp, epoch):
+        return noise.schedule(cfg.noise, algo.epochs, hp["noise_scale"], hp["noise_decay"])(epoch)
+
     settings = ImproveSettings(
         algo.order,
         algo.grad_clip,
@@ -102,7 +105,7 @@ def make_train(cfg, env, model=None) -> Trainer:
         )(starts, jax.random.split(k_roll, count))
         alpha = anneal.step_size(hparams["step_size"], cfg.anneal.step_decay, state.epoch)
         temp = anneal.temperature(cfg.anneal.temperature, cfg.anneal.cooling, state.epoch)
-        result = jax.vmap(
+        step = jax.vmap(
             lambda s, a, k: improve(
                 engine,
                 params,
@@ -116,7 +119,20 @@ def make_train(cfg, env, model=None) -> Trainer:
                 low=low,
                 high=high,
             )
-        )(starts, actions, jax.random.split(k_improve, count))
+        )
+        result = step(starts, actions, jax.random.split(k_improve, count))
+        if algo.improve_steps > 1:  # further steps from the improved actions
+
+            def again(result, k):
+                nxt = step(starts, result.actions, jax.random.split(k, count))
+                return nxt._replace(
+                    value=result.value,
+                    accepted=result.accepted | nxt.accepted,
+                    skipped=result.skipped | nxt.skipped,
+                ), None
+
+            keys = jax.random.split(jax.random.fold_in(k_improve, 1), algo.improve_steps - 1)
+            result, _ = jax.lax.scan(again, result, keys)
         return obs, result, rewards.sum(-1), alpha
 
     def epoch(state: TrainState, hparams):
@@ -165,6 +181,7 @@ def make_train(cfg, env, model=None) -> Trainer:
     hparams = {
         "step_size": jnp.asarray(algo.step_size, jnp.float32),
         "noise_scale": jnp.asarray(cfg.noise.scale, jnp.float32),
+        "noise_decay": jnp.asarray(cfg.noise.decay, jnp.float32),
         "effects": env.params,
     }
     return Trainer(init, run_chunk, train, chunk, algo.epochs // chunk, policy, hparams)

@@ -328,6 +328,22 @@ def _round(x: float) -> float:
     return x if not np.isfinite(x) or x == 0 else float(f"{x:.6g}")
 
 
+FRICTION = ("coulomb_friction", "viscous_damping")
+
+
+def _moving_share(data: Data, joint: str) -> float | None:
+    """Share of the measured samples in which `joint` moves: |velocity| above a tenth of its
+    99th percentile (a stuck joint still creeps, e.g. under MuJoCo's soft friction) and above
+    its measurement noise; None for a target without a measured velocity."""
+    name = f"qd_{joint}"
+    if name not in data.obs_names:
+        return None
+    i = data.obs_names.index(name)
+    speed = np.abs(np.asarray(data.obs)[..., i])
+    threshold = max(0.1 * float(np.percentile(speed, 99)), 3.0 * float(data.noise[i]), 1e-9)
+    return float(np.mean(speed > threshold))
+
+
 def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
     out = []
     for e in result.tentative:
@@ -352,6 +368,14 @@ def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
                 "measurement noise, or an effect the features do not show"
             )
     for e in result.missing_effects:
+        moving = _moving_share(result.data, e.target)
+        if e.name in FRICTION and moving is not None and moving < cfg.min_motion:
+            out.append(
+                f"{e.name}@{e.target}: the data move {e.target} in only {moving:.1%} of the "
+                "samples, and a joint held still fits any friction law (Coulomb friction, "
+                "viscous damping) alike: its law and value are not identified. Record data "
+                f"that move {e.target} (a larger excitation, or a force beyond its friction)"
+            )
         for p, (lo, hi) in e.ci95.items():
             if not (np.isfinite(lo) and np.isfinite(hi)):
                 out.append(

@@ -56,6 +56,28 @@ def collect_data(cfg, env, plant, key):
     return collect(plant, env.task, q0, qd0, excite(cfg, env, k_u), cfg.horizon)
 
 
+def measured_data(cfg, env, plant, key):
+    """The data of the real plant that a model is fitted on (and that gap discovery reads):
+    cfg.data when given, else cfg.episodes recorded on `plant`. Returns (Dataset, source)."""
+    if cfg.data:
+        from hds.data import load as load_data
+        from hds.data import validate
+
+        data = validate(load_data(cfg.data), env.sim, where=f"dynamics.data = {cfg.data}")
+        return data, {"data": str(cfg.data)}
+    if plant is None:
+        raise ValueError(
+            "fitting a dynamics model needs data: give dynamics.data (a "
+            "measured dataset), dynamics.path (a fitted model) or a plant"
+        )
+    source = {
+        "data": "plant",
+        "excitation": cfg.excitation,
+        "excitation_scale": cfg.excitation_scale,
+    }
+    return collect_data(cfg, env, plant, key), source
+
+
 def build(cfg, env, plant, key, out_dir) -> tuple[DynamicsModel, dict]:
     """The model for a run: loaded from cfg.path, or fitted (on cfg.data or on data collected
     from `plant`) and saved to out_dir. Returns (model, JSON-ready report)."""
@@ -76,24 +98,7 @@ def build(cfg, env, plant, key, out_dir) -> tuple[DynamicsModel, dict]:
             **meta.get("report", {}),
         }
     k_data, k_fit = jax.random.split(key)
-    if cfg.data:
-        from hds.data import load as load_data
-        from hds.data import validate
-
-        data = validate(load_data(cfg.data), env.sim, where=f"dynamics.data = {cfg.data}")
-        source = {"data": str(cfg.data)}
-    else:
-        if plant is None:
-            raise ValueError(
-                "fitting a dynamics model needs data: give dynamics.data (a "
-                "measured dataset), dynamics.path (a fitted model) or a plant"
-            )
-        data = collect_data(cfg, env, plant, k_data)
-        source = {
-            "data": "plant",
-            "excitation": cfg.excitation,
-            "excitation_scale": cfg.excitation_scale,
-        }
+    data, source = measured_data(cfg, env, plant, k_data)
     model, report = fit(cfg, env, data, key=k_fit)
     report.update(source)
     path = save(Path(out_dir), model, cfg, report)
@@ -128,6 +133,7 @@ __all__ = [
     "excite",
     "fit",
     "load",
+    "measured_data",
     "multistep_errors",
     "open_loop_predictions",
     "read_meta",
