@@ -220,7 +220,7 @@ class DiscoverConfig:
     initial_state: str = "auto"
     noise_threshold: float = 0.004
     unexplained_warning: float = 0.3  # report a likely missing out-of-library effect above this
-    min_motion: float = 0.2  # warn when a joint with named friction moves in fewer samples
+    min_motion: float = 0.05  # warn when a joint with named friction moves in fewer samples
     seed: int = 0  # the split of episodes into identification and held-out sets
     bins: int = 8  # bins of each feature when locating where the residual depends on it
     plot_episodes: int = 2  # held-out episodes drawn in the trajectory plot

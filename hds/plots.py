@@ -32,8 +32,9 @@ def learning_curves(histories: dict[str, dict]) -> plt.Figure:
                 }[key]
             )
     axes[1].set_yscale("log")
-    axes[0].legend()
-    fig.tight_layout()
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), frameon=False)
+    fig.tight_layout(rect=(0, 0.08 * (1 + (len(labels) - 1) // 6), 1, 1))
     return fig
 
 

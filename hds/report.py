@@ -35,10 +35,11 @@ COLUMNS = (
 )
 
 
-def collect_rows(root: Path) -> tuple[list[dict], dict[str, dict]]:
+def collect_rows(root: Path) -> tuple[list[dict], list[tuple]]:
     """Every row of every run summary below root (a sweep's gathered summary is skipped: its
-    jobs are read directly), with the plant's friction gap; and the histories per method."""
-    rows, histories = [], {}
+    jobs are read directly), with the plant's friction gap; and every (method, friction gap,
+    job, history)."""
+    rows, histories = [], []
     for path in sorted(root.rglob("summary.json")):
         summary = read_json(path)
         if "history" not in summary:  # the sweep-level summary gathered from its jobs
@@ -46,8 +47,7 @@ def collect_rows(root: Path) -> tuple[list[dict], dict[str, dict]]:
         gap = summary.get("real", {}).get("friction_gap")
         job = str(path.parent.relative_to(root)) if path.parent != root else "."
         rows += [{**r, "friction_gap": gap, "job": job} for r in summary["rows"]]
-        for method, history in summary["history"].items():
-            histories.setdefault(f"{method} ({job})" if job != "." else method, history)
+        histories += [(m, gap, job, h) for m, h in summary["history"].items()]
     if not rows:
         raise FileNotFoundError(
             f"no run summary.json below {root}: point hds.report at a run or sweep directory "
@@ -95,6 +95,21 @@ def markdown_table(summary: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def pivot_table(summary: list[dict], key: str) -> str:
+    """One row per method, one column per friction gap: the mean of `key` over seeds."""
+    gaps = sorted({e["friction_gap"] for e in summary})
+    methods = list(dict.fromkeys(e["method"] for e in summary))
+    means = {(e["method"], e["friction_gap"]): e[key][0] for e in summary}
+    lines = [
+        "| method | " + " | ".join(f"gap x{g:g}" for g in gaps) + " |",
+        "| --- |" + " ---: |" * len(gaps),
+    ]
+    for m in methods:
+        cells = [f"{means[(m, g)]:.0f}" if (m, g) in means else "-" for g in gaps]
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def write_csv(rows: list[dict], path: Path) -> None:
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=COLUMNS, extrasaction="ignore")
@@ -107,16 +122,13 @@ def discovery_sections(root: Path, out: Path) -> list[str]:
     """A section per gap-discovery report below root; its figures are linked in place, or
     copied into out/plots/ when the report is written elsewhere (out != root)."""
     sections = []
-    for path in sorted(root.rglob("report.json")):
+    numbered = lambda p: [(0, int(x), "") if x.isdigit() else (1, 0, x) for x in p.parts]  # noqa: E731
+    for path in sorted(root.rglob("report.json"), key=numbered):
         report = read_json(path)
         found = report.get("missing_effects", [])
-        names = (
-            ", ".join(
-                f"{e['name']}@{e['target']} ({', '.join(f'{k} {v:.4g}' for k, v in e['params'].items())})"
-                for e in found
-            )
-            or "none"
-        )
+        values = lambda e: ", ".join(f"{k} {v:.4g}" for k, v in e["params"].items())  # noqa: E731
+        names = ", ".join(f"{e['name']}@{e['target']} ({values(e)})" for e in found) or "none"
+        warnings = "".join(f"\n\n> warning: {w}" for w in report.get("warnings", []))
         rel = path.parent.relative_to(root)
         images = []
         for png in sorted((path.parent / "plots").glob("*.png")):
@@ -128,7 +140,7 @@ def discovery_sections(root: Path, out: Path) -> list[str]:
             images.append(f"![{png.stem}]({link})")
         full = f"Full report: [{rel / 'report.md'}]({rel / 'report.md'})" if out == root else ""
         sections.append(
-            f"### Gap discovery: {rel}\n\nMissing effects named: {names}. {full}\n\n"
+            f"### Gap discovery: {rel}\n\nMissing effects named: {names}. {full}{warnings}\n\n"
             + "\n".join(images)
         )
     return sections
@@ -142,11 +154,18 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
         raise FileNotFoundError(f"{root} is not a directory; give a run or sweep directory")
     rows, histories = collect_rows(root)
     summary = aggregate(rows)
+    # learning curves and sim-vs-real bars at one friction gap (the plant's own when swept)
+    gaps = sorted({r["friction_gap"] for r in rows}, key=lambda g: (g is None, g))
+    shown = 1.0 if 1.0 in gaps else gaps[-1]
+    shown_histories = [(m, j, h) for m, g, j, h in histories if g == shown]
+    repeated = len({m for m, *_ in shown_histories}) < len(shown_histories)
     figures = {
-        "report_learning_curves": plots.learning_curves(histories),
-        "report_sim_vs_real": plots.sim_vs_real(rows),
+        "report_learning_curves": plots.learning_curves(
+            {f"{m} ({j})" if repeated else m: h for m, j, h in shown_histories}
+        ),
+        "report_sim_vs_real": plots.sim_vs_real([r for r in rows if r["friction_gap"] == shown]),
     }
-    if len({r["friction_gap"] for r in rows}) > 1:
+    if len(gaps) > 1:
         figures["report_gap_vs_friction"] = plots.gap_vs_friction(summary)
     for name, fig in figures.items():
         plots.save(fig, out / "plots" / f"{name}.png")
@@ -158,9 +177,25 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
         "",
         markdown_table(summary),
         "",
+        *(
+            [
+                "Mean real-plant return over seeds, per friction gap (x the plant's nominal):",
+                "",
+                pivot_table(summary, "real_return"),
+                "",
+                "Mean sim2real gap:",
+                "",
+                pivot_table(summary, "gap"),
+                "",
+            ]
+            if len({r["friction_gap"] for r in rows}) > 1
+            else []
+        ),
         "One row per seed: [report.csv](report.csv).",
         "",
     ]
+    if len(gaps) > 1:
+        text += [f"Learning curves and sim-vs-real bars: friction gap x{shown:g}.", ""]
     text += [f"![{name}](plots/{name}.png)" for name in figures]
     text += [""] + discovery_sections(root, out)
     path = atomic_write_bytes(out / "report.md", ("\n".join(text) + "\n").encode())
