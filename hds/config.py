@@ -283,6 +283,9 @@ class SweepConfig:
     step_size: list[float] = field(default_factory=list)
     noise_scale: list[float] = field(default_factory=list)
     noise_decay: list[float] = field(default_factory=list)  # noise=exponential only
+    # real.friction_gap: each run is evaluated on its own plant, and an oracle trains on its
+    # own dynamics; a learned model or a corrected simulator needs a multirun instead
+    friction_gap: list[float] = field(default_factory=list)
 
     def check(self):
         for key, _ in self.items():
@@ -291,7 +294,7 @@ class SweepConfig:
 
     def items(self):
         """(name, values) of the settings swept."""
-        names = ("step_size", "noise_scale", "noise_decay")
+        names = ("step_size", "noise_scale", "noise_decay", "friction_gap")
         return [(k, getattr(self, k)) for k in names if getattr(self, k)]
 
 
@@ -319,6 +322,15 @@ class Config:
 
     def check(self):
         _one_of("simulator", self.simulator, ("nominal", "corrected", "real"))
+        if self.sweep.friction_gap and (
+            self.simulator == "corrected" or (self.dynamics.model != "none" and self.dynamics.beta)
+        ):
+            raise ValueError(
+                "sweep.friction_gap trains every gap in one program, but a learned model "
+                f"(dynamics.model = {self.dynamics.model}) or simulator = corrected needs data "
+                "measured at each gap: sweep the gap as a multirun instead "
+                "(python -m hds.run -m real.friction_gap=0,1,2)"
+            )
         if self.sweep.noise_decay and self.noise.schedule != "exponential":
             raise ValueError(
                 f"sweep.noise_decay sweeps the exponential schedule's decay, but "

@@ -13,8 +13,9 @@ from hds.real import rollout
 
 
 class Evaluator:
-    """Compiled once per run: deterministic policy on the simulator (batched over seeds and
-    episodes) and on the plant (a host loop with a jitted policy)."""
+    """Compiled once per run: deterministic policy on the simulator (batched over the runs of
+    the batch and episodes) and on the plant (a host loop with a jitted policy). `plant` is one
+    plant, or one per run of the batch (a swept friction gap)."""
 
     def __init__(self, env, policy, plant, episodes: int = 32, seed: int = 12345):
         self.env, self.policy, self.plant = env, policy, plant
@@ -43,21 +44,26 @@ class Evaluator:
 
             return jax.vmap(one)(jnp.asarray(self.q0), jnp.asarray(self.qd0))
 
-        self._sim = jax.jit(jax.vmap(sim_returns, in_axes=(0, None)))  # over the batch of runs
+        self._sim = jax.jit(jax.vmap(sim_returns))  # over the batch of runs
         self._act = jax.jit(policy.apply)
 
     def sim_returns(self, params, effects=None) -> np.ndarray:
-        """[n_seeds, episodes]"""
-        return np.asarray(self._sim(params, self.env.params if effects is None else effects))
+        """[n_runs, episodes]; `effects`: each run's effect parameters, stacked (default: the
+        env's own for every run)."""
+        if effects is None:
+            n_runs = jax.tree.leaves(params)[0].shape[0]
+            effects = jax.tree.map(lambda x: jnp.stack([x] * n_runs), self.env.params)
+        return np.asarray(self._sim(params, effects))
 
     def real_returns(self, params) -> np.ndarray:
-        """[n_seeds, episodes]"""
-        n_seeds = jax.tree.leaves(params)[0].shape[0]
+        """[n_runs, episodes]"""
+        n_runs = jax.tree.leaves(params)[0].shape[0]
+        plants = self.plant if isinstance(self.plant, list) else [self.plant] * n_runs
         out = []
-        for s in range(n_seeds):
+        for s in range(n_runs):
             p = jax.tree.map(lambda x, s=s: x[s], params)
             ep = rollout(
-                self.plant,
+                plants[s],
                 self.env.task,
                 self.q0,
                 self.qd0,

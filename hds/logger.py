@@ -71,6 +71,10 @@ class RunLogger:
             )
             self.wandb.log({name: wandb.Image(fig) for name, fig in figures.items()})
             self.wandb.finish()
+        import matplotlib.pyplot as plt
+
+        for fig in figures.values():
+            plt.close(fig)
 
 
 def print_table(rows: list[dict], title: str = "sim2real") -> None:

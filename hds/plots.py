@@ -82,8 +82,10 @@ def gap_vs_friction(summary: list[dict]) -> plt.Figure:
 
 
 def save(fig: plt.Figure, path: Path) -> Path:
+    """Write fig atomically and close it (pyplot keeps every open figure alive)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp.png")
     fig.savefig(tmp, dpi=110)
+    plt.close(fig)
     tmp.replace(path)
     return path

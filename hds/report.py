@@ -46,7 +46,7 @@ def collect_rows(root: Path) -> tuple[list[dict], list[tuple]]:
             continue
         gap = summary.get("real", {}).get("friction_gap")
         job = str(path.parent.relative_to(root)) if path.parent != root else "."
-        rows += [{**r, "friction_gap": gap, "job": job} for r in summary["rows"]]
+        rows += [{"friction_gap": gap, **r, "job": job} for r in summary["rows"]]  # swept: own
         histories += [(m, gap, job, h) for m, h in summary["history"].items()]
     if not rows:
         raise FileNotFoundError(

@@ -10,6 +10,7 @@ and ends with exactly the numbers an uninterrupted run gives.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import os
@@ -33,6 +34,7 @@ from hds import plots  # noqa: E402
 from hds.algo.pods import make_train  # noqa: E402
 from hds.checkpoint import Checkpoints  # noqa: E402
 from hds.config import Config, validate  # noqa: E402
+from hds.effects.apply import place  # noqa: E402
 from hds.envs import make_env  # noqa: E402
 from hds.evaluate import Evaluator, gap_rows  # noqa: E402
 from hds.logger import RunLogger, print_table  # noqa: E402
@@ -60,14 +62,18 @@ def _shard(tree):
     return jax.device_put(tree, sharding)
 
 
-def train(cfg: Config, env, out_dir: Path, method: str, model=None):
-    """Train the batch of `batch_of(cfg)` together; returns (policy params [batch, ...], history,
-    timing, logger, trainer). Resumes from out_dir/checkpoints/<method> when it has a checkpoint."""
+def train(cfg: Config, env, out_dir: Path, method: str, model=None, effects=None):
+    """Train the batch of `batch_of(cfg)` together; `effects` (optional): each run's effect
+    parameters of `env`, stacked. Returns (policy params [batch, ...], history, timing, logger,
+    trainer). Resumes from out_dir/checkpoints/<method> when it has a checkpoint."""
     trainer = make_train(cfg, env, model)
     runs = batch_of(cfg)
     hparams = jax.tree.map(lambda x: jnp.stack([x] * len(runs)), trainer.default_hparams)
     for key, _ in cfg.sweep.items():
-        hparams[key] = jnp.asarray([r[key] for r in runs], jnp.float32)
+        if key in hparams:
+            hparams[key] = jnp.asarray([r[key] for r in runs], jnp.float32)
+    if effects is not None:
+        hparams["effects"] = effects
     keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray([r["seed"] for r in runs]))
     keys, hparams = _shard((keys, hparams))
     init = jax.jit(jax.vmap(trainer.init))
@@ -136,9 +142,28 @@ def method_name(cfg: Config) -> str:
     return "+".join(parts)
 
 
+def friction_gap_of(cfg: Config, run: dict) -> float:
+    return run.get("friction_gap", cfg.real.friction_gap)
+
+
 def real_dynamics(cfg: Config):
-    """The simulator with the plant's own effects (friction smoothed so it differentiates)."""
-    return make_env(cfg.env, effects=list(cfg.real.effects), friction_gap=cfg.real.friction_gap)
+    """The simulator with the plant's own effects (friction smoothed so it differentiates),
+    and each run's effect parameters (its friction gap), stacked."""
+    env = make_env(cfg.env, effects=list(cfg.real.effects), friction_gap=cfg.real.friction_gap)
+    per_run = [
+        place(list(cfg.real.effects), env.sim.targets, friction_gap_of(cfg, r))[1]
+        for r in batch_of(cfg)
+    ]
+    return env, jax.tree.map(lambda *x: jnp.stack(x), *per_run)
+
+
+def run_plants(cfg: Config) -> list:
+    """The plant each run of the batch is evaluated on: one per friction gap."""
+    gaps = [friction_gap_of(cfg, r) for r in batch_of(cfg)]
+    plants = {
+        g: make_plant(dataclasses.replace(cfg.real, friction_gap=g), cfg.env) for g in set(gaps)
+    }
+    return [plants[g] for g in gaps]
 
 
 def corrected_simulator(cfg: Config, env, plant, out_dir: Path):
@@ -175,28 +200,32 @@ def run(cfg: Config, out_dir: Path) -> dict:
         log.info("%s is finished (summary.json exists): skipped", out_dir)
         return read_json(out_dir / "summary.json")
     env = make_env(cfg.env)
-    plant = make_plant(cfg.real, cfg.env)
+    plants = run_plants(cfg)
+    plant = plants[0]  # all alike unless the gap is swept, which excludes the two uses below
     model, model_report = dynamics_model(cfg, env, plant, out_dir)
-    train_env, discovery = env, {}
+    train_env, effects, discovery = env, None, {}
     if cfg.simulator == "real":
-        train_env = real_dynamics(cfg)
+        train_env, effects = real_dynamics(cfg)
     elif cfg.simulator == "corrected":
         train_env, discovery = corrected_simulator(cfg, env, plant, out_dir)
-    methods = [(method_name(cfg), train_env, model)]
+    methods = [(method_name(cfg), train_env, effects, model)]
     if cfg.oracle and cfg.real.plant == "brax" and cfg.simulator != "real":
-        methods.append(("oracle", real_dynamics(cfg), None))
+        methods.append(("oracle", *real_dynamics(cfg), None))
 
     rows, histories, timings = [], {}, {}
-    for method, method_env, method_model in methods:
+    for method, method_env, method_effects, method_model in methods:
         params, history, timing, logger, trainer = train(
-            cfg, method_env, out_dir, method, method_model
+            cfg, method_env, out_dir, method, method_model, method_effects
         )
         # sim return: on the simulator the policy trained on (what it was promised)
         evaluator = Evaluator(
-            method_env, trainer.policy, plant, cfg.eval_episodes, cfg.seed + 10_000
+            method_env, trainer.policy, plants, cfg.eval_episodes, cfg.seed + 10_000
         )
         method_rows = gap_rows(
-            method, batch_of(cfg), evaluator.sim_returns(params), evaluator.real_returns(params)
+            method,
+            batch_of(cfg),
+            evaluator.sim_returns(params, method_effects),
+            evaluator.real_returns(params),
         )
         rows += method_rows
         histories[method], timings[method] = history, timing

@@ -117,3 +117,9 @@ def test_missing_custom_mjcf_is_named():
     with pytest.raises(ValueError) as err:
         make_config("env=custom")
     assert "xml" in str(err.value)
+
+
+def test_a_friction_gap_sweep_refuses_what_needs_data_at_each_gap():
+    for method in ("hds", "pods_corrected"):
+        with pytest.raises(ValueError, match="needs data measured at each gap"):
+            make_config(f"method={method}", "sweep.friction_gap=[0,1]")

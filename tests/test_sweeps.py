@@ -67,6 +67,21 @@ def test_a_vmapped_sweep_gives_the_numbers_of_separate_runs(tmp_path, swept, set
     assert not np.allclose(history[metric][0], history[metric][1])
 
 
+def test_a_vmapped_friction_gap_sweep_gives_the_numbers_of_separate_runs(tmp_path):
+    """The oracle trains on each gap's dynamics and every run meets its own plant, in one
+    program; the same numbers as one run per gap."""
+    base = (*TINY, "method=oracle", "env.task.horizon=20")
+    together = hds_run.run(make_config(*base, "sweep.friction_gap=[0,3]"), tmp_path / "vmapped")
+    rows = {r["friction_gap"]: r for r in together["rows"]}
+    for gap in (0.0, 3.0):
+        (alone,) = hds_run.run(make_config(*base, f"real.friction_gap={gap}"), tmp_path / f"{gap}")[
+            "rows"
+        ]
+        for key in ("sim_return", "real_return"):
+            assert rows[gap][key] == pytest.approx(alone[key], rel=1e-5), (gap, key)
+    assert abs(rows[3.0]["real_return"] - rows[0.0]["real_return"]) > 1.0  # the gap matters
+
+
 def test_the_batch_is_sharded_across_two_host_devices(tmp_path):
     code = (
         "import jax, json, sys; from tests.conftest import make_config; from hds import run;"
