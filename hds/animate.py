@@ -61,6 +61,22 @@ def animate(
     return path
 
 
+def simulator_of(cfg, run_dir: Path):
+    """The simulator a finished run's policy trained on (cfg.simulator)."""
+    if cfg.simulator == "real":
+        from hds.run import real_dynamics
+
+        return real_dynamics(cfg)[0]
+    if cfg.simulator == "corrected":  # the env config gap discovery wrote into the run
+        from omegaconf import OmegaConf
+
+        from hds.discover.retrain import env_config
+
+        (path,) = (run_dir / "discovery" / "conf" / "env").glob("*.yaml")
+        return make_env(env_config(OmegaConf.to_container(OmegaConf.load(path))))
+    return make_env(cfg.env)
+
+
 def animate_run(
     run_dir: Path, method: str | None = None, seed_index: int = 0, out_dir: Path | None = None
 ) -> Path:
@@ -75,7 +91,7 @@ def animate_run(
             "(a sweep's job directory), which holds config.yaml and checkpoints/"
         )
     cfg = load_config(config_path)
-    env, plant = make_env(cfg.env), make_plant(cfg.real, cfg.env)
+    env, plant = simulator_of(cfg, run_dir), make_plant(cfg.real, cfg.env)
     method = method or method_name(cfg)
     trainer = make_train(cfg, env)
     keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(cfg.seeds))

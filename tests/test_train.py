@@ -209,5 +209,10 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
             assert (found["name"], found["target"]) == ("coulomb_friction", "slider")
             assert found["params"]["force"] == pytest.approx(20.0, rel=0.1)
             assert (tmp_path / simulator / "discovery" / "report.md").is_file()
+            # the GIF of hds.report rebuilds this simulator from what the run wrote
+            from hds.animate import simulator_of
+
+            sites = simulator_of(cfg, tmp_path / simulator).sim.effects.sites
+            assert [(e.name, e.target) for e in sites] == [("coulomb_friction", "slider")]
     assert gaps["corrected"] < 0.25 * gaps["nominal"], gaps
     assert gaps["real"] < 0.25 * gaps["nominal"], gaps
