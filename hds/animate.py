@@ -99,7 +99,7 @@ def animate_run(
     state, _ = Checkpoints(run_dir / "checkpoints" / method).restore(like)
     params = jax.tree.map(lambda x: x[seed_index], state.policy)
     act = jax.jit(trainer.policy.apply)
-    q0, qd0 = (np.asarray(x)[None] for x in env.task.initial(jax.random.PRNGKey(cfg.seed + 10_000)))
+    q0, qd0 = (np.asarray(x)[None] for x in env.task.initial(jax.random.PRNGKey(cfg.eval_seed)))
     controller = lambda obs: np.asarray(act(params, jnp.asarray(obs, jnp.float32)))  # noqa: E731
     from hds.real.brax_plant import BraxPlant
 

@@ -316,6 +316,9 @@ class Config:
     simulator: str = "nominal"
     oracle: bool = True  # with real=brax, also train an oracle beside the run's own policy
     eval_episodes: int = 32  # initial states shared by the simulator and plant evaluations
+    # the key of those initial states: one set for every method, seed and job, so that rows
+    # compare like for like and a multirun over seeds matches a vmapped run of them
+    eval_seed: int = 10_000
     checkpoints_kept: int = 3
     sweep: SweepConfig = field(default_factory=lambda: SweepConfig())
     discover: DiscoverConfig = field(default_factory=DiscoverConfig)

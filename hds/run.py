@@ -218,9 +218,7 @@ def run(cfg: Config, out_dir: Path) -> dict:
             cfg, method_env, out_dir, method, method_model, method_effects
         )
         # sim return: on the simulator the policy trained on (what it was promised)
-        evaluator = Evaluator(
-            method_env, trainer.policy, plants, cfg.eval_episodes, cfg.seed + 10_000
-        )
+        evaluator = Evaluator(method_env, trainer.policy, plants, cfg.eval_episodes, cfg.eval_seed)
         method_rows = gap_rows(
             method,
             batch_of(cfg),

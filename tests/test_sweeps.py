@@ -166,10 +166,20 @@ def test_hds_report_elsewhere_with_an_animation(restarted_sweep, tmp_path):
     assert gif.read_bytes()[:6] == b"GIF89a"
 
 
+@pytest.fixture(scope="module")
+def vmapped_seeds(tmp_path_factory):
+    """Seeds 0 and 1 trained together in one program (`seeds=2`)."""
+    summary = hds_run.run(make_config(*TINY, "seeds=2"), tmp_path_factory.mktemp("vmapped"))
+    return {r["seed"]: r for r in summary["rows"]}
+
+
 @pytest.mark.parametrize("launcher", ["local_processes", "local_submitit"])
-def test_other_launchers_run_a_sweep(tmp_path, launcher):
+def test_other_launchers_run_a_sweep_with_the_vmapped_numbers(tmp_path, launcher, vmapped_seeds):
     hds_run_cli(
         "-m", *TINY, "seed=0,1", f"hydra/launcher={launcher}", f"hydra.sweep.dir={tmp_path}"
     )
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert sorted(r["seed"] for r in summary["rows"]) == [0, 1]
+    for row in summary["rows"]:  # one job per seed gives what one program for both gave
+        for key in ("sim_return", "real_return"):
+            assert row[key] == pytest.approx(vmapped_seeds[row["seed"]][key], rel=1e-5)

@@ -36,7 +36,7 @@ def retrain(cfg, corrected_env: dict, out_dir: Path) -> dict:
         env = make_env(env_cfg)
         log.info("retrain: PODS on the %s simulator", method)
         params, _, timing, logger, trainer = train(cfg, env, Path(out_dir), f"pods_{method}")
-        evaluator = Evaluator(env, trainer.policy, plant, cfg.eval_episodes, cfg.seed + 10_000)
+        evaluator = Evaluator(env, trainer.policy, plant, cfg.eval_episodes, cfg.eval_seed)
         method_rows = gap_rows(
             method, batch_of(cfg), evaluator.sim_returns(params), evaluator.real_returns(params)
         )
