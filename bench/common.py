@@ -124,15 +124,18 @@ def steps_per_epoch(cfg) -> dict:
     """Env steps one PODS/HDS epoch simulates. `samples`: closed-loop policy steps (the data the
     policy is regressed on); `differentiated`: steps of the open-loop rollouts whose gradient is
     taken (forward and backward); `simulated`: every forward step, line-search rollouts included.
-    Gauss-Newton's Jacobian (algo.order=second) is not counted."""
+    Gauss-Newton's Jacobian (algo.order=second) is not counted; closed-loop improvement
+    (algo.improve_in) replays the improved trajectory once more."""
     from hds import anneal
 
     batch = cfg.algo.rollouts * cfg.env.task.horizon
     candidates = anneal.candidates(cfg.anneal.kind, cfg.algo.line_search)
+    steps = cfg.algo.improve_steps
+    replay = cfg.algo.improve_in == "closed_loop"
     return {
         "samples": batch,
-        "differentiated": batch,
-        "simulated": batch * (2 + candidates),
+        "differentiated": batch * steps,
+        "simulated": batch * (1 + steps * (1 + candidates) + replay),
         "candidates": candidates,
     }
 

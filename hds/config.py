@@ -106,12 +106,22 @@ class AlgoConfig:
     grad_clip: float = 1e3  # global-norm clip of each action gradient
     gn_damping: float = 1e-3  # Levenberg damping of the Gauss-Newton solve
     improve_steps: int = 1  # action-improvement steps per epoch before regressing (PODS: 1)
+    # open_loop (PODS): improve the rollout's controls as an open-loop sequence and regress
+    # the policy onto them at the rollout's states; closed_loop: improve perturbations of the
+    # policy's own controls through its feedback, and regress onto the improved trajectory
+    improve_in: str = "open_loop"
     early_stop: float = 0.0  # stop regressing once the loss improves less than this
     hidden: list[int] = field(default_factory=lambda: [64, 64])
     chunk: int = 5  # epochs per compiled chunk, between host-side logs and checkpoints
 
     def check(self):
         _one_of("algo.order", self.order, ("first", "second"))
+        _one_of("algo.improve_in", self.improve_in, ("open_loop", "closed_loop"))
+        if self.improve_in == "closed_loop" and self.order != "first":
+            raise ValueError(
+                "algo.improve_in = closed_loop takes first-order steps only; "
+                "choose algo.order=first (or algo.improve_in=open_loop for Gauss-Newton)"
+            )
         counts = ("epochs", "rollouts", "inner_epochs", "minibatch", "line_search", "chunk")
         for key in (*counts, "improve_steps"):
             _in_range(f"algo.{key}", getattr(self, key), 1)

@@ -81,6 +81,7 @@ def test_method_presets_choose_the_groups_and_the_row_label():
 
     expected = {
         "pods": ("pods", "none", "none", "nominal", "pods"),
+        "pods_cl": ("pods_cl", "none", "none", "nominal", "pods_cl"),
         "hds": ("hds", "exponential", "mlp", "nominal", "hds+mlp"),
         "hds_ensemble": ("hds", "exponential", "ensemble", "nominal", "hds+ensemble"),
         "hds_residual": ("hds", "exponential", "residual", "nominal", "hds+residual"),
@@ -123,3 +124,8 @@ def test_a_friction_gap_sweep_refuses_what_needs_data_at_each_gap():
     for method in ("hds", "pods_corrected"):
         with pytest.raises(ValueError, match="needs data measured at each gap"):
             make_config(f"method={method}", "sweep.friction_gap=[0,1]")
+
+
+def test_closed_loop_improvement_refuses_gauss_newton():
+    with pytest.raises(ValueError, match="closed_loop takes first-order steps only"):
+        make_config("algo=pods_gn", "algo.improve_in=closed_loop")

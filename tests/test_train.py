@@ -74,6 +74,39 @@ def test_more_improvement_steps_reach_better_targets(setup):
     assert np.all(three > one), (one, three)
 
 
+def test_closed_loop_improvement_trains_and_never_accepts_worse(setup):
+    """algo.improve_in=closed_loop: the perturbations u - act(o) replay the rollout exactly,
+    the line search keeps every improved closed-loop return at least the rollout's, and the
+    policy's return rises."""
+    from hds.algo.rollout import perturbed_rollout, policy_rollout
+
+    cfg, env, *_ = setup
+    closed_cfg = make_config(*TINY, "algo.improve_in=closed_loop", "algo.epochs=30")
+    trainer = make_train(closed_cfg, env)
+    keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(2))
+    state, metrics = jax.jit(jax.vmap(trainer.train, in_axes=(0, None)))(
+        keys, trainer.default_hparams
+    )
+    assert np.all(np.asarray(metrics["improved_return"]) >= np.asarray(metrics["return"]) - 1e-3)
+    evaluator = Evaluator(env, trainer.policy, plant=None, episodes=16)
+    before = jax.vmap(trainer.init, in_axes=(0, None))(keys, trainer.default_hparams).policy
+    r0, r1 = (evaluator.sim_returns(p).mean(axis=1) for p in (before, state.policy))
+    assert np.all(r1 > r0 + 0.1 * np.abs(r0)), (r0, r1)
+
+    params = jax.tree.map(lambda x: x[0], state.policy)
+    act = lambda o: trainer.policy.apply(params, o)  # noqa: E731
+    low, high = (jnp.asarray(env.sim.ctrl_range[:, i]) for i in (0, 1))
+    start = env.reset(jax.random.PRNGKey(3))
+    horizon = env.task.horizon
+    obs, u, r = policy_rollout(
+        env, env.params, env.task, act, start, keys[1], 2.0, horizon, low, high
+    )
+    deltas = u - jax.vmap(act)(obs)
+    replay = perturbed_rollout(env, env.params, env.task, act, start, deltas, low, high)
+    np.testing.assert_allclose(replay[0], obs, atol=1e-5)
+    np.testing.assert_allclose(replay[2], r, rtol=1e-5, atol=1e-5)
+
+
 def test_same_seed_same_numbers_and_seeds_differ(setup):
     *_, train, keys, state, metrics = setup
     trainer = setup[2]

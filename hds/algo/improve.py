@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from hds.algo.rollout import open_loop_return, trajectory
+from hds.algo.rollout import open_loop_return, perturbed_rollout, trajectory
 from hds.anneal import accept
 
 
@@ -68,9 +68,19 @@ def gauss_newton_step(H: jax.Array, g: jax.Array, damping: float) -> jax.Array:
     return jax.scipy.linalg.cho_solve(factor, g)
 
 
-def improve(engine, params, task, state, actions, key, *, alpha, temperature, cfg, low, high):
-    """One action-improvement step for one sequence; `cfg` holds algo and anneal settings."""
-    ret = lambda a: open_loop_return(engine, params, task, state, a)  # noqa: E731
+def improve(
+    engine, params, task, state, actions, key, *, alpha, temperature, cfg, low, high, act=None
+):
+    """One action-improvement step for one sequence; `cfg` holds algo and anneal settings.
+
+    With `act` (the policy, o -> u), `actions` are perturbations of the closed loop,
+    u_t = clip(act(o_t) + actions_t), and the return is differentiated through the policy's
+    feedback (first order only); otherwise they are the open-loop controls (PODS)."""
+    if act is None:
+        ret = lambda a: open_loop_return(engine, params, task, state, a)  # noqa: E731
+    else:
+        ret = lambda d: perturbed_rollout(engine, params, task, act, state, d, low, high)[2].sum()  # noqa: E731
+        low, high = low - high, high - low  # a perturbation may span the whole range
     value, grad = jax.value_and_grad(ret)(actions)
     grad, _ = optax.clip_by_global_norm(cfg.grad_clip).update(grad, None)
     finite = jnp.isfinite(value) & jnp.all(jnp.isfinite(grad))

@@ -28,7 +28,7 @@ from flax import struct
 from hds import anneal, noise
 from hds.algo.improve import ImproveSettings, improve
 from hds.algo.regress import regress
-from hds.algo.rollout import policy_rollout
+from hds.algo.rollout import perturbed_rollout, policy_rollout
 from hds.networks import make_policy
 
 
@@ -105,6 +105,7 @@ def make_train(cfg, env, model=None) -> Trainer:
         )(starts, jax.random.split(k_roll, count))
         alpha = anneal.step_size(hparams["step_size"], cfg.anneal.step_decay, state.epoch)
         temp = anneal.temperature(cfg.anneal.temperature, cfg.anneal.cooling, state.epoch)
+        closed = algo.improve_in == "closed_loop"
         step = jax.vmap(
             lambda s, a, k: improve(
                 engine,
@@ -118,8 +119,11 @@ def make_train(cfg, env, model=None) -> Trainer:
                 cfg=settings,
                 low=low,
                 high=high,
+                act=act if closed else None,
             )
         )
+        if closed:  # the perturbations that reproduce the rollout: u = act(o) + delta
+            actions = actions - jax.vmap(jax.vmap(act))(obs)
         result = step(starts, actions, jax.random.split(k_improve, count))
         if algo.improve_steps > 1:  # further steps from the improved actions
 
@@ -133,6 +137,11 @@ def make_train(cfg, env, model=None) -> Trainer:
 
             keys = jax.random.split(jax.random.fold_in(k_improve, 1), algo.improve_steps - 1)
             result, _ = jax.lax.scan(again, result, keys)
+        if closed:  # regress onto the improved trajectory: its states and its controls
+            obs, controls, _ = jax.vmap(
+                lambda s, d: perturbed_rollout(engine, params, task, act, s, d, low, high)
+            )(starts, result.actions)
+            result = result._replace(actions=controls)
         return obs, result, rewards.sum(-1), alpha
 
     def epoch(state: TrainState, hparams):

@@ -9,15 +9,22 @@ import jax.numpy as jnp
 
 def policy_rollout(engine, params, task, act, state, key, noise_std, horizon, low, high):
     """Closed loop: u_t = clip(act(o_t) + noise). Returns (obs [T, n_obs], u [T, n_act], r [T])."""
+    n_act = low.shape[0]
+    noise = jax.vmap(lambda k: jax.random.normal(k, (n_act,)))(jax.random.split(key, horizon))
+    return perturbed_rollout(engine, params, task, act, state, noise_std * noise, low, high)
 
-    def step(state, key):
+
+def perturbed_rollout(engine, params, task, act, state, deltas, low, high):
+    """Closed loop with a perturbation per step: u_t = clip(act(o_t) + deltas_t).
+    Returns (obs [T, n_obs], u [T, n_act], r [T])."""
+
+    def step(state, delta):
         obs = engine.observe(state, params)
-        u = act(obs)
-        u = jnp.clip(u + noise_std * jax.random.normal(key, u.shape), low, high)
+        u = jnp.clip(act(obs) + delta, low, high)
         state = engine.step(state, u, params)
         return state, (obs, u, task.reward(*engine.qqd(state), u))
 
-    _, (obs, u, r) = jax.lax.scan(step, state, jax.random.split(key, horizon))
+    _, (obs, u, r) = jax.lax.scan(step, state, deltas)
     return obs, u, r
 
 
