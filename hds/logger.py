@@ -78,26 +78,20 @@ class RunLogger:
 
 
 def print_table(rows: list[dict], title: str = "sim2real") -> None:
+    """Every column of the rows, in their order: method, seed, swept settings, returns, gaps."""
     table = Table(title=title)
-    keys = [
-        k
-        for k in ("method", "seed", "sim_return", "real_return", "gap", "gap_relative")
-        if k in rows[0]
-    ]
+    keys = list(dict.fromkeys(k for r in rows for k in r))  # rows of a sweep's jobs may differ
     for k in keys:
-        table.add_column(k, justify="right" if k != "method" else "left")
+        table.add_column(k, justify="left" if k == "method" else "right")
     for r in rows:
-        table.add_row(
-            *[
-                f"{r[k]:.1f}"
-                if isinstance(r[k], float) and k != "gap_relative"
-                else f"{r[k]:.1%}"
-                if k == "gap_relative"
-                else str(r[k])
-                for k in keys
-            ]
-        )
+        table.add_row(*[_cell(k, r.get(k, "")) for k in keys])
     console.print(table)
+
+
+def _cell(key: str, value) -> str:
+    if key == "gap_relative":
+        return f"{value:.1%}"
+    return f"{value:.1f}" if isinstance(value, float) else str(value)
 
 
 def _flat(cfg) -> dict:

@@ -67,11 +67,12 @@ def test_a_vmapped_sweep_gives_the_numbers_of_separate_runs(tmp_path, swept, set
     assert not np.allclose(history[metric][0], history[metric][1])
 
 
-def test_a_vmapped_friction_gap_sweep_gives_the_numbers_of_separate_runs(tmp_path):
+def test_a_vmapped_friction_gap_sweep_gives_the_numbers_of_separate_runs(tmp_path, capsys):
     """The oracle trains on each gap's dynamics and every run meets its own plant, in one
     program; the same numbers as one run per gap."""
     base = (*TINY, "method=oracle", "env.task.horizon=20")
     together = hds_run.run(make_config(*base, "sweep.friction_gap=[0,3]"), tmp_path / "vmapped")
+    assert "friction_gap" in capsys.readouterr().out  # the console table tells the runs apart
     rows = {r["friction_gap"]: r for r in together["rows"]}
     for gap in (0.0, 3.0):
         (alone,) = hds_run.run(make_config(*base, f"real.friction_gap={gap}"), tmp_path / f"{gap}")[
