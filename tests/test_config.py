@@ -40,6 +40,34 @@ def test_every_experiment_composes(experiment):
     assert cfg.name
 
 
+LAUNCHERS = {
+    "local_processes": "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher",
+    "local_submitit": "hydra_plugins.hydra_submitit_launcher.submitit_launcher.LocalLauncher",
+    "slurm": "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher",
+}
+
+
+@pytest.mark.parametrize("launcher", options("hydra/launcher"))
+def test_every_launcher_composes(launcher):
+    """hydra/launcher options compose onto the plugins' structured configs (a misspelt key
+    fails here) and name a launcher class that imports; the SLURM one is never run in tests."""
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import get_class
+    from omegaconf import OmegaConf
+
+    import hds.config  # noqa: F401  (registers the schemas)
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("config", [f"hydra/launcher={launcher}"], return_hydra_config=True)
+    target = cfg.hydra.launcher._target_
+    assert target == LAUNCHERS[launcher]
+    assert get_class(target).__name__ == target.rsplit(".", 1)[1]
+    ours = OmegaConf.load(CONF / "hydra" / "launcher" / f"{launcher}.yaml")
+    for key, value in ours.items():
+        if key != "defaults":
+            assert cfg.hydra.launcher[key] == value, key
+
+
 @pytest.mark.parametrize(
     "override, message",
     [
