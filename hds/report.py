@@ -6,7 +6,9 @@ It reads every summary.json below DIR (one per run or job) and writes, into DIR:
   plots/report_*.png
 and, with --gif, an animation of the same policy on the simulator and on the real plant (of the
 run, or of a sweep's first job).
-A gap-discovery run's report (report.json) is linked with its before/after figures.
+A gap-discovery run's report (report.json) is linked with its before/after errors and figures;
+DIR may also be a `python -m hds.discover` output directory alone, whose report then goes to
+DIR/report/ (discovery's own report.md stays as it is).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import argparse
 import csv
 import io
+import os
 from collections import defaultdict
 from pathlib import Path
 
@@ -38,7 +41,7 @@ COLUMNS = (
 def collect_rows(root: Path) -> tuple[list[dict], list[tuple]]:
     """Every row of every run summary below root (a sweep's gathered summary is skipped: its
     jobs are read directly), with the plant's friction gap; and every (method, friction gap,
-    job, history)."""
+    job, history). Both empty when root holds no run (a gap-discovery directory)."""
     rows, histories = [], []
     for path in sorted(root.rglob("summary.json")):
         summary = read_json(path)
@@ -48,11 +51,6 @@ def collect_rows(root: Path) -> tuple[list[dict], list[tuple]]:
         job = str(path.parent.relative_to(root)) if path.parent != root else "."
         rows += [{"friction_gap": gap, **r, "job": job} for r in summary["rows"]]  # swept: own
         histories += [(m, gap, job, h) for m, h in summary["history"].items()]
-    if not rows:
-        raise FileNotFoundError(
-            f"no run summary.json below {root}: point hds.report at a run or sweep directory "
-            "written by `python -m hds.run`"
-        )
     return rows, histories
 
 
@@ -135,24 +133,66 @@ def discovery_sections(root: Path, out: Path) -> list[str]:
             if out == root:
                 link = rel / "plots" / png.name
             else:
-                link = Path("plots") / f"discovery_{'_'.join(rel.parts)}_{png.name}"
+                link = Path("plots") / "_".join(("discovery", *rel.parts, png.name))
                 atomic_write_bytes(out / link, png.read_bytes())
             images.append(f"![{png.stem}]({link})")
-        full = f"Full report: [{rel / 'report.md'}]({rel / 'report.md'})" if out == root else ""
+        full = Path(os.path.relpath(path.parent / "report.md", out))
         sections.append(
-            f"### Gap discovery: {rel}\n\nMissing effects named: {names}. {full}{warnings}\n\n"
+            f"### Gap discovery: {rel if rel.parts else root.name}\n\n"
+            f"Missing effects named: {names}. "
+            f"Full report: [{full}]({full}){warnings}\n\n"
+            + discovery_errors(report)
             + "\n".join(images)
         )
     return sections
 
 
+def discovery_errors(report: dict) -> str:
+    """k-step (rollout) RMSE per state variable before and after the named effects were added,
+    on each data set of the discovery (identification, held-out, validation)."""
+    sets = report.get("errors") or {}
+    if not sets and "error_before" in report:
+        sets = {"held-out": {"before": report["error_before"], "after": report["error_after"]}}
+    if not sets:
+        return ""
+    names = next(iter(sets.values()))["before"]["names"]
+    lines = [
+        f"k-step prediction error (RMSE, {report.get('horizon_steps', 'k')} steps), before -> "
+        "after the correction:",
+        "",
+        "| data | " + " | ".join(names) + " | normalized |",
+        "| --- |" + " ---: |" * (len(names) + 1),
+    ]
+    for name, err in sets.items():
+        before, after = err["before"], err["after"]
+        cells = [
+            f"{b:.3g} -> {a:.3g}" for b, a in zip(before["rollout_rmse"], after["rollout_rmse"])
+        ]
+        norm = f"{before['rollout_nrmse']:.3g} -> {after['rollout_nrmse']:.3g}"
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {norm} |")
+    return "\n".join(lines) + "\n\n"
+
+
 def build(root: str | Path, out: str | Path | None = None) -> Path:
     """Write the report of the run or sweep at root into out (default: root itself)."""
     root = Path(root)
-    out = root if out is None else Path(out)
     if not root.is_dir():
         raise FileNotFoundError(f"{root} is not a directory; give a run or sweep directory")
+    if out is None:  # a discovery directory has a report.md of its own: leave it be
+        out = root / "report" if (root / "report.json").is_file() else root
+    out = Path(out)
     rows, histories = collect_rows(root)
+    if not rows:
+        sections = discovery_sections(root, out)
+        if not sections:
+            raise FileNotFoundError(
+                f"nothing to report below {root}: hds.report expects a run or sweep directory "
+                "(summary.json, written by `python -m hds.run`) or a gap-discovery directory "
+                "(report.json, written by `python -m hds.discover`)"
+            )
+        text = [f"# Report: {root.name}", "", "No training run here: gap discovery only.", ""]
+        text += sections
+        return atomic_write_bytes(out / "report.md", ("\n".join(text) + "\n").encode())
     summary = aggregate(rows)
     # learning curves and sim-vs-real bars at one friction gap (the plant's own when swept)
     gaps = sorted({r["friction_gap"] for r in rows}, key=lambda g: (g is None, g))
@@ -206,7 +246,10 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m hds.report", description=__doc__.splitlines()[0]
     )
-    parser.add_argument("directory", help="a run or sweep directory written by python -m hds.run")
+    parser.add_argument(
+        "directory",
+        help="a run or sweep directory (python -m hds.run) or a discovery one (hds.discover)",
+    )
     parser.add_argument(
         "--gif",
         nargs="?",

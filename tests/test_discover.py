@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -331,6 +332,21 @@ def test_command_line_writes_the_report_and_hds_run_accepts_the_corrected_model(
 
     model = mujoco.MjModel.from_xml_path(report["corrected_mjcf"])
     assert model.dof_frictionloss[0] == pytest.approx(found["params"]["force"], rel=1e-4)
+    # hds.report on the discovery directory: its section (named effects, errors before and
+    # after, figures) in DIR/report/, discovery's own report.md left as it was
+    from hds.report import main as report_main
+
+    report_main([str(out)])
+    assert (out / "report.md").read_text() == text
+    summary = (out / "report" / "report.md").read_text()
+    assert "### Gap discovery: run" in summary and "coulomb_friction@slider" in summary
+    assert "[../report.md](../report.md)" in summary
+    for name, errors in report["errors"].items():
+        before, after = errors["before"]["rollout_nrmse"], errors["after"]["rollout_nrmse"]
+        assert f"| {name} |" in summary and f"| {before:.3g} -> {after:.3g} |" in summary
+    figures = re.findall(r"!\[[^]]*\]\(([^)]+)\)", summary)
+    assert "plots/discovery_trajectories_heldout.png" in figures
+    assert all((out / "report" / f).stat().st_size > 0 for f in figures)
 
 
 # Clear errors -------------------------------------------------------------------------------
