@@ -7,14 +7,19 @@ with a message naming the key and what is allowed, before anything compiles.
 
 from __future__ import annotations
 
+import dataclasses
+import difflib
 from dataclasses import dataclass, field
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, DictConfig, OmegaConf
+from hydra.errors import ConfigCompositionException
+from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import ConfigAttributeError, ConfigKeyError
 
+from hds.effects import apply as _effects
 from hds.effects.library import LIBRARY, check_params, effect_type
-from hds.envs.system import BACKENDS
+from hds.envs.system import BACKENDS, load_spec, resolve_xml, target_names
 
 
 def _one_of(key: str, value: Any, allowed) -> None:
@@ -369,17 +374,122 @@ def _check_all(node) -> None:
             _check_all(child)
 
 
+def _check_effect_targets(config) -> None:
+    """Check that env.xml exists, and env.effects and real.effects against its names (the
+    model both the simulator and the plants are built from), with the check the builders run
+    (hds.effects.apply.check). Compiling the MJCF with MuJoCo takes milliseconds and compiles
+    nothing with JAX; it is skipped when no effect is given."""
+    env = getattr(config, "env", None)
+    if not isinstance(env, EnvConfig):
+        return
+    real = getattr(config, "real", None)
+    groups = [("env.effects", env.effects)]
+    if isinstance(real, RealConfig):
+        groups.append(("real.effects", real.effects))
+    try:
+        xml = str(resolve_xml(env.xml))
+    except FileNotFoundError as err:
+        raise ValueError(f"env.xml: {err}") from None
+    if not any(effects for _, effects in groups):
+        return
+    names = target_names(load_spec(xml).compile())
+    for key, effects in groups:
+        try:
+            _effects.check(effects, names)
+        except ValueError as err:
+            raise ValueError(f"{key}: {err}") from None
+
+
 def validate(cfg: DictConfig) -> Config:
     """Build the typed config and run every range check; raise ValueError naming the key."""
+    try:
+        _check_known_keys(cfg)
+    except ValueError as err:
+        raise ValueError(f"invalid config: {err}") from None
     try:
         config = OmegaConf.to_object(cfg)
     except Exception as err:  # e.g. a required value left as ???
         raise ValueError(f"invalid config: {err}") from None
     try:
         _check_all(config)
+        _check_effect_targets(config)
     except ValueError as err:
         raise ValueError(f"invalid config: {err}") from None
     return config
+
+
+def allowed_keys_hint(err: Exception) -> str | None:
+    """For omegaconf's unknown-key error ("Key 'frictoin' not in 'EnvConfig'"): a line naming
+    the node, the keys it allows and the closest of them; None for any other error."""
+    if not isinstance(err, (ConfigKeyError, ConfigAttributeError)):
+        return None
+    node, key = getattr(err, "parent_node", None), getattr(err, "key", None)
+    object_type = getattr(err, "object_type", None)
+    if dataclasses.is_dataclass(object_type):
+        allowed = [f.name for f in dataclasses.fields(object_type)]
+    elif isinstance(node, DictConfig):
+        allowed = [str(k) for k in node.keys()]
+    else:
+        return None
+    if key is None or str(key) in allowed:
+        return None
+    full_key = str(getattr(err, "full_key", "") or key)
+    return _unknown_key(full_key.rsplit(".", 1)[0] if "." in full_key else "", key, allowed)
+
+
+def _unknown_key(where: str, key, allowed: list[str]) -> str:
+    close = difflib.get_close_matches(str(key), allowed, n=1)
+    hint = f"; did you mean '{close[0]}'?" if close else ""
+    where = where or "the config"
+    return f"{where} has no key '{key}'; its keys are: {', '.join(allowed)}{hint}"
+
+
+def _check_known_keys(node, where: str = "") -> None:
+    """Refuse keys a schema does not have that composition let through (an override forced
+    in with `+`, e.g. `+env.frictoin=1`, which OmegaConf.to_object would silently drop)."""
+    if isinstance(node, DictConfig):
+        schema = OmegaConf.get_type(node)
+        keys = [str(k) for k in node.keys()]
+        if dataclasses.is_dataclass(schema):
+            allowed = [f.name for f in dataclasses.fields(schema)]
+            extra = [k for k in keys if k not in allowed]
+            if extra:
+                raise ValueError(_unknown_key(where, extra[0], allowed))
+        children = [(k, node._get_node(k)) for k in keys]
+    elif isinstance(node, ListConfig):
+        children = [(str(i), node._get_node(i)) for i in range(len(node))]
+    else:
+        return
+    for key, child in children:
+        _check_known_keys(child, f"{where}.{key}" if where else key)
+
+
+def _explain_unknown_keys() -> None:
+    """Make Hydra's unknown-key errors list the allowed keys of the node.
+
+    Hydra reports `env.frictoin=1` as "Key 'frictoin' not in 'EnvConfig'". Every composition
+    (`python -m hds.run`, `python -m hds.discover`, multiruns, and hydra.compose in tests and
+    benchmarks) goes through `ConfigLoaderImpl.load_configuration` (hydra-core 1.3, pinned),
+    so that one method is wrapped here: an override or a config file naming an unknown key
+    raises a ConfigCompositionException that also names the keys allowed there."""
+    from hydra._internal.config_loader_impl import ConfigLoaderImpl
+
+    load = ConfigLoaderImpl.load_configuration
+    if getattr(load, "_hds_explains_keys", False):
+        return
+
+    def load_configuration(self, *args, **kwargs):
+        try:
+            return load(self, *args, **kwargs)
+        except ConfigCompositionException as err:
+            hint = allowed_keys_hint(err.__cause__)
+            if hint is None:
+                raise
+            lines = [line for line in str(err).splitlines() if not line.startswith("To append")]
+            raise ConfigCompositionException("\n".join([*lines, hint])) from err.__cause__
+
+    load_configuration._hds_explains_keys = True
+    ConfigLoaderImpl.load_configuration = load_configuration
 
 
 def load_config(path) -> Config:
@@ -389,3 +499,4 @@ def load_config(path) -> Config:
 
 
 register()
+_explain_unknown_keys()

@@ -27,6 +27,10 @@ def test_every_option_composes(group):
                 "env.task.q_weight=[1]",
                 "env.task.qd_weight=[0]",
             ]
+        if group == "env" and not option.startswith("cartpole"):
+            # the default plant's friction acts on the cart-pole's slider, which the other
+            # models lack: validate() rejects it (test_bad_values_fail_at_composition)
+            overrides.append("real=none")
         cfg = make_config(*overrides)
         assert getattr(cfg, group) is not None
 
@@ -96,12 +100,51 @@ def test_every_launcher_composes(launcher):
             "real.effects=[{name: action_delay, target: slide, params: {steps: 1.5}}]",
             "action_delay.steps must be an integer",
         ),
+        (  # targets are checked against env.xml's names, before anything compiles
+            "real.effects=[{name: coulomb_friction, target: wheel, params: {force: 1}}]",
+            "real.effects: effect 'coulomb_friction' acts on a joint, and this model has no "
+            "joint 'wheel'; choose one of ['slider', 'hinge']",
+        ),
+        (
+            "env.effects=[{name: actuator_gain, target: motor, params: {gain: 2}}]",
+            "env.effects: effect 'actuator_gain' acts on a actuator, and this model has no "
+            "actuator 'motor'; choose one of ['slide']",
+        ),
+        (
+            "real.effects=[{name: viscous_damping, target: hinge}, "
+            "{name: viscous_damping, target: hinge}]",
+            "real.effects: effect 'viscous_damping@hinge' is given twice",
+        ),
+        (
+            "retrain=true",  # conf/discover.yaml's default plant, real=none, has no effect
+            "retrain = true evaluates both policies on the plant of `real`",
+        ),
+        (
+            "retrain=true real=brax real.friction_gap=0",  # its friction scaled to nothing
+            "Give the plant the data came from, e.g. real=mujoco 'real.effects=[",
+        ),
     ],
 )
 def test_bad_values_fail_at_composition(override, message):
+    overrides = override.split(" ") if override.startswith("retrain") else [override]
+    config = "discover" if "retrain" in override else "config"
+    if config == "discover":
+        overrides.append("data=measured.npz")
     with pytest.raises(ValueError, match=None) as err:
-        make_config(override)
+        make_config(*overrides, config_name=config)
     assert message in str(err.value)
+
+
+def test_retrain_composes_with_a_plant_that_has_effects():
+    cfg = make_config(
+        "data=measured.npz",
+        "retrain=true",
+        "real=mujoco",
+        "real.effects=[{name: coulomb_friction, target: slider, params: {force: 20}}]",
+        config_name="discover",
+    )
+    assert cfg.retrain and cfg.real.effects[0].target == "slider"
+    assert make_config("data=measured.npz", config_name="discover").real.effects == []
 
 
 def test_method_presets_choose_the_groups_and_the_row_label():
@@ -123,11 +166,35 @@ def test_method_presets_choose_the_groups_and_the_row_label():
         assert (*got, method_name(cfg)) == want
 
 
-@pytest.mark.parametrize("override", ["env.frictoin=1", "algo.epochz=3"])
-def test_unknown_keys_fail(override):
+@pytest.mark.parametrize(
+    "override, allowed",
+    [
+        ("env.frictoin=1", "env has no key 'frictoin'; its keys are: name, xml, backend, "),
+        ("algo.epochz=3", "did you mean 'epochs'?"),
+        ("env.task.horizn=3", "env.task has no key 'horizn'; its keys are: kind, horizon, "),
+        ("seedz=3", "the config has no key 'seedz'; its keys are: env, real, algo, "),
+    ],
+)
+def test_unknown_keys_fail(override, allowed):
     with pytest.raises((ConfigCompositionException, ConfigKeyError)) as err:
         make_config(override)
     assert override.split("=")[0].split(".")[-1] in str(err.value)
+    assert allowed in str(err.value)
+
+
+def test_unknown_keys_forced_in_with_plus_fail_at_validation():
+    with pytest.raises(ValueError) as err:
+        make_config("+env.frictoin=1")
+    assert "env has no key 'frictoin'; its keys are: name, xml, backend, " in str(err.value)
+    with pytest.raises(ValueError, match="real.effects.0 has no key 'strength'; its keys are"):
+        make_config("+real.effects.0.strength=3")
+
+
+def test_unknown_keys_of_discover_list_the_allowed_ones():
+    with pytest.raises(ConfigCompositionException) as err:
+        make_config("data=x.npz", "discover.horizn=3", config_name="discover")
+    assert "discover has no key 'horizn'" in str(err.value)
+    assert "horizon, stride, warmup" in str(err.value)
 
 
 def test_wrong_type_fails():

@@ -241,7 +241,7 @@ def test_loading_a_missing_path_says_where_and_how(setup, tmp_path):
 def test_a_model_of_another_system_is_refused(setup, fitted, tmp_path):
     cfg = setup[0]
     _, report = fitted("mlp")
-    pendulum = make_env(make_config("env=pendulum_swingup").env)
+    pendulum = make_env(make_config("env=pendulum_swingup", "real=none").env)
     with pytest.raises(ValueError, match=r"another system.*obs_names.*q_hinge"):
         dynamics.load(report["path"], pendulum)
     slower = make_env(replace(cfg.env, frames_per_step=4))

@@ -3,11 +3,14 @@ finite differences, tasks that reward what they say."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from hds.config import EffectConfig
 from hds.envs import make_env
 from tests.conftest import make_config
 
@@ -94,21 +97,29 @@ def test_reference_task_is_the_reference_projects():
 
 
 def test_task_vector_sizes_are_checked():
-    cfg = make_config("env=pendulum_swingup", "env.task.q_weight=[1,2]").env
+    cfg = make_config("env=pendulum_swingup", "real=none", "env.task.q_weight=[1,2]").env
     with pytest.raises(ValueError, match="env.task.q_weight has 2 entries, and this model needs 1"):
         make_env(cfg)
 
 
-def test_effect_on_unknown_target_names_the_allowed_ones():
-    cfg = make_config("env.effects=[{name: coulomb_friction, target: wheel, params: {force: 1}}]")
-    with pytest.raises(ValueError, match=r"no joint 'wheel'; choose one of \['slider', 'hinge'\]"):
-        make_env(cfg.env)
+def test_effect_on_unknown_target_names_the_allowed_ones(cartpole_cfg):
+    wheel = "[{name: coulomb_friction, target: wheel, params: {force: 1}}]"
+    message = r"no joint 'wheel'; choose one of \['slider', 'hinge'\]"
+    with pytest.raises(ValueError, match="env.effects: effect 'coulomb_friction' .*" + message):
+        make_config(f"env.effects={wheel}")  # at validation, before anything compiles
+    with pytest.raises(ValueError, match="real.effects: effect 'coulomb_friction' .*" + message):
+        make_config(f"real.effects={wheel}", "real=brax")
+    # the builders run the same check on configs that never went through validate()
+    effect = EffectConfig("coulomb_friction", "wheel", {"force": 1.0})
+    with pytest.raises(ValueError, match=message):
+        make_env(replace(cartpole_cfg, effects=[effect]))
 
 
-def test_missing_mjcf_is_a_clear_error():
-    cfg = make_config("env.xml=/nowhere/robot.xml").env
+def test_missing_mjcf_is_a_clear_error(cartpole_cfg):
+    with pytest.raises(ValueError, match="env.xml: MJCF '/nowhere/robot.xml' not found"):
+        make_config("env.xml=/nowhere/robot.xml")
     with pytest.raises(FileNotFoundError, match="MJCF '/nowhere/robot.xml' not found"):
-        make_env(cfg)
+        make_env(replace(cartpole_cfg, xml="/nowhere/robot.xml"))
 
 
 @pytest.mark.parametrize("backend", ["spring", "positional", "mjx"])

@@ -15,6 +15,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
 from hds.config import Config, DiscoverConfig, _in_range
+from hds.effects.library import FRICTION_EFFECTS
 
 __all__ = ["DiscoverAppConfig", "DiscoverConfig", "EmpsConfig"]
 
@@ -44,6 +45,27 @@ class DiscoverAppConfig(Config):
     retrain: bool = False  # train PODS on the original and the corrected simulator, evaluate
     # both on the plant of `real` (the one that produced the data)
     emps: EmpsConfig = field(default_factory=EmpsConfig)  # only for .mat (EMPS) files
+
+    def check(self):
+        super().check()
+        if self.retrain and not plant_has_effects(self.real):
+            raise ValueError(
+                f"retrain = true evaluates both policies on the plant of `real`, the one that "
+                f"produced the data, but that plant has no effect (real.plant = "
+                f"{self.real.plant}, real.effects = {[e.name for e in self.real.effects]}, "
+                f"real.friction_gap = {self.real.friction_gap}): the gap before and after "
+                "would be measured on the nominal model. Give the plant the data came from, "
+                "e.g. real=mujoco 'real.effects=[{name: coulomb_friction, target: slider, "
+                "params: {force: 20}}]' (a dataset read from a file, e.g. measured on "
+                "hardware, does not tell hds its plant: it must be given this way), or drop "
+                "retrain=true"
+            )
+
+
+def plant_has_effects(real) -> bool:
+    """Whether a `real` config's plant differs from the nominal model: some effect that is not
+    friction, or friction not scaled to zero by real.friction_gap."""
+    return any(e.name not in FRICTION_EFFECTS or real.friction_gap > 0 for e in real.effects)
 
 
 def register() -> None:

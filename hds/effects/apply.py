@@ -144,16 +144,15 @@ def as_spec(spec) -> EffectSpec:
     return EffectSpec(spec.name, spec.target, dict(spec.params))
 
 
-def place(
-    specs, names: dict[str, dict[str, int]], friction_gap: float = 1.0
-) -> tuple[EffectSet, EffectParams]:
-    """Resolve effect specs against a model's names; check every name, target and value.
+def check(specs, names: dict[str, dict[str, int]]) -> list[tuple[EffectSpec, dict[str, float]]]:
+    """Check effect specs against a model's names: each effect exists, acts on a target of its
+    kind that the model has, is given once and has valid parameters. Returns (spec, complete
+    parameters) pairs. Pure Python: `hds.config.validate` calls it before anything compiles.
 
     `names` maps each target kind (joint, actuator, body, observation) to {name: index} of the
-    model's targets of that kind (a joint's index is its dof address). `friction_gap` scales
-    the friction effects' magnitudes.
+    model's targets of that kind (hds.envs.system.target_names).
     """
-    sites, params, seen = [], [], set()
+    checked, seen = [], set()
     for spec in specs:
         spec = as_spec(spec)
         etype = effect_type(spec.name)
@@ -166,10 +165,20 @@ def place(
         if spec.key in seen:
             raise ValueError(f"effect '{spec.key}' is given twice; give each effect once")
         seen.add(spec.key)
-        values = check_params(spec.name, dict(spec.params), where=spec.key)
+        checked.append((spec, check_params(spec.name, dict(spec.params), where=spec.key)))
+    return checked
+
+
+def place(
+    specs, names: dict[str, dict[str, int]], friction_gap: float = 1.0
+) -> tuple[EffectSet, EffectParams]:
+    """Resolve effect specs against a model's names (checked by `check`); `friction_gap`
+    scales the friction effects' magnitudes."""
+    sites, params = [], []
+    for spec, values in check(specs, names):
         if spec.name in FRICTION_EFFECTS:
             values[FRICTION_EFFECTS[spec.name]] *= friction_gap
-        index = names[etype.target_kind][spec.target]
+        index = names[effect_type(spec.name).target_kind][spec.target]
         sites.append(Site(spec.name, spec.target, index, int(values.pop("steps", 0))))
         params.append({k: jnp.asarray(v, jnp.float32) for k, v in values.items()})
     return EffectSet(tuple(sites)), tuple(params)
