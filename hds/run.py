@@ -45,6 +45,16 @@ from hds.utils.runtime import enable_compilation_cache  # noqa: E402
 log = logging.getLogger("hds")
 
 
+def wandb_group(hydra_cfg) -> str:
+    """The W&B group of a run: its directory's last three parts (`multiruns/<name>/<time>` or
+    `runs/<name>/<time>` by default). Every job of a multirun gets its sweep directory's, also
+    when the sweep is started again on it; a single run gets its own. `logger.group=...`
+    overrides it."""
+    multirun = hydra_cfg.mode == RunMode.MULTIRUN
+    directory = Path(str(hydra_cfg.sweep.dir if multirun else hydra_cfg.runtime.output_dir))
+    return "/".join(directory.resolve().parts[-3:])[-128:]  # W&B allows 128 characters
+
+
 def batch_of(cfg: Config) -> list[dict]:
     """The runs trained together: every seed crossed with every setting of `cfg.sweep`."""
     names, values = zip(*cfg.sweep.items()) if cfg.sweep.items() else ((), ())
@@ -256,12 +266,14 @@ def run(cfg: Config, out_dir: Path) -> dict:
 
 @hydra.main(config_path="../conf", config_name="config", version_base="1.3")
 def main(dcfg) -> float:
-    cfg = validate(dcfg)  # every range check, before anything compiles
-    enable_compilation_cache()
     hydra_cfg = HydraConfig.get()
+    if dcfg.logger.group is None:
+        dcfg.logger.group = wandb_group(hydra_cfg)
     out_dir = Path(hydra_cfg.runtime.output_dir)
     OmegaConf.save(dcfg, out_dir / "config.yaml", resolve=True)
     try:
+        cfg = validate(dcfg)  # every range check, before anything compiles
+        enable_compilation_cache()
         summary = run(cfg, out_dir)
     except Exception:
         if hydra_cfg.mode != RunMode.MULTIRUN:

@@ -1,14 +1,19 @@
 """Sweeps: vmapped inside one program or as Hydra multiruns (basic, joblib, submitit_local), the
 two agreeing; sharding across host devices; a failed job that a restarted sweep reruns while it
-skips the finished ones; and hds.report on the result."""
+skips the finished ones; a killed sweep that resumes; one W&B group per sweep; and hds.report on
+the result."""
 
 from __future__ import annotations
 
 import json
 import os
 import shutil
+import signal
+import struct
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -31,18 +36,56 @@ TINY = (
 )
 
 
-def hds_run_cli(*args, env_vars=None, timeout=900):
-    env = {**os.environ, "WANDB_MODE": "offline", **(env_vars or {})}
+def cli(*args) -> list[str]:
+    return [sys.executable, "-m", "hds.run", *args]
+
+
+def cli_env(env_vars=None) -> dict:
+    return {**os.environ, "WANDB_MODE": "offline", **(env_vars or {})}
+
+
+def hds_run_cli(*args, env_vars=None, timeout=900, cwd=ROOT):
     proc = subprocess.run(
-        [sys.executable, "-m", "hds.run", *args],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
+        cli(*args), cwd=cwd, env=cli_env(env_vars), capture_output=True, text=True, timeout=timeout
     )
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
     return proc
+
+
+def assert_every_job_finished(sweep: Path, jobs: set[str]) -> dict:
+    """The sweep's own summary.json gathers the rows of every job, and none failed."""
+    summary = json.loads((sweep / "summary.json").read_text())
+    assert {r["job"] for r in summary["rows"]} == jobs and summary["failed_jobs"] == []
+    return summary
+
+
+def wandb_groups(run_dir: Path) -> list[str]:
+    """The W&B group of every offline run below run_dir, read back from the run record of its
+    `run-<id>.wandb` file: protobuf records in leveldb's log format (32 KiB blocks after a 7-byte
+    `:W&B` header; each chunk: crc32, length, type 1 full / 2 first / 3 middle / 4 last)."""
+    from wandb.proto.wandb_internal_pb2 import Record
+
+    groups = []
+    for path in sorted(run_dir.glob("wandb/offline-run-*/run-*.wandb")):
+        data = path.read_bytes()
+        assert data[:4] == b":W&B", path
+        pos, chunks = 7, b""
+        while pos + 7 <= len(data):
+            if 32768 - pos % 32768 < 7:  # a block's trailer
+                pos += 32768 - pos % 32768
+                continue
+            _, length, kind = struct.unpack("<IHB", data[pos : pos + 7])
+            chunks += data[pos + 7 : pos + 7 + length]
+            pos += 7 + length
+            if kind in (1, 4):
+                record = Record.FromString(chunks)
+                chunks = b""
+                if record.HasField("run"):
+                    groups.append(record.run.run_group)
+                    break
+        else:
+            raise AssertionError(f"no run record in {path}")
+    return groups
 
 
 @pytest.mark.parametrize(
@@ -142,8 +185,66 @@ def test_a_restarted_sweep_skips_finished_jobs_and_reruns_failed_ones(restarted_
     sweep, state, second = restarted_sweep
     assert (sweep / "0" / "summary.json").stat().st_mtime_ns == state["job0_mtime"]
     assert not (sweep / "1" / "failed.txt").exists()
-    summary = json.loads((sweep / "summary.json").read_text())
-    assert {r["job"] for r in summary["rows"]} == {"0", "1"} and summary["failed_jobs"] == []
+    assert_every_job_finished(sweep, {"0", "1"})
+
+
+@pytest.fixture(scope="module")
+def killed_sweep(tmp_path_factory):
+    """A sweep over two methods (so two config names) in the default sweep directory, with W&B
+    offline, killed (SIGKILL) as soon as its first job has finished, then started again on that
+    directory (`hydra.sweep.dir=`), as `hds_run_cli` starts any sweep."""
+    tmp = tmp_path_factory.mktemp("killed")
+    tiny_wandb = [a for a in TINY if a != "logger=none"]  # conf/config.yaml: logger=wandb
+    args = ["-m", *tiny_wandb, "real=none", "method=pods,pods_cl"]
+    first = subprocess.Popen(
+        cli(*args),
+        cwd=tmp,  # outputs/multiruns/<name>/<time>/ lands in tmp
+        env=cli_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,  # its own process group: the kill takes its children too
+    )
+    try:
+        deadline = time.monotonic() + 600
+        while not (done := list(tmp.glob("outputs/multiruns/*/*/0/summary.json"))):
+            assert first.poll() is None, "the sweep ended before its first job had finished"
+            assert time.monotonic() < deadline, "the first job did not finish in 600 s"
+            time.sleep(0.2)
+    finally:
+        os.killpg(first.pid, signal.SIGKILL)
+        first.wait()
+    sweep = done[0].parents[1]
+    state = {
+        "finished_at_kill": sorted(p.parent.name for p in sweep.glob("*/summary.json")),
+        "job0_summary": (sweep / "0" / "summary.json").read_bytes(),
+        "job0_mtime": (sweep / "0" / "summary.json").stat().st_mtime_ns,
+    }
+    second = hds_run_cli(*args, f"hydra.sweep.dir={sweep}", cwd=tmp)
+    return tmp, sweep, state, second
+
+
+def test_a_killed_sweep_resumes_without_retraining_finished_jobs(killed_sweep):
+    tmp, sweep, state, second = killed_sweep
+    assert state["finished_at_kill"] == ["0"]  # killed while job 1 was unfinished
+    assert (sweep / "0" / "summary.json").read_bytes() == state["job0_summary"]
+    assert (sweep / "0" / "summary.json").stat().st_mtime_ns == state["job0_mtime"]
+    assert f"{sweep / '0'} is finished (summary.json exists): skipped" in second.stdout
+    summary = assert_every_job_finished(sweep, {"0", "1"})
+    assert sorted(r["method"] for r in summary["rows"]) == ["pods", "pods_cl"]
+    # both methods' jobs in the one sweep directory, though their names differ
+    assert list(tmp.glob("outputs/multiruns/*/*")) == [sweep]
+
+
+def test_the_jobs_of_a_sweep_share_one_wandb_group(killed_sweep):
+    """Every job's W&B offline runs (job 1's from before the kill and after the restart) carry
+    the sweep's group, `multiruns/<name>/<time>` of its directory: not the jobs' names, not another
+    sweep's."""
+    _, sweep, _, _ = killed_sweep
+    group = f"multiruns/cartpole_balance-pods/{sweep.name}"
+    assert sweep.parent.name == "cartpole_balance-pods"
+    assert wandb_groups(sweep / "0") == [group]  # trained once: not retrained on restart
+    job1 = wandb_groups(sweep / "1")
+    assert job1 and set(job1) == {group}
 
 
 def test_hds_report_on_a_sweep(restarted_sweep):
@@ -165,6 +266,34 @@ def test_hds_report_elsewhere_with_an_animation(restarted_sweep, tmp_path):
     assert (tmp_path / "report.csv").is_file()
     gif = tmp_path / "plots" / "pods_sim_vs_real.gif"
     assert gif.read_bytes()[:6] == b"GIF89a"
+
+
+def test_a_single_run_has_a_wandb_group_of_its_own():
+    from types import SimpleNamespace
+
+    from hydra.types import RunMode
+
+    sweep = "outputs/multiruns/cartpole_balance-pods/2026-01-02_03-04-05"
+    runs = [f"outputs/runs/cartpole_balance-pods/2026-01-02_03-04-0{i}" for i in (5, 6)]
+    as_job = lambda mode, out: SimpleNamespace(  # noqa: E731
+        mode=mode, sweep=SimpleNamespace(dir=sweep), runtime=SimpleNamespace(output_dir=out)
+    )
+    groups = [hds_run.wandb_group(as_job(RunMode.MULTIRUN, f"{sweep}/{j}")) for j in (0, 1)]
+    assert groups == ["multiruns/cartpole_balance-pods/2026-01-02_03-04-05"] * 2
+    singles = [hds_run.wandb_group(as_job(RunMode.RUN, run)) for run in runs]
+    assert singles == [
+        "runs/cartpole_balance-pods/2026-01-02_03-04-05",
+        "runs/cartpole_balance-pods/2026-01-02_03-04-06",
+    ]
+
+
+def test_hds_report_names_what_it_expects_where_there_is_nothing(tmp_path):
+    from hds.report import build
+
+    with pytest.raises(FileNotFoundError) as err:
+        build(tmp_path)
+    for expected in ("summary.json", "python -m hds.run", "report.json", "python -m hds.discover"):
+        assert expected in str(err.value)
 
 
 @pytest.fixture(scope="module")
