@@ -28,8 +28,16 @@ import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
-RESULTS_JSON = ROOT / "bench" / "results.json"
-RESULTS_MD = ROOT / "bench" / "RESULTS.md"
+
+
+def result_files(backend: str) -> tuple[Path, Path]:
+    """results.json and RESULTS.md of jax's backend: the CPU ones are committed as they are; a
+    GPU's go beside them (results-gpu.json, RESULTS-gpu.md), so neither overwrites the other."""
+    suffix = "" if backend == "cpu" else f"-{backend}"
+    return ROOT / "bench" / f"results{suffix}.json", ROOT / "bench" / f"RESULTS{suffix}.md"
+
+
+RESULTS_JSON, RESULTS_MD = result_files(jax.default_backend())
 
 # The reference project's notebook configuration (FIELD-NOTES.md), on the project's copy of its
 # task (env=cartpole_reference: horizon 100, q and qd uniform in [-5, 5], its reward).
