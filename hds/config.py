@@ -301,15 +301,19 @@ class SweepConfig:
     # real.friction_gap: each run is evaluated on its own plant, and an oracle trains on its
     # own dynamics; a learned model or a corrected simulator needs a multirun instead
     friction_gap: list[float] = field(default_factory=list)
+    # dynamics.beta, the share of rollouts through the learned model (dynamics.model != none)
+    beta: list[float] = field(default_factory=list)
 
     def check(self):
         for key, _ in self.items():
             if any(v < 0 for v in getattr(self, key)):
                 raise ValueError(f"sweep.{key} = {getattr(self, key)} must be non-negative")
+        if any(v > 1 for v in self.beta):
+            raise ValueError(f"sweep.beta = {self.beta} must lie in [0, 1]")
 
     def items(self):
         """(name, values) of the settings swept."""
-        names = ("step_size", "noise_scale", "noise_decay", "friction_gap")
+        names = ("step_size", "noise_scale", "noise_decay", "friction_gap", "beta")
         return [(k, getattr(self, k)) for k in names if getattr(self, k)]
 
 
@@ -338,16 +342,23 @@ class Config:
     sweep: SweepConfig = field(default_factory=lambda: SweepConfig())
     discover: DiscoverConfig = field(default_factory=DiscoverConfig)
 
+    def uses_model(self) -> bool:
+        """Whether some run of the batch takes rollouts through a learned model."""
+        return self.dynamics.model != "none" and max([self.dynamics.beta, *self.sweep.beta]) > 0
+
     def check(self):
         _one_of("simulator", self.simulator, ("nominal", "corrected", "real"))
-        if self.sweep.friction_gap and (
-            self.simulator == "corrected" or (self.dynamics.model != "none" and self.dynamics.beta)
-        ):
+        if self.sweep.friction_gap and (self.simulator == "corrected" or self.uses_model()):
             raise ValueError(
                 "sweep.friction_gap trains every gap in one program, but a learned model "
                 f"(dynamics.model = {self.dynamics.model}) or simulator = corrected needs data "
                 "measured at each gap: sweep the gap as a multirun instead "
                 "(python -m hds.run -m real.friction_gap=0,1,2)"
+            )
+        if self.sweep.beta and self.dynamics.model == "none":
+            raise ValueError(
+                "sweep.beta sweeps the share of rollouts through the learned model, but "
+                "dynamics.model = none; choose one (dynamics=mlp, or method=hds)"
             )
         if self.sweep.noise_decay and self.noise.schedule != "exponential":
             raise ValueError(

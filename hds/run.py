@@ -132,7 +132,7 @@ def _check_finite(state, method: str) -> None:
 
 def dynamics_model(cfg: Config, env, plant, out_dir: Path):
     """The learned dynamics engine for HDS, or None when dynamics.model is none."""
-    if cfg.dynamics.model == "none" or cfg.dynamics.beta == 0.0:
+    if not cfg.uses_model():
         return None, {}
     from hds.dynamics import build
 
@@ -145,7 +145,7 @@ def method_name(cfg: Config) -> str:
     if cfg.simulator == "real":
         return "oracle" if cfg.algo.name == "pods" else f"{cfg.algo.name}+oracle"
     parts = [cfg.algo.name]
-    if cfg.dynamics.model != "none" and cfg.dynamics.beta > 0:
+    if cfg.uses_model():
         parts.append(cfg.dynamics.model)
     if cfg.simulator == "corrected":
         parts.append("corrected")

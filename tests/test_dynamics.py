@@ -303,3 +303,32 @@ def test_residual_step_has_a_finite_jacobian(setup, fitted):
     )
     jac = np.asarray(jax.jit(jax.jacrev(lambda x: model.step(x[:4], x[4:])))(x))
     assert np.all(np.isfinite(jac)) and np.all(np.abs(jac).max(0) > 0)
+
+
+def test_a_vmapped_beta_sweep_gives_the_numbers_of_separate_runs(setup, fitted, tmp_path):
+    """sweep.beta trains every share of model rollouts in one program (the widest split, each
+    run using its own share): the numbers of one run per beta, beta = 0 being plain PODS."""
+    from hds import run as hds_run
+
+    _, env, *_ = setup
+    model, _ = fitted("ensemble")
+    betas = (0.0, 0.25, 0.75)
+    swept = make_config(*SMALL, f"sweep.beta=[{','.join(map(str, betas))}]")
+    together, history, *_ = hds_run.train(swept, env, tmp_path / "vmapped", "hds", model)
+    for i, beta in enumerate(betas):
+        alone_cfg = make_config(*SMALL, f"dynamics.beta={beta}")
+        alone, alone_history, *_ = hds_run.train(
+            alone_cfg, env, tmp_path / f"alone{i}", "hds", model if beta else None
+        )
+        for a, b in zip(jax.tree.leaves(together), jax.tree.leaves(alone), strict=True):
+            np.testing.assert_allclose(a[i], b[0], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(history["return"][i], alone_history["return"][0], rtol=1e-5)
+    first = [np.asarray(jax.tree.leaves(together)[0][i]) for i in range(len(betas))]
+    assert not np.allclose(first[1], first[2])  # the share matters
+
+
+def test_a_beta_sweep_needs_a_model():
+    with pytest.raises(ValueError, match="sweep.beta.*dynamics.model = none"):
+        make_config("sweep.beta=[0.1,0.2]")
+    with pytest.raises(ValueError, match=r"sweep.beta = \[0.5, 2.0\] must lie in \[0, 1\]"):
+        make_config("dynamics=mlp", "sweep.beta=[0.5,2.0]")

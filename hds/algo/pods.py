@@ -74,10 +74,27 @@ def make_train(cfg, env, model=None) -> Trainer:
         anneal.candidates(cfg.anneal.kind, algo.line_search),
         cfg.anneal.kind,
     )
-    n_model = int(round(cfg.dynamics.beta * algo.rollouts)) if model is not None else 0
-    parts = [(env, algo.rollouts - n_model, "effects")]
-    if n_model:
-        parts.append((model, n_model, None))
+
+    # The split of the batch is static: a swept beta (sweep.beta) runs the widest split, and
+    # each run uses its own share of it (`shares`), so every run sees the rollouts a run with
+    # that beta alone would (jax.random.split's keys are prefix-consistent).
+    def model_count(beta):
+        return jnp.round(jnp.float32(beta) * algo.rollouts).astype(jnp.int32)
+
+    betas = (cfg.sweep.beta or [cfg.dynamics.beta]) if model is not None else [0.0]
+    n_model_max, n_model_min = int(model_count(max(betas))), int(model_count(min(betas)))
+    parts = [(env, algo.rollouts - n_model_min, "effects")]
+    if n_model_max:
+        parts.append((model, n_model_max, None))
+
+    def shares(hparams):
+        """Per part, which of its rollouts this run uses, and the regression's row order."""
+        n_model = model_count(hparams["beta"]) if n_model_max else 0
+        n_sim = algo.rollouts - n_model
+        i = jnp.arange(algo.rollouts)
+        rows = jnp.where(i < n_sim, i, parts[0][1] + i - n_sim)
+        masks = [jnp.arange(n) < k for (_, n, _), k in zip(parts, (n_sim, n_model))]
+        return masks, rows
 
     def init(key, hparams) -> TrainState:
         key, init_key = jax.random.split(key)
@@ -145,14 +162,16 @@ def make_train(cfg, env, model=None) -> Trainer:
         return obs, result, rewards.sum(-1), alpha
 
     def epoch(state: TrainState, hparams):
-        key, *part_keys = jax.random.split(state.key, len(parts) + 2)
-        regress_key = part_keys.pop()
+        # the same keys whether or not a model takes part: a run with beta = 0 in a beta sweep
+        # is the run without a model
+        key, sim_key, regress_key, model_key = jax.random.split(state.key, 4)
         outs = [
             collect_and_improve(e, pk, n, state, hparams, k)
-            for (e, n, pk), k in zip(parts, part_keys)
+            for (e, n, pk), k in zip(parts, (sim_key, model_key))
         ]
-        obs = jnp.concatenate([o[0].reshape(-1, sim.n_obs) for o in outs])
-        targets = jnp.concatenate([o[1].actions.reshape(-1, sim.n_act) for o in outs])
+        masks, rows = shares(hparams)
+        obs = jnp.concatenate([o[0] for o in outs])[rows].reshape(-1, sim.n_obs)
+        targets = jnp.concatenate([o[1].actions for o in outs])[rows].reshape(-1, sim.n_act)
         params, opt_state, loss = regress(
             policy.apply,
             optimizer,
@@ -167,14 +186,22 @@ def make_train(cfg, env, model=None) -> Trainer:
             tol=algo.early_stop,
         )
         sim_obs, sim_result, sim_returns, alpha = outs[0]
+
+        def used(values, part=None):  # the rollouts this run uses: of one part, or of all
+            if part is not None:
+                return jnp.where(masks[part], values(outs[part]), jnp.nan)
+            return jnp.concatenate([used(values, p) for p in range(len(outs))])
+
+        accepted, skipped = used(lambda o: o[1].accepted), used(lambda o: o[1].skipped)
         metrics = {
-            "return": jnp.nanmean(sim_returns),  # the (noisy) policy's return on the simulator
-            "improved_return": jnp.nanmean(sim_result.new_value),
+            # the (noisy) policy's return on the simulator
+            "return": jnp.nanmean(used(lambda o: o[2], 0)),
+            "improved_return": jnp.nanmean(used(lambda o: o[1].new_value, 0)),
             "loss": loss,
             "step_size": alpha,
             "noise": sigma(hparams, state.epoch),
-            "accepted": jnp.mean(jnp.concatenate([o[1].accepted for o in outs])),
-            "skipped": jnp.sum(jnp.concatenate([o[1].skipped for o in outs])),
+            "accepted": jnp.nanmean(accepted),
+            "skipped": jnp.nansum(skipped),
         }
         return TrainState(params, opt_state, state.epoch + 1, key), metrics
 
@@ -191,6 +218,7 @@ def make_train(cfg, env, model=None) -> Trainer:
         "step_size": jnp.asarray(algo.step_size, jnp.float32),
         "noise_scale": jnp.asarray(cfg.noise.scale, jnp.float32),
         "noise_decay": jnp.asarray(cfg.noise.decay, jnp.float32),
+        "beta": jnp.asarray(cfg.dynamics.beta, jnp.float32),
         "effects": env.params,
     }
     return Trainer(init, run_chunk, train, chunk, algo.epochs // chunk, policy, hparams)
