@@ -339,12 +339,15 @@ def test_friction_gap_scales_friction(plants, momentum, kind):
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_a_bad_target_names_the_allowed_ones(kind):
-    cfg = make_config(
-        f"real.plant={kind}",
-        "real.effects=[{name: coulomb_friction, target: nope, params: {force: 1.0}}]",
-    )
-    with pytest.raises(ValueError, match=r"no joint 'nope'.*\['slider', 'hinge'\]"):
-        make_plant(cfg.real, cfg.env)
+    """Refused at validation, and by the plant's builder itself (its callers need not validate)."""
+    allowed = r"no joint 'nope'.*\['slider', 'hinge'\]"
+    bad = "real.effects=[{name: coulomb_friction, target: nope, params: {force: 1.0}}]"
+    with pytest.raises(ValueError, match=rf"real.effects: .*{allowed}"):
+        make_config(f"real.plant={kind}", bad)
+    cfg = make_config(f"real.plant={kind}")
+    real = dataclasses.replace(cfg.real, effects=[effect("coulomb_friction", "nope", force=1.0)])
+    with pytest.raises(ValueError, match=allowed):
+        make_plant(real, cfg.env)
 
 
 def test_the_mujoco_spec_writes_the_native_effects_to_mjcf(env_cfg):
