@@ -115,6 +115,7 @@ class AlgoConfig:
     # the policy onto them at the rollout's states; closed_loop: improve perturbations of the
     # policy's own controls through its feedback, and regress onto the improved trajectory
     improve_in: str = "open_loop"
+    grad_window: int = 0  # closed loop: SHAC-style truncated gradients, 0 = the whole horizon
     early_stop: float = 0.0  # stop regressing once the loss improves less than this
     hidden: list[int] = field(default_factory=lambda: [64, 64])
     chunk: int = 5  # epochs per compiled chunk, between host-side logs and checkpoints
@@ -133,6 +134,12 @@ class AlgoConfig:
         for key in ("learning_rate", "step_size", "grad_clip"):
             _in_range(f"algo.{key}", getattr(self, key), 1e-12)
         _in_range("algo.gn_damping", self.gn_damping, 0.0)
+        _in_range("algo.grad_window", self.grad_window, 0)
+        if self.grad_window and self.improve_in != "closed_loop":
+            raise ValueError(
+                "algo.grad_window truncates closed-loop gradients only; "
+                "choose algo.improve_in=closed_loop (or algo.grad_window=0)"
+            )
         _in_range("algo.early_stop", self.early_stop, 0.0)
 
 

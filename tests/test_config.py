@@ -83,6 +83,8 @@ def test_every_launcher_composes(launcher):
             "choose one of ['generalized', 'spring', 'positional', 'mjx', 'analytic']",
         ),
         ("algo.order=third", "algo.order = 'third' is not allowed"),
+        ("algo.grad_window=-1", "algo.grad_window = -1 is out of range"),
+        ("algo.grad_window=16", "algo.grad_window truncates closed-loop gradients only"),
         ("simulator=exact", "simulator = 'exact' is not allowed; choose one of ['nominal'"),
         ("sweep.noise_decay=[0.5]", "sweep.noise_decay sweeps the exponential schedule's decay"),
         ("sweep.step_size=[-0.5]", "sweep.step_size = [-0.5] must be non-negative"),

@@ -143,3 +143,33 @@ def test_a_nan_gradient_skips_the_sample():
         high=10.0,
     )
     assert bool(out.skipped) and not bool(out.accepted)
+
+
+def test_windowed_gradient_is_the_full_one_over_the_horizon_and_myopic_over_one_step():
+    """algo.grad_window (closed loop, SHAC-style truncation): values never change; a window
+    of the whole horizon gives the full gradient; a window of one step leaves each
+    perturbation only its own step's reward, d r(f(s_t, u_t), u_t) / d delta_t at fixed s_t."""
+    from hds.algo.rollout import perturbed_rollout
+
+    act = lambda o: jnp.array([-2.0 * o[0] - 0.5 * o[1]])  # noqa: E731  a linear feedback
+    state = jnp.array([0.5, -0.3])
+    deltas = jax.random.normal(jax.random.PRNGKey(6), (T, 1))
+    low, high = jnp.full(1, -10.0), jnp.full(1, 10.0)
+
+    def ret(d, window):
+        return perturbed_rollout(ENGINE, None, TASK, act, state, d, low, high, window)[2].sum()
+
+    full = jax.grad(ret)(deltas, 0)
+    np.testing.assert_allclose(jax.grad(ret)(deltas, T), full, rtol=1e-6)
+    for window in (1, 3):
+        np.testing.assert_allclose(ret(deltas, window), ret(deltas, 0), rtol=1e-6)
+    # s_t before each step: the rollout's observations (this engine observes its state)
+    states = perturbed_rollout(ENGINE, None, TASK, act, state, deltas, low, high)[0]
+
+    def own_reward(s, d):
+        u = act(s) + d
+        return TASK.reward(*ENGINE.qqd(ENGINE.step(s, u, None)), u)
+
+    own = jax.vmap(jax.grad(own_reward, 1))(states, deltas)
+    np.testing.assert_allclose(jax.grad(ret)(deltas, 1), own, rtol=1e-5, atol=1e-7)
+    assert not np.allclose(own, full)

@@ -27,6 +27,7 @@ class ImproveSettings(NamedTuple):
     gn_damping: float
     candidates: int  # step sizes alpha / 2^k tried together
     anneal: str  # the acceptance rule: line_search | simulated | fixed
+    grad_window: int = 0  # closed loop: truncate gradients to windows of this many steps
 
 
 class Improved(NamedTuple):
@@ -79,9 +80,14 @@ def improve(
     if act is None:
         ret = lambda a: open_loop_return(engine, params, task, state, a)  # noqa: E731
     else:
-        ret = lambda d: perturbed_rollout(engine, params, task, act, state, d, low, high)[2].sum()  # noqa: E731
+        ret = lambda d, w=0: perturbed_rollout(  # noqa: E731
+            engine, params, task, act, state, d, low, high, w
+        )[2].sum()
         low, high = low - high, high - low  # a perturbation may span the whole range
-    value, grad = jax.value_and_grad(ret)(actions)
+    if act is not None and cfg.grad_window:
+        value, grad = jax.value_and_grad(lambda d: ret(d, cfg.grad_window))(actions)
+    else:
+        value, grad = jax.value_and_grad(ret)(actions)
     grad, _ = optax.clip_by_global_norm(cfg.grad_clip).update(grad, None)
     finite = jnp.isfinite(value) & jnp.all(jnp.isfinite(grad))
     grad = jnp.where(finite, grad, 0.0)

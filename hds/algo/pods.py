@@ -73,6 +73,7 @@ def make_train(cfg, env, model=None) -> Trainer:
         algo.gn_damping,
         anneal.candidates(cfg.anneal.kind, algo.line_search),
         cfg.anneal.kind,
+        algo.grad_window,
     )
 
     # The split of the batch is static: a swept beta (sweep.beta) runs the widest split, and

@@ -14,17 +14,26 @@ def policy_rollout(engine, params, task, act, state, key, noise_std, horizon, lo
     return perturbed_rollout(engine, params, task, act, state, noise_std * noise, low, high)
 
 
-def perturbed_rollout(engine, params, task, act, state, deltas, low, high):
+def perturbed_rollout(engine, params, task, act, state, deltas, low, high, window=0):
     """Closed loop with a perturbation per step: u_t = clip(act(o_t) + deltas_t).
-    Returns (obs [T, n_obs], u [T, n_act], r [T])."""
+    Returns (obs [T, n_obs], u [T, n_act], r [T]).
 
-    def step(state, delta):
+    `window` > 0 truncates gradients as SHAC does: the state is cut from the gradient every
+    `window` steps, so a perturbation's gradient sums only the rewards up to the end of its
+    window (values are unchanged). Through many steps of a chaotic system (a pole swinging over
+    the top) the full gradient explodes and points nowhere useful."""
+
+    def step(state, xs):
+        t, delta = xs
+        if window:
+            cut = t % window == 0
+            state = jax.tree.map(lambda s: jnp.where(cut, jax.lax.stop_gradient(s), s), state)
         obs = engine.observe(state, params)
         u = jnp.clip(act(obs) + delta, low, high)
         state = engine.step(state, u, params)
         return state, (obs, u, task.reward(*engine.qqd(state), u))
 
-    _, (obs, u, r) = jax.lax.scan(step, state, deltas)
+    _, (obs, u, r) = jax.lax.scan(step, state, (jnp.arange(deltas.shape[0]), deltas))
     return obs, u, r
 
 
