@@ -80,14 +80,11 @@ def improve(
     if act is None:
         ret = lambda a: open_loop_return(engine, params, task, state, a)  # noqa: E731
     else:
-        ret = lambda d, w=0: perturbed_rollout(  # noqa: E731
-            engine, params, task, act, state, d, low, high, w
+        ret = lambda d: perturbed_rollout(  # noqa: E731  (a window leaves values as they are)
+            engine, params, task, act, state, d, low, high, cfg.grad_window
         )[2].sum()
         low, high = low - high, high - low  # a perturbation may span the whole range
-    if act is not None and cfg.grad_window:
-        value, grad = jax.value_and_grad(lambda d: ret(d, cfg.grad_window))(actions)
-    else:
-        value, grad = jax.value_and_grad(ret)(actions)
+    value, grad = jax.value_and_grad(ret)(actions)
     grad, _ = optax.clip_by_global_norm(cfg.grad_clip).update(grad, None)
     finite = jnp.isfinite(value) & jnp.all(jnp.isfinite(grad))
     grad = jnp.where(finite, grad, 0.0)
