@@ -186,23 +186,22 @@ def make_train(cfg, env, model=None) -> Trainer:
             minibatch=algo.minibatch,
             tol=algo.early_stop,
         )
-        sim_obs, sim_result, sim_returns, alpha = outs[0]
 
-        def used(values, part=None):  # the rollouts this run uses: of one part, or of all
-            if part is not None:
-                return jnp.where(masks[part], values(outs[part]), jnp.nan)
-            return jnp.concatenate([used(values, p) for p in range(len(outs))])
+        def used(value_of, part):  # a part's values, NaN where this run does not use them
+            return jnp.where(masks[part], value_of(outs[part]), jnp.nan)
 
-        accepted, skipped = used(lambda o: o[1].accepted), used(lambda o: o[1].skipped)
+        def used_all(value_of):
+            return jnp.concatenate([used(value_of, p) for p in range(len(outs))])
+
         metrics = {
             # the (noisy) policy's return on the simulator
             "return": jnp.nanmean(used(lambda o: o[2], 0)),
             "improved_return": jnp.nanmean(used(lambda o: o[1].new_value, 0)),
             "loss": loss,
-            "step_size": alpha,
+            "step_size": outs[0][3],
             "noise": sigma(hparams, state.epoch),
-            "accepted": jnp.nanmean(accepted),
-            "skipped": jnp.nansum(skipped),
+            "accepted": jnp.nanmean(used_all(lambda o: o[1].accepted)),
+            "skipped": jnp.nansum(used_all(lambda o: o[1].skipped)),
         }
         return TrainState(params, opt_state, state.epoch + 1, key), metrics
 
