@@ -1,8 +1,10 @@
 """Regress the policy onto the improved actions (PODS, step 3): supervised MSE, minibatch Adam.
 
-Inner epochs and minibatches are nested `lax.scan`s. Early stopping is a mask: once an inner
-epoch lowers the loss by less than `tol`, the remaining updates leave the parameters as they are,
-so the compiled program has one shape whatever happens.
+Inner epochs and minibatches are nested `lax.scan`s. Each inner epoch gathers its shuffled
+minibatches once, then scans over them (one gather per epoch, not one per step: a third of the
+regression's time on CPU). Early stopping: once an inner epoch lowers the loss by less than
+`tol`, the remaining epochs are skipped by a `lax.cond`, so the compiled program has one shape
+whatever happens (under vmap both branches run and the skip is a select).
 """
 
 from __future__ import annotations
@@ -38,25 +40,25 @@ def regress(
     n = obs.shape[0]
     size = min(minibatch, n)
     batches = n // size
-    loss_of = lambda p, i: weighted_mse(apply, p, obs[i], targets[i], weights[i])  # noqa: E731
+    loss_of = lambda p, batch: weighted_mse(apply, p, *batch)  # noqa: E731
 
-    def minibatch_step(carry, idx):
-        params, opt_state, stopped = carry
-        grads = jax.grad(loss_of)(params, idx)
-        updates, new_state = optimizer.update(grads, opt_state, params)
-        keep = lambda old, new: jnp.where(stopped, old, new)  # noqa: E731
-        params = jax.tree.map(keep, params, optax.apply_updates(params, updates))
-        return (params, jax.tree.map(keep, opt_state, new_state), stopped), None
+    def minibatch_step(carry, batch):
+        params, opt_state = carry
+        updates, opt_state = optimizer.update(jax.grad(loss_of)(params, batch), opt_state, params)
+        return (optax.apply_updates(params, updates), opt_state), None
 
     def epoch(carry, key):
         params, opt_state, loss, stopped = carry
         order = jax.random.permutation(key, n)[: batches * size].reshape(batches, size)
-        (params, opt_state, _), _ = jax.lax.scan(
-            minibatch_step, (params, opt_state, stopped), order
+        shuffled = (obs[order], targets[order], weights[order])
+        params, opt_state = jax.lax.cond(
+            stopped,
+            lambda c: c,
+            lambda c: jax.lax.scan(minibatch_step, c, shuffled)[0],
+            (params, opt_state),
         )
         new_loss = weighted_mse(apply, params, obs, targets, weights)
-        stopped = stopped | (loss - new_loss < tol)
-        return (params, opt_state, new_loss, stopped), None
+        return (params, opt_state, new_loss, stopped | (loss - new_loss < tol)), None
 
     start = (
         params,
