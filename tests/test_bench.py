@@ -37,3 +37,36 @@ def test_gpu_results_go_beside_the_cpu_ones(tmp_path, monkeypatch):
     path, md = tmp_path / gpu_json.name, tmp_path / gpu_md.name
     common.save_section("gpu", {"title": "accelerator", "skipped": "test"}, path, md)
     assert "accelerator" in md.read_text() and sorted(tmp_path.iterdir()) == sorted([path, md])
+
+
+def test_regression_flops_count_what_xla_counts():
+    """bench/overhead.py's regression floor counts the dense FLOPs XLA itself reports for one
+    inner epoch made of a single full-batch step (its compiled program has no loop to hide
+    iterations from the cost analysis)."""
+    import jax
+    import jax.numpy as jnp
+    import optax
+
+    from bench.overhead import regression_flops
+    from hds.algo.regress import weighted_mse
+    from hds.envs import make_env
+    from hds.networks import make_policy
+
+    env = make_env(compose("env.backend=analytic").env)
+    policy = make_policy([64, 64], env.sim)
+    rows = 512
+    obs = jax.random.normal(jax.random.PRNGKey(0), (rows, env.sim.n_obs))
+    targets, weights = jnp.zeros((rows, env.sim.n_act)), jnp.ones(rows)
+    params = policy.init(jax.random.PRNGKey(1), obs[:1])
+    opt = optax.sgd(1e-3)
+
+    def one_epoch(params):
+        grads = jax.grad(lambda p: weighted_mse(policy.apply, p, obs, targets, weights))(params)
+        params = optax.apply_updates(params, opt.update(grads, opt.init(params))[0])
+        return weighted_mse(policy.apply, params, obs, targets, weights)
+
+    analysis = jax.jit(one_epoch).lower(params).compile().cost_analysis()
+    xla = (analysis[0] if isinstance(analysis, list) else analysis)["flops"]
+    initial_loss = rows * sum(2 * k.size for k in jax.tree.leaves(params) if k.ndim == 2)
+    counted = regression_flops(params, rows, inner_epochs=1, minibatch=rows) - initial_loss
+    assert counted == pytest.approx(xla, rel=0.1)
