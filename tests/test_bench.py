@@ -70,3 +70,17 @@ def test_regression_flops_count_what_xla_counts():
     initial_loss = rows * sum(2 * k.size for k in jax.tree.leaves(params) if k.ndim == 2)
     counted = regression_flops(params, rows, inner_epochs=1, minibatch=rows) - initial_loss
     assert counted == pytest.approx(xla, rel=0.1)
+
+
+def test_the_peers_swingup_variant_is_the_swingup_experiment():
+    """bench/peers.py's pods_cl_swingup trains with conf/experiment/swingup.yaml's algo and
+    noise (its epochs and chunk aside, which the bench sets), so the bench measures the
+    experiment the README reports."""
+    from bench.peers import DEFAULT_BUDGET
+
+    variant = compose("env=cartpole_swingup", *DEFAULT_BUDGET["variants"]["pods_cl_swingup"])
+    experiment = compose("+experiment=swingup")
+    for cfg in (variant, experiment):
+        cfg.algo.epochs, cfg.algo.chunk = 0, 0
+    assert variant.algo == experiment.algo
+    assert variant.noise == experiment.noise
