@@ -21,7 +21,8 @@ run: $(STAMP)
 	$(BIN)/python -m hds.run +experiment=sim2real_friction
 
 # Two workers, a test file each (its session's compiled fixtures stay in one process): 7.5 min
-# here on 2 cores for 269 tests (2026-11-23), against 12.6 min in one process for 267. TEST_WORKERS=0 runs them in this process.
+# here on 2 cores for 269 tests (2026-11-23), against 12.6 min in one process for 267.
+# TEST_WORKERS=0 runs them in this process.
 TEST_WORKERS ?= 2
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
