@@ -187,11 +187,16 @@ def time_parts(cfg, env, trainer, state, starts, keys, rollouts, batch, repeats:
     }
 
 
+def forward_flops_per_row(params) -> int:
+    """A forward pass's dense-layer FLOPs for one row: 2 x in x out per kernel."""
+    return sum(2 * k.size for k in jax.tree.leaves(params) if k.ndim == 2)
+
+
 def regression_flops(params, rows: int, inner_epochs: int, minibatch: int) -> float:
     """Dense-layer FLOPs of one epoch's regression: per inner epoch, a forward and backward pass
-    (3x a forward's 2 x in x out multiply-adds per row) over the minibatched rows, and one
-    forward pass over all rows for the early-stopping loss."""
-    per_row = sum(2 * k.size for k in jax.tree.leaves(params) if k.ndim == 2)
+    (3x a forward) over the minibatched rows and one forward pass over all rows for the
+    early-stopping loss, plus the initial loss."""
+    per_row = forward_flops_per_row(params)
     trained = rows // min(minibatch, rows) * min(minibatch, rows)
     return inner_epochs * (3 * trained + rows) * per_row + rows * per_row
 

@@ -47,7 +47,7 @@ def test_regression_flops_count_what_xla_counts():
     import jax.numpy as jnp
     import optax
 
-    from bench.overhead import regression_flops
+    from bench.overhead import forward_flops_per_row, regression_flops
     from hds.algo.regress import weighted_mse
     from hds.envs import make_env
     from hds.networks import make_policy
@@ -67,7 +67,7 @@ def test_regression_flops_count_what_xla_counts():
 
     analysis = jax.jit(one_epoch).lower(params).compile().cost_analysis()
     xla = (analysis[0] if isinstance(analysis, list) else analysis)["flops"]
-    initial_loss = rows * sum(2 * k.size for k in jax.tree.leaves(params) if k.ndim == 2)
+    initial_loss = rows * forward_flops_per_row(params)
     counted = regression_flops(params, rows, inner_epochs=1, minibatch=rows) - initial_loss
     assert counted == pytest.approx(xla, rel=0.1)
 
