@@ -30,11 +30,11 @@ ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
 
 
-def result_files(backend: str) -> tuple[Path, Path]:
+def result_files(backend: str, folder: Path = ROOT / "bench") -> tuple[Path, Path]:
     """results.json and RESULTS.md of jax's backend: the CPU ones are committed as they are; a
     GPU's go beside them (results-gpu.json, RESULTS-gpu.md), so neither overwrites the other."""
     suffix = "" if backend == "cpu" else f"-{backend}"
-    return ROOT / "bench" / f"results{suffix}.json", ROOT / "bench" / f"RESULTS{suffix}.md"
+    return Path(folder) / f"results{suffix}.json", Path(folder) / f"RESULTS{suffix}.md"
 
 
 RESULTS_JSON, RESULTS_MD = result_files(jax.default_backend())

@@ -16,7 +16,8 @@ Budgets are each section's DEFAULT_BUDGET; override a key with --set, e.g.
   python -m bench.run discovery --set discovery.backends=analytic,generalized
 Values parse as JSON where they can (numbers, lists, true/false), else as a string; a
 comma-separated value becomes a list. Each section's result replaces only its own entry of
-bench/results.json, and bench/RESULTS.md is re-rendered from the whole file.
+bench/results.json, and bench/RESULTS.md is re-rendered from the whole file (`--out DIR` writes
+them to DIR instead, leaving the committed ones alone).
 """
 
 from __future__ import annotations
@@ -28,8 +29,11 @@ import shlex
 import sys
 import time
 import traceback
+from pathlib import Path
 
-from bench.common import RESULTS_JSON, RESULTS_MD, load_average, save_section, timed
+import jax
+
+from bench.common import ROOT, load_average, result_files, save_section, timed
 
 SECTIONS = {
     "reference": "bench.reference",
@@ -77,7 +81,7 @@ def budgets(names: list[str], settings: list[str]) -> dict[str, dict]:
     return out
 
 
-def run_section(name: str, budget: dict, command: str) -> dict:
+def run_section(name: str, budget: dict, command: str, files: tuple[Path, Path]) -> dict:
     """Run one section; a failure is recorded in its entry (with the traceback's tail) and
     does not stop the other sections."""
     module = importlib.import_module(SECTIONS[name])
@@ -94,7 +98,7 @@ def run_section(name: str, budget: dict, command: str) -> dict:
     result.update(
         budget=budget, wall_s=t.s, load_before=before, load_after=load_average(), command=command
     )
-    save_section(name, result)
+    save_section(name, result, *files)
     return result
 
 
@@ -118,12 +122,21 @@ def main(argv: list[str] | None = None) -> int:
         metavar="SECTION.KEY=VALUE",
         help="override a budget value",
     )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=ROOT / "bench",
+        metavar="DIR",
+        help="where results.json and RESULTS.md go (default: bench/, the committed ones)",
+    )
     args = parser.parse_args(argv)
     unknown = [n for n in args.sections if n not in SECTIONS]
     if unknown:
         parser.error(f"unknown section(s) {unknown}; choose from {list(SECTIONS)}")
     names = args.sections or list(SECTIONS)
     selected = budgets(names, args.settings)
+    args.out.mkdir(parents=True, exist_ok=True)
+    files = result_files(jax.default_backend(), args.out)
     failed = []
     for name in names:
         command = (
@@ -133,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(f"[bench] {name}: budget {selected[name]}", flush=True)
         start = time.strftime("%H:%M:%S")
-        result = run_section(name, selected[name], command)
+        result = run_section(name, selected[name], command, files)
         status = (
             "skipped: " + result["skipped"]
             if result.get("skipped")
@@ -144,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"[bench] {name} (started {start}) {status} in {result['wall_s']:.0f} s", flush=True)
         if result.get("error"):
             failed.append(name)
-    print(f"[bench] wrote {RESULTS_JSON} and {RESULTS_MD}")
+    print(f"[bench] wrote {files[0]} and {files[1]}")
     return 1 if failed else 0
 
 

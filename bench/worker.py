@@ -3,10 +3,16 @@ compile caches are cold (or warm from disk only), and peak memory is this measur
 
 KIND `train`: compose the config of SPEC["overrides"], build the env and trainer, trace and
 compile, optionally run, and write timings, XLA's memory analysis and peak RSS to OUT_JSON.
-  SPEC["program"]  "train": jax.jit(jax.vmap(trainer.train)) over SPEC["seeds"] seeds (the whole
-                   run as one program); "chunk": what hds.run compiles, jax.jit(jax.vmap(
-                   trainer.run_chunk)) after a jitted vmapped init
-  SPEC["run"]      run the compiled program once (default true)
+  SPEC["program"]  "train": trainer.train over SPEC["seeds"] seeds (the whole run as one
+                   program); "chunk": what hds.run compiles, trainer.run_chunk over the seeds
+                   after a jitted init; both jitted, mapped over the seeds as hds.run maps them
+                   (hds.utils.runtime.over_runs)
+  SPEC["vmapped"]  how many seeds are vmapped at a time, as hds.run's `vmap_runs` (default
+                   null: what hds.run does here; 0: all; 1: a loop over them)
+  SPEC["run"]      run the compiled program (default true): a first call (`first_run_s`, which
+                   also pays first-call allocations), then up to SPEC["repeats"] more (default
+                   0) while they take less than SPEC["repeat_s"] seconds in all (default 30);
+                   `run_s` is their median, or the first call's time where there are none
   SPEC["cache"]    a persistent compilation cache directory (default: none, a cold compile)
 """
 
@@ -19,7 +25,8 @@ _START = time.perf_counter()
 import json  # noqa: E402
 import sys  # noqa: E402
 
-from bench.common import block, compose, peak_rss_mb, timed  # noqa: E402
+from bench.common import best_of, block, compose, peak_rss_mb, timed  # noqa: E402
+from hds.utils.runtime import over_runs, runs_vmapped  # noqa: E402
 
 
 def memory_analysis(compiled) -> dict | None:
@@ -62,33 +69,41 @@ def train(spec: dict) -> dict:
     rss_built = peak_rss_mb()
     seeds = int(spec.get("seeds", 1))
     keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(seeds))
-    hparams = trainer.default_hparams
+    hparams = jax.tree.map(lambda x: jnp.stack([x] * seeds), trainer.default_hparams)
+    vmapped = runs_vmapped(spec.get("vmapped"), seeds)
     out = {
         "import_s": import_s,
         "build_s": build.s,
         "rss_after_build_mb": rss_built,
         "seeds": seeds,
+        "vmapped": vmapped,
         "epochs": cfg.algo.epochs,
     }
     if spec.get("program", "train") == "chunk":
         with timed() as init_t:
-            state = block(jax.jit(jax.vmap(trainer.init, in_axes=(0, None)))(keys, hparams))
-        fn, args = jax.jit(jax.vmap(trainer.run_chunk, in_axes=(0, None))), (state, hparams)
+            state = block(jax.jit(over_runs(trainer.init, vmapped, seeds))(keys, hparams))
+        fn, args = jax.jit(over_runs(trainer.run_chunk, vmapped, seeds)), (state, hparams)
         out.update(init_s=init_t.s, epochs_per_call=trainer.chunk)
     else:
-        fn, args = jax.jit(jax.vmap(trainer.train, in_axes=(0, None))), (keys, hparams)
+        fn, args = jax.jit(over_runs(trainer.train, vmapped, seeds)), (keys, hparams)
     with timed() as trace:
         lowered = fn.lower(*args)
     with timed() as comp:
         compiled = lowered.compile()
     out.update(trace_s=trace.s, compile_s=comp.s, memory=memory_analysis(compiled))
     if spec.get("run", True):
-        with timed() as run:
-            block(compiled(*args))
-        out["run_s"] = run.s
+        out.update(run_calls(lambda: block(compiled(*args)), spec))
     out["peak_rss_mb"] = peak_rss_mb()
     out["worker_s"] = time.perf_counter() - _START
     return out
+
+
+def run_calls(call, spec: dict) -> dict:
+    with timed() as first:
+        call()
+    repeats = min(int(spec.get("repeats", 0)), int(spec.get("repeat_s", 30.0) // max(first.s, 1e-9)))
+    median, times = best_of(call, repeats) if repeats > 0 else (first.s, [])
+    return {"first_run_s": first.s, "run_s": median, "repeat_run_s": times}
 
 
 KINDS = {"train": train}

@@ -334,7 +334,11 @@ class Config:
     dynamics: DynamicsConfig = MISSING
     logger: LoggerConfig = MISSING
     seed: int = 0
-    seeds: int = 1  # seeds trained together, vmapped in one program
+    seeds: int = 1  # seeds trained together, in one program
+    # how many runs of the batch (seeds x sweep settings) that program vmaps at a time, the rest
+    # looping: null (auto) vmaps them all on GPUs and across devices, one at a time on a single
+    # CPU (faster there, and a run's numbers do not depend on the runs beside it); 0: all
+    vmap_runs: int | None = None
     name: str = "default"
     # what the policy trains on: nominal (env as configured); corrected (env plus the effects
     # gap discovery names on data measured on the plant: the `discover` node); real (env plus
@@ -373,6 +377,8 @@ class Config:
                 f"noise.schedule = {self.noise.schedule}; choose noise=exponential"
             )
         _in_range("seeds", self.seeds, 1)
+        if self.vmap_runs is not None:
+            _in_range("vmap_runs", self.vmap_runs, 0)
         _in_range("eval_episodes", self.eval_episodes, 1)
         _in_range("checkpoints_kept", self.checkpoints_kept, 1)
 

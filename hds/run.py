@@ -1,6 +1,6 @@
 """`python -m hds.run`: train a policy with PODS or HDS, measure its sim2real gap, record it all.
 
-config -> env, plant, (learned model) -> trainer compiled once, vmapped over seeds -> chunks of
+config -> env, plant, (learned model) -> trainer compiled once for every seed -> chunks of
 epochs, with a progress bar, a checkpoint and a W&B log between chunks -> evaluation on the
 simulator and on the plant -> summary.json, plots/, final table.
 
@@ -40,7 +40,7 @@ from hds.evaluate import Evaluator, gap_rows  # noqa: E402
 from hds.logger import RunLogger, print_table  # noqa: E402
 from hds.real import make_plant  # noqa: E402
 from hds.utils.io import atomic_write_bytes, atomic_write_json, read_json  # noqa: E402
-from hds.utils.runtime import enable_compilation_cache  # noqa: E402
+from hds.utils.runtime import enable_compilation_cache, over_runs, runs_vmapped  # noqa: E402
 
 log = logging.getLogger("hds")
 
@@ -85,9 +85,11 @@ def train(cfg: Config, env, out_dir: Path, method: str, model=None, effects=None
     if effects is not None:
         hparams["effects"] = effects
     keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray([r["seed"] for r in runs]))
-    keys, hparams = _shard((keys, hparams))
-    init = jax.jit(jax.vmap(trainer.init))
-    run_chunk = jax.jit(jax.vmap(trainer.run_chunk))
+    vmapped = runs_vmapped(cfg.vmap_runs, len(runs))
+    if vmapped == len(runs):  # a loop over the runs cannot be split across devices
+        keys, hparams = _shard((keys, hparams))
+    init = jax.jit(over_runs(trainer.init, vmapped, len(runs)))
+    run_chunk = jax.jit(over_runs(trainer.run_chunk, vmapped, len(runs)))
 
     start = time.perf_counter()
     state = init(keys, hparams)

@@ -84,3 +84,31 @@ def test_the_peers_swingup_variant_is_the_swingup_experiment():
         cfg.algo.epochs, cfg.algo.chunk = 0, 0
     assert variant.algo == experiment.algo
     assert variant.noise == experiment.noise
+
+
+def test_bench_run_writes_its_sections_where_told(tmp_path):
+    """`python -m bench.run compile scaling --out DIR` end to end on small budgets: each point a
+    worker process, the results in DIR (the committed ones untouched), the warm process
+    compiling from the cold one's persistent cache, and memory growing with vmapped seeds."""
+    import json
+
+    from bench import run
+    from bench.common import result_files
+
+    committed = [p.read_bytes() for p in result_files("cpu") if p.exists()]
+    argv = ["compile", "scaling", "--out", str(tmp_path), "--set", "compile.backends=analytic"]
+    for setting in ("epochs=1", "seeds=1,2", "horizons=[]", "rollouts=[]", "repeats=1"):
+        argv += ["--set", f"scaling.{setting}"]
+    assert run.main(argv) == 0
+    assert [p.read_bytes() for p in result_files("cpu") if p.exists()] == committed
+
+    sections = json.loads((tmp_path / "results.json").read_text())["sections"]
+    assert not any("error" in s for s in sections.values())
+    (compiled,) = sections["compile"]["data"]
+    assert compiled["cache_mib"] > 0 and compiled["warm_hit"], compiled["warm_new_entries"]
+    one, two = sections["scaling"]["data"]
+    assert (one["seeds"], two["seeds"]) == (1, 2)
+    assert two["memory"]["temp_mib"] > 1.5 * one["memory"]["temp_mib"]
+    assert all(r["run_s"] > 0 and len(r["repeat_run_s"]) <= 1 for r in (one, two))
+    report = (tmp_path / "RESULTS.md").read_text()
+    assert "cold and warm (persistent cache) compile" in report and "calls in median" in report

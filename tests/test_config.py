@@ -89,6 +89,7 @@ def test_every_launcher_composes(launcher):
         ("sweep.noise_decay=[0.5]", "sweep.noise_decay sweeps the exponential schedule's decay"),
         ("sweep.step_size=[-0.5]", "sweep.step_size = [-0.5] must be non-negative"),
         ("discover.horizon=0", "discover.horizon = 0 is out of range"),
+        ("vmap_runs=-1", "vmap_runs = -1 is out of range"),
         ("real.effects=[{name: ice, target: slider}]", "unknown effect 'ice'; the library has"),
         (
             "real.effects=[{name: coulomb_friction, target: slider, params: {force: -2}}]",

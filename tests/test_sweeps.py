@@ -126,6 +126,25 @@ def test_a_vmapped_friction_gap_sweep_gives_the_numbers_of_separate_runs(tmp_pat
     assert abs(rows[3.0]["real_return"] - rows[0.0]["real_return"]) > 1.0  # the gap matters
 
 
+def test_a_seeds_numbers_do_not_depend_on_the_seeds_beside_it(tmp_path):
+    """On one CPU the runs of a batch loop inside their program (vmap_runs auto): seed 1 of
+    `seeds=2` is bit for bit seed 1 alone. Vmapping them (vmap_runs=0) agrees to float level."""
+    cfg = make_config(*TINY, "seeds=2")
+    env = make_env(cfg.env)
+    looped, history, *_ = hds_run.train(cfg, env, tmp_path / "looped", "pods")
+    alone, alone_history, *_ = hds_run.train(
+        make_config(*TINY, "seed=1"), env, tmp_path / "alone", "pods"
+    )
+    for a, b in zip(jax.tree.leaves(looped), jax.tree.leaves(alone)):
+        np.testing.assert_array_equal(a[1], b[0])
+    assert history["return"][1] == alone_history["return"][0]
+    vmapped, _, *_ = hds_run.train(
+        make_config(*TINY, "seeds=2", "vmap_runs=0"), env, tmp_path / "vmapped", "pods"
+    )
+    for a, b in zip(jax.tree.leaves(looped), jax.tree.leaves(vmapped)):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
 def test_the_batch_is_sharded_across_two_host_devices(tmp_path):
     code = (
         "import jax, json, sys; from tests.conftest import make_config; from hds import run;"

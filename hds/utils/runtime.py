@@ -17,3 +17,26 @@ def enable_compilation_cache(path: str | Path | None = None) -> Path:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
+
+
+def runs_vmapped(setting: int | None, runs: int) -> int:
+    """How many runs of a batch one program vmaps at a time. `None` (auto): all of them where the
+    batch is sharded across several devices or runs on an accelerator; one on a single CPU,
+    where a vmapped epoch costs more than its runs one after another (a batched `lax.cond`
+    runs both branches, batched matmuls and gathers are slower) and where a run's numbers
+    should not depend on how many ran beside it. 0: all of them."""
+    if setting is None:
+        one_cpu = jax.default_backend() == "cpu" and jax.device_count() == 1
+        return 1 if one_cpu else runs
+    return runs if setting == 0 else min(setting, runs)
+
+
+def over_runs(fn, vmapped: int, runs: int):
+    """`fn` mapped over the leading axis of its arguments (a batch of `runs` runs), `vmapped` at
+    a time in one compiled program: a `jax.lax.map` loop over single runs (never a vmap of one),
+    `jax.vmap` over all of them, or a loop over vmapped groups."""
+    if vmapped == 1:  # lax.map's batch_size would vmap groups of one
+        return lambda *args: jax.lax.map(lambda a: fn(*a), args)
+    if vmapped >= runs:
+        return jax.vmap(fn)
+    return lambda *args: jax.lax.map(lambda a: fn(*a), args, batch_size=vmapped)
