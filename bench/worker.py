@@ -101,7 +101,8 @@ def train(spec: dict) -> dict:
 def run_calls(call, spec: dict) -> dict:
     with timed() as first:
         call()
-    repeats = min(int(spec.get("repeats", 0)), int(spec.get("repeat_s", 30.0) // max(first.s, 1e-9)))
+    fit = int(spec.get("repeat_s", 30.0) // max(first.s, 1e-9))  # judged by the first call
+    repeats = min(int(spec.get("repeats", 0)), fit)
     median, times = best_of(call, repeats) if repeats > 0 else (first.s, [])
     return {"first_run_s": first.s, "run_s": median, "repeat_run_s": times}
 
