@@ -2,8 +2,9 @@
 
 Cold: a fresh, empty persistent compilation cache directory. Warm: a second process on the same
 directory (the persistent cache, `hds.utils.runtime.enable_compilation_cache`, as `python -m
-hds.run` enables it). The program is what hds.run compiles: jax.jit(jax.vmap(trainer.init)) and
-jax.jit(jax.vmap(trainer.run_chunk)) over one seed, on the reference configuration.
+hds.run` enables it). The program is what hds.run compiles: jax.jit of trainer.init and of
+trainer.run_chunk mapped over one seed (hds.utils.runtime.over_runs), on the reference
+configuration.
 """
 
 from __future__ import annotations

@@ -19,6 +19,7 @@ DEFAULT_BUDGET = {
     "rollouts": [16, 64, 256],
     "repeats": 3,  # timed calls after the first (median); single calls were noisy
     "repeat_s": 30.0,  # ... as many as fit in this many seconds, judged by the first call
+    "overrides": [],  # config overrides on top of the reference configuration
 }
 
 
@@ -26,6 +27,7 @@ def points(budget: dict) -> list[tuple[str, int, tuple[str, ...], int, int]]:
     """(axis, value, overrides, seeds, vmapped) of every point; the base is the reference config
     with `epochs` epochs, 1 seed. `vmapped`: seeds vmapped at a time (0 all, 1 a loop)."""
     base = (*REFERENCE, f"env.backend={budget['backend']}", f"algo.epochs={budget['epochs']}")
+    base = (*base, *budget["overrides"])
     out = [("seeds, vmapped", n, base, n, 0) for n in budget["seeds"]]
     out += [("seeds, loop", n, base, n, 1) for n in budget["seeds"] if n > 1]
     out += [("horizon", h, (*base, f"env.task.horizon={h}"), 1, 1) for h in budget["horizons"]]

@@ -89,7 +89,8 @@ def test_the_peers_swingup_variant_is_the_swingup_experiment():
 def test_bench_run_writes_its_sections_where_told(tmp_path):
     """`python -m bench.run compile scaling --out DIR` end to end on small budgets: each point a
     worker process, the results in DIR (the committed ones untouched), the warm process
-    compiling from the cold one's persistent cache, and memory growing with vmapped seeds."""
+    compiling from the cold one's persistent cache, and memory growing with vmapped seeds but
+    not with looped ones."""
     import json
 
     from bench import run
@@ -97,18 +98,20 @@ def test_bench_run_writes_its_sections_where_told(tmp_path):
 
     committed = [p.read_bytes() for p in result_files("cpu") if p.exists()]
     argv = ["compile", "scaling", "--out", str(tmp_path), "--set", "compile.backends=analytic"]
+    small = "algo.rollouts=8,env.task.horizon=20,algo.inner_epochs=2"
     for setting in ("epochs=1", "seeds=1,2", "horizons=[]", "rollouts=[]", "repeats=1"):
         argv += ["--set", f"scaling.{setting}"]
-    assert run.main(argv) == 0
+    assert run.main([*argv, "--set", f"scaling.overrides={small}"]) == 0
     assert [p.read_bytes() for p in result_files("cpu") if p.exists()] == committed
 
     sections = json.loads((tmp_path / "results.json").read_text())["sections"]
     assert not any("error" in s for s in sections.values())
     (compiled,) = sections["compile"]["data"]
     assert compiled["cache_mib"] > 0 and compiled["warm_hit"], compiled["warm_new_entries"]
-    one, two = sections["scaling"]["data"]
-    assert (one["seeds"], two["seeds"]) == (1, 2)
-    assert two["memory"]["temp_mib"] > 1.5 * one["memory"]["temp_mib"]
-    assert all(r["run_s"] > 0 and len(r["repeat_run_s"]) <= 1 for r in (one, two))
+    one, two, looped = sections["scaling"]["data"]
+    assert [(r["seeds"], r["vmapped"]) for r in (one, two, looped)] == [(1, 1), (2, 2), (2, 1)]
+    temp = [r["memory"]["temp_mib"] for r in (one, two, looped)]
+    assert temp[1] > 1.5 * temp[0] and temp[2] < 1.2 * temp[0], temp
+    assert all(r["run_s"] > 0 and len(r["repeat_run_s"]) <= 1 for r in (one, two, looped))
     report = (tmp_path / "RESULTS.md").read_text()
     assert "cold and warm (persistent cache) compile" in report and "calls in median" in report

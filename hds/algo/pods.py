@@ -5,7 +5,8 @@
   run_chunk(state, hparams) -> (state, metrics)   `chunk` epochs as one lax.scan
   train(key, hparams) -> (state, metrics)         the whole run as one program
 `hparams` holds the numeric hyperparameters (step size, noise scale, effect parameters of the
-simulator), so `jax.jit(jax.vmap(train))` trains many seeds or settings in one compiled program.
+simulator), so `jax.jit(jax.vmap(train))` trains many seeds or settings in one compiled program
+(hds.run maps them as `vmap_runs` says: vmapped on a GPU, in a `lax.map` loop on one CPU).
 
 One epoch:
   1. roll the policy out (plus exploration noise) from a batch of initial states; a static
