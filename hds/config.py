@@ -299,7 +299,7 @@ class LoggerConfig:
 
 @dataclass
 class SweepConfig:
-    """Numeric settings trained together in one program (vmapped, and sharded across devices
+    """Numeric settings trained together in one program (see `vmap_runs`; sharded across devices
     when there are several), crossed with each other and with the seeds. Empty: not swept."""
 
     step_size: list[float] = field(default_factory=list)
@@ -347,7 +347,7 @@ class Config:
     oracle: bool = True  # with real=brax, also train an oracle beside the run's own policy
     eval_episodes: int = 32  # initial states shared by the simulator and plant evaluations
     # the key of those initial states: one set for every method, seed and job, so that rows
-    # compare like for like and a multirun over seeds matches a vmapped run of them
+    # compare like for like and a multirun over seeds matches a run of them together
     eval_seed: int = 10_000
     checkpoints_kept: int = 3
     sweep: SweepConfig = field(default_factory=lambda: SweepConfig())
