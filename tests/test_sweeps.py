@@ -145,6 +145,26 @@ def test_a_seeds_numbers_do_not_depend_on_the_seeds_beside_it(tmp_path):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.parametrize("setting, vmapped", [(None, 1), (0, 5), (2, 2), (9, 5)])
+def test_runs_map_as_vmap_runs_says(setting, vmapped):
+    """vmap_runs on one CPU: auto loops, 0 vmaps all, K vmaps groups of K (5 runs: two groups
+    and a remainder); every way gives each run what it gives alone."""
+    from hds.utils.runtime import over_runs, runs_vmapped
+
+    assert runs_vmapped(setting, 5) == vmapped
+
+    def fn(x, scale):  # a branch, as early stopping has
+        return jax.lax.cond(x.sum() > 0, lambda: x * scale, lambda: -x), x.sum()
+
+    x = jax.random.normal(jax.random.PRNGKey(0), (5, 3))
+    scale = jax.numpy.arange(5.0)
+    out = jax.jit(over_runs(fn, vmapped, 5))(x, scale)
+    for i in range(5):
+        alone = fn(x[i], scale[i])
+        np.testing.assert_allclose(out[0][i], alone[0], rtol=1e-6)
+        np.testing.assert_allclose(out[1][i], alone[1], rtol=1e-6)
+
+
 def test_the_batch_is_sharded_across_two_host_devices(tmp_path):
     code = (
         "import jax, json, sys; from tests.conftest import make_config; from hds import run;"
