@@ -20,8 +20,9 @@ install: $(STAMP)
 run: $(STAMP)
 	$(BIN)/python -m hds.run +experiment=sim2real_friction
 
-# Two workers, a test file each (its session's compiled fixtures stay in one process): 7.5 min
-# here on 2 cores for 269 tests (2026-11-23), against 12.6 min in one process for 267.
+# Two workers, a test file each (its session's compiled fixtures stay in one process): 8 min 23 s
+# here on 2 cores for 276 tests (2026-11-23, fresh clone), against 12.6 min in one process for
+# 267 (2026-11-22).
 # TEST_WORKERS=0 runs them in this process.
 TEST_WORKERS ?= 2
 test: $(STAMP)
