@@ -16,6 +16,7 @@ running this configuration could come here.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -123,72 +124,30 @@ def time_compiled(fn, args, repeats: int) -> dict:
 
 
 def time_parts(cfg, env, trainer, state, starts, keys, rollouts, batch, repeats: int) -> dict:
-    """The trainer's three stages on their own: closed-loop policy rollout, improvement
-    (hds.algo.improve, vmapped, as in an epoch) and regression onto the improved actions, with
-    the configured early stopping (`regress`, as in an epoch) and without it (`regress_all`,
-    every inner epoch: the work the regression floor counts)."""
-    from hds import anneal
-    from hds.algo.improve import ImproveSettings, improve
-    from hds.algo.regress import regress
-
-    sim, task, algo = env.sim, env.task, cfg.algo
-    low, high = jnp.asarray(sim.ctrl_range[:, 0]), jnp.asarray(sim.ctrl_range[:, 1])
+    """The trainer's three stages on their own (`trainer.stages`, the functions its epoch
+    runs): closed-loop policy rollout, improvement (closed loop where the config says so) and
+    regression onto the improved actions, with the configured early stopping (`regress`, as
+    in an epoch) and without it (`regress_all`, every inner epoch: the work the regression
+    floor counts)."""
+    sim, stages, hparams = env.sim, trainer.stages, trainer.default_hparams
     obs, actions, _ = batch
-    settings = ImproveSettings(
-        algo.order,
-        algo.grad_clip,
-        algo.gn_damping,
-        anneal.candidates(cfg.anneal.kind, algo.line_search),
-        cfg.anneal.kind,
-    )
 
     @jax.jit
-    def improve_all(starts, actions, key):
-        return jax.vmap(
-            lambda s, a, k: improve(
-                env,
-                env.params,
-                task,
-                s,
-                a,
-                k,
-                alpha=algo.step_size,
-                temperature=1.0,
-                cfg=settings,
-                low=low,
-                high=high,
-            )
-        )(starts, actions, jax.random.split(key, algo.rollouts))
-
-    import optax
-
-    optimizer = optax.adam(algo.learning_rate)
+    def improve_all(starts, obs, actions, key):
+        # epoch 0 of the trainer's own improvement stage (closed loop where configured)
+        return stages.improve(env.params, state.policy, hparams, 0, starts, obs, actions, key)[1]
 
     def regression(tol):
-        return jax.jit(
-            lambda params, opt_state, obs, targets, key: regress(
-                trainer.policy.apply,
-                optimizer,
-                params,
-                opt_state,
-                obs,
-                targets,
-                jnp.ones(obs.shape[0]),
-                key,
-                inner_epochs=algo.inner_epochs,
-                minibatch=algo.minibatch,
-                tol=tol,
-            )
-        )
+        return jax.jit(functools.partial(stages.regress, tol=tol))
 
     key = jax.random.PRNGKey(1)
-    improved = improve_all(starts, actions, key).actions
+    improved = improve_all(starts, obs, actions, key).actions
     args = (state.policy, state.opt_state, obs.reshape(-1, sim.n_obs))
     args += (improved.reshape(-1, sim.n_act), key)
     return {
         "policy_rollout": time_compiled(rollouts, (starts, keys), repeats),
-        "improve": time_compiled(improve_all, (starts, actions, key), repeats),
-        "regress": time_compiled(regression(algo.early_stop), args, repeats),
+        "improve": time_compiled(improve_all, (starts, obs, actions, key), repeats),
+        "regress": time_compiled(regression(cfg.algo.early_stop), args, repeats),
         "regress_all": time_compiled(regression(-jnp.inf), args, repeats),
     }
 

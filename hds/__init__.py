@@ -1,5 +1,16 @@
-"""hds: policy optimization through differentiable simulation, and closing the sim2real gap."""
+"""hds: policy optimization through differentiable simulation, and closing the sim2real gap.
 
+The Python API (README, "Python API"); each name is imported on first use, so `import hds`
+stays light for the command-line entry points:
+
+    cfg = hds.compose(["method=pods_cl", "seeds=3"])      # a validated Config, no CLI needed
+    result = hds.train(cfg)                                # a Result: rows, histories, run_dir
+    policy = hds.load_policy(result.run_dir, seed=0)       # u = policy(obs)
+    hds.evaluate(policy, real=hds.compose(["real.friction_gap=2"]).real).mean_ci()
+    hds.export(policy, "exported/")                        # runs without JAX
+"""
+
+import importlib
 import os
 
 from omegaconf import OmegaConf
@@ -17,3 +28,23 @@ os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 OmegaConf.register_new_resolver("hds.once", lambda value: value, use_cache=True, replace=True)
 
 __version__ = "0.1.0"
+
+_API = {  # public name: (module, attribute)
+    "compose": ("hds.config", "compose"),
+    "Config": ("hds.config", "Config"),
+    "train": ("hds.experiment", "run"),
+    "Hooks": ("hds.experiment", "Hooks"),
+    "Result": ("hds.experiment", "Result"),
+    "load_policy": ("hds.policy", "load_policy"),
+    "Policy": ("hds.policy", "Policy"),
+    "evaluate": ("hds.policy", "evaluate"),
+    "export": ("hds.policy", "export"),
+}
+__all__ = list(_API)
+
+
+def __getattr__(name: str):
+    if name not in _API:
+        raise AttributeError(f"module 'hds' has no attribute '{name}'")
+    module, attribute = _API[name]
+    return getattr(importlib.import_module(module), attribute)

@@ -4,20 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
-
-from hds.algo.pods import make_train  # noqa: E402
-from hds.checkpoint import Checkpoints  # noqa: E402
-from hds.config import load_config  # noqa: E402
-from hds.envs import make_env  # noqa: E402
-from hds.real import make_plant, rollout  # noqa: E402
 
 
 def pole_positions(obs: np.ndarray, names: tuple[str, ...], length: float = 0.6):
@@ -61,58 +53,28 @@ def animate(
     return path
 
 
-def simulator_of(cfg, run_dir: Path):
-    """The simulator a finished run's policy trained on (cfg.simulator)."""
-    if cfg.simulator == "real":
-        from hds.run import real_dynamics
-
-        return real_dynamics(cfg)[0]
-    if cfg.simulator == "corrected":  # the env config gap discovery wrote into the run
-        from omegaconf import OmegaConf
-
-        from hds.discover.retrain import env_config
-
-        (path,) = (run_dir / "discovery" / "conf" / "env").glob("*.yaml")
-        return make_env(env_config(OmegaConf.to_container(OmegaConf.load(path))))
-    return make_env(cfg.env)
-
-
 def animate_run(
     run_dir: Path, method: str | None = None, seed_index: int = 0, out_dir: Path | None = None
 ) -> Path:
-    """Rebuild a finished run from its config.yaml and last checkpoint; animate one episode
-    into out_dir (default: the run's plots/)."""
-    from hds.run import method_name
+    """One episode of a finished run's policy (`method`, default the run's own; the
+    seed_index-th run of its batch) on the simulator it trained on beside the run's plant,
+    animated into out_dir (default: the run's plots/)."""
+    from hds.policy import evaluate, load_policy
 
-    config_path = run_dir / "config.yaml"
-    if not config_path.is_file():
-        raise FileNotFoundError(
-            f"{config_path} not found: give the directory of one run "
-            "(a sweep's job directory), which holds config.yaml and checkpoints/"
-        )
-    cfg = load_config(config_path)
-    env, plant = simulator_of(cfg, run_dir), make_plant(cfg.real, cfg.env)
-    method = method or method_name(cfg)
-    trainer = make_train(cfg, env)
-    keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(cfg.seeds))
-    like = jax.vmap(trainer.init, in_axes=(0, None))(keys, trainer.default_hparams)
-    state, _ = Checkpoints(run_dir / "checkpoints" / method).restore(like)
-    params = jax.tree.map(lambda x: x[seed_index], state.policy)
-    act = jax.jit(trainer.policy.apply)
-    q0, qd0 = (np.asarray(x)[None] for x in env.task.initial(jax.random.PRNGKey(cfg.eval_seed)))
-    controller = lambda obs: np.asarray(act(params, jnp.asarray(obs, jnp.float32)))  # noqa: E731
-    from hds.real.brax_plant import BraxPlant
-
-    sim_eps = rollout(BraxPlant(env), env.task, q0, qd0, controller, env.task.horizon)
-    real_eps = rollout(plant, env.task, q0, qd0, controller, env.task.horizon)
+    run_dir = Path(run_dir)
+    policy = load_policy(run_dir, method=method)
+    if seed_index:
+        policy = load_policy(run_dir, method=policy.method, **policy.config.runs()[seed_index])
+    sim = evaluate(policy, episodes=1, plant=policy.training_plant())
+    real = evaluate(policy, episodes=1)
     return animate(
-        sim_eps.obs[0],
-        real_eps.obs[0],
-        env.sim.obs_names,
-        env.sim.dt,
-        Path(out_dir or run_dir / "plots") / f"{method}_sim_vs_real.gif",
+        sim.episodes.obs[0],
+        real.episodes.obs[0],
+        policy.obs_names,
+        policy.dt,
+        Path(out_dir or run_dir / "plots") / f"{policy.method}_sim_vs_real.gif",
         titles=(
-            f"simulator: return {sim_eps.returns[0]:.0f}",
-            f"{cfg.real.plant} plant: return {real_eps.returns[0]:.0f}",
+            f"simulator: return {sim.returns[0]:.0f}",
+            f"{policy.config.real.plant} plant: return {real.returns[0]:.0f}",
         ),
     )

@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import itertools
+import typing
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from hydra.errors import ConfigCompositionException
+from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
-from omegaconf.errors import ConfigAttributeError, ConfigKeyError
 
 from hds.effects import apply as _effects
 from hds.effects.library import LIBRARY, check_params, effect_type
@@ -297,6 +299,9 @@ class LoggerConfig:
         _one_of("logger.mode", self.mode, ("offline", "disabled"))
 
 
+SWEEP_KEYS = ("step_size", "noise_scale", "noise_decay", "friction_gap", "beta")
+
+
 @dataclass
 class SweepConfig:
     """Numeric settings trained together in one program (see `vmap_runs`; sharded across devices
@@ -320,8 +325,7 @@ class SweepConfig:
 
     def items(self):
         """(name, values) of the settings swept."""
-        names = ("step_size", "noise_scale", "noise_decay", "friction_gap", "beta")
-        return [(k, getattr(self, k)) for k in names if getattr(self, k)]
+        return [(k, getattr(self, k)) for k in SWEEP_KEYS if getattr(self, k)]
 
 
 @dataclass
@@ -353,6 +357,13 @@ class Config:
     sweep: SweepConfig = field(default_factory=lambda: SweepConfig())
     discover: DiscoverConfig = field(default_factory=DiscoverConfig)
 
+    def runs(self) -> list[dict]:
+        """The runs trained together: every seed crossed with every setting of `sweep`, each
+        as {"seed": ..., <swept key>: <value>, ...}."""
+        names, values = zip(*self.sweep.items()) if self.sweep.items() else ((), ())
+        settings = [dict(zip(names, combo)) for combo in itertools.product(*values)]
+        return [{"seed": self.seed + i, **s} for s in settings for i in range(self.seeds)]
+
     def uses_model(self) -> bool:
         """Whether some run of the batch takes rollouts through a learned model."""
         return self.dynamics.model != "none" and max([self.dynamics.beta, *self.sweep.beta]) > 0
@@ -381,6 +392,23 @@ class Config:
             _in_range("vmap_runs", self.vmap_runs, 0)
         _in_range("eval_episodes", self.eval_episodes, 1)
         _in_range("checkpoints_kept", self.checkpoints_kept, 1)
+
+
+def run_label(run: dict) -> str:
+    """A run of the batch as one name, its seed and every swept setting: seed0_step_size0.04."""
+    return "_".join(f"{k}{v:g}" if isinstance(v, float) else f"{k}{v}" for k, v in run.items())
+
+
+def cli_overrides(argv: list[str]) -> list[str]:
+    """The overrides of a Hydra command line (what is not a flag nor a flag's value)."""
+    with_value = {"--config-dir", "-cd", "--config-name", "-cn", "--config-path", "-cp"}
+    out, skip = [], False
+    for arg in argv:
+        if skip or arg.startswith("-"):
+            skip = arg in with_value
+            continue
+        out.append(arg)
+    return out
 
 
 def register() -> None:
@@ -442,30 +470,50 @@ def validate(cfg: DictConfig) -> Config:
     return config
 
 
-def allowed_keys_hint(err: Exception) -> str | None:
-    """For omegaconf's unknown-key error ("Key 'frictoin' not in 'EnvConfig'"): a line naming
-    the node, the keys it allows and the closest of them; None for any other error."""
-    if not isinstance(err, (ConfigKeyError, ConfigAttributeError)):
-        return None
-    node, key = getattr(err, "parent_node", None), getattr(err, "key", None)
-    object_type = getattr(err, "object_type", None)
-    if dataclasses.is_dataclass(object_type):
-        allowed = [f.name for f in dataclasses.fields(object_type)]
-    elif isinstance(node, DictConfig):
-        allowed = [str(k) for k in node.keys()]
-    else:
-        return None
-    if key is None or str(key) in allowed:
-        return None
-    full_key = str(getattr(err, "full_key", "") or key)
-    return _unknown_key(full_key.rsplit(".", 1)[0] if "." in full_key else "", key, allowed)
-
-
 def _unknown_key(where: str, key, allowed: list[str]) -> str:
     close = difflib.get_close_matches(str(key), allowed, n=1)
     hint = f"; did you mean '{close[0]}'?" if close else ""
     where = where or "the config"
     return f"{where} has no key '{key}'; its keys are: {', '.join(allowed)}{hint}"
+
+
+def _child_type(annotation, key: str):
+    """The schema of `key` below a node of type `annotation`: a dataclass to check further,
+    or None where anything goes (dicts, numbers)."""
+    origin, args = typing.get_origin(annotation), typing.get_args(annotation)
+    if origin is list and args:
+        return args[0] if key.isdigit() else None
+    if dataclasses.is_dataclass(annotation):
+        hints = typing.get_type_hints(annotation)
+        return hints.get(key, _UNKNOWN)
+    return None
+
+
+_UNKNOWN = object()
+
+
+def check_override_keys(overrides, schema: type, groups=()) -> None:
+    """Refuse command-line overrides of keys the schema does not have, naming the keys it
+    allows there and the closest one, before Hydra composes anything. `groups`: the config
+    groups of conf/ (env, method, ...), which are keys too. Overrides forced in with `+` are
+    checked at validation (`_check_known_keys`)."""
+    for override in OverridesParser.create().parse_overrides([str(o) for o in overrides]):
+        path = override.key_or_group
+        if override.is_add() or override.is_delete() or "/" in path or path.startswith("hydra"):
+            continue
+        if override.is_force_add() or path in groups:
+            continue
+        node, where = schema, ""
+        for key in path.split("."):
+            child = _child_type(node, key)
+            if child is _UNKNOWN:
+                allowed = [f.name for f in dataclasses.fields(node)]
+                if not where:
+                    allowed += [g for g in groups if g not in allowed]
+                raise ValueError(f"invalid config: {_unknown_key(where, key, allowed)}")
+            if child is None:
+                break
+            node, where = child, f"{where}.{key}" if where else key
 
 
 def _check_known_keys(node, where: str = "") -> None:
@@ -479,41 +527,50 @@ def _check_known_keys(node, where: str = "") -> None:
             extra = [k for k in keys if k not in allowed]
             if extra:
                 raise ValueError(_unknown_key(where, extra[0], allowed))
-        children = [(k, node._get_node(k)) for k in keys]
     elif isinstance(node, ListConfig):
-        children = [(str(i), node._get_node(i)) for i in range(len(node))]
+        keys = list(range(len(node)))
     else:
         return
-    for key, child in children:
-        _check_known_keys(child, f"{where}.{key}" if where else key)
+    for key in keys:
+        if OmegaConf.is_missing(node, key) or OmegaConf.is_interpolation(node, key):
+            continue
+        _check_known_keys(node[key], f"{where}.{key}" if where else str(key))
 
 
-def _explain_unknown_keys() -> None:
-    """Make Hydra's unknown-key errors list the allowed keys of the node.
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
-    Hydra reports `env.frictoin=1` as "Key 'frictoin' not in 'EnvConfig'". Every composition
-    (`python -m hds.run`, `python -m hds.discover`, multiruns, and hydra.compose in tests and
-    benchmarks) goes through `ConfigLoaderImpl.load_configuration` (hydra-core 1.3, pinned),
-    so that one method is wrapped here: an override or a config file naming an unknown key
-    raises a ConfigCompositionException that also names the keys allowed there."""
-    from hydra._internal.config_loader_impl import ConfigLoaderImpl
 
-    load = ConfigLoaderImpl.load_configuration
-    if getattr(load, "_hds_explains_keys", False):
-        return
+def config_groups() -> list[str]:
+    """The config groups of conf/ (env, algo, method, ...): keys of an override too."""
+    return sorted(p.name for p in CONF_DIR.iterdir() if p.is_dir() and p.name != "hydra")
 
-    def load_configuration(self, *args, **kwargs):
-        try:
-            return load(self, *args, **kwargs)
-        except ConfigCompositionException as err:
-            hint = allowed_keys_hint(err.__cause__)
-            if hint is None:
-                raise
-            lines = [line for line in str(err).splitlines() if not line.startswith("To append")]
-            raise ConfigCompositionException("\n".join([*lines, hint])) from err.__cause__
 
-    load_configuration._hds_explains_keys = True
-    ConfigLoaderImpl.load_configuration = load_configuration
+def compose(overrides=(), config_name: str = "config"):
+    """The validated config of `python -m hds.run <overrides>` (config_name="config") or of
+    `python -m hds.discover <overrides>` ("discover"), composed without the command line:
+
+        cfg = hds.compose(["method=pods_cl", "seeds=3", "env.backend=analytic"])
+    """
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    schema = Config
+    if config_name == "discover":
+        from hds.discover.config import DiscoverAppConfig
+
+        schema = DiscoverAppConfig
+    check_override_keys(overrides, schema, config_groups())
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return validate(hydra_compose(config_name, overrides=list(overrides)))
+
+
+def env_config(env: dict) -> EnvConfig:
+    """A checked EnvConfig from a plain dict (e.g. the env gap discovery corrected)."""
+    cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(EnvConfig), env))
+    cfg.check()
+    for effect in cfg.effects:
+        effect.check()
+    return cfg
 
 
 def load_config(path) -> Config:
@@ -523,4 +580,3 @@ def load_config(path) -> Config:
 
 
 register()
-_explain_unknown_keys()

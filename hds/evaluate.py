@@ -1,92 +1,87 @@
-"""The sim2real gap: a trained policy's return on the simulator and on the "real" plant, from
-the same initial states. gap = sim return - real return (positive: the policy does worse on the
-real system than the simulator promised)."""
+"""`python -m hds.evaluate run=<run dir> [method=...] [seed=...] [real=...] [eval_episodes=N]`:
+evaluate a saved policy on any plant (another friction, another effect) and on the simulator
+it trained on, from the same initial states. Writes evaluation.json, plots/trajectories.png
+and sim_vs_real.gif into out= (default: <run dir>/evaluations/<plant>).
+
+    python -m hds.evaluate run=outputs/runs/x/t real.friction_gap=2 eval_episodes=64
+    python -m hds.evaluate run=outputs/runs/x/t real=brax \
+        'real.effects=[{name: actuator_gain, target: slide, params: {gain: 0.8}}]'
+
+The `real` overrides compose as they do for `python -m hds.run`; without them the run's own
+plant is used. (In Python: `hds.evaluate(policy, real=...)`, hds/policy.py.)
+"""
 
 from __future__ import annotations
 
-import jax
-import jax.numpy as jnp
-import numpy as np
+import os
+import re
+import sys
+from pathlib import Path
 
-from hds.algo.rollout import policy_rollout
-from hds.real import rollout
+os.environ.setdefault("WANDB_MODE", "offline")
 
+from hds.config import SWEEP_KEYS
+from hds.utils import cli  # noqa: E402
 
-class Evaluator:
-    """Compiled once per run: deterministic policy on the simulator (batched over the runs of
-    the batch and episodes) and on the plant (a host loop with a jitted policy). `plant` is one
-    plant, or one per run of the batch (a swept friction gap)."""
-
-    def __init__(self, env, policy, plant, episodes: int = 32, seed: int = 12345):
-        self.env, self.policy, self.plant = env, policy, plant
-        task, sim = env.task, env.sim
-        keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
-        self.q0, self.qd0 = (np.asarray(x) for x in jax.vmap(task.initial)(keys))
-        low, high = jnp.asarray(sim.ctrl_range[:, 0]), jnp.asarray(sim.ctrl_range[:, 1])
-
-        def sim_returns(params, effects):
-            act = lambda o: policy.apply(params, o)  # noqa: E731
-
-            def one(q, qd):
-                _, _, r = policy_rollout(
-                    env,
-                    effects,
-                    task,
-                    act,
-                    env.sim.init(q, qd, effects),
-                    jax.random.PRNGKey(0),
-                    0.0,
-                    task.horizon,
-                    low,
-                    high,
-                )
-                return r.sum()
-
-            return jax.vmap(one)(jnp.asarray(self.q0), jnp.asarray(self.qd0))
-
-        self._sim = jax.jit(jax.vmap(sim_returns))  # over the batch of runs
-        self._act = jax.jit(policy.apply)
-
-    def sim_returns(self, params, effects=None) -> np.ndarray:
-        """[n_runs, episodes]; `effects`: each run's effect parameters, stacked (default: the
-        env's own for every run)."""
-        if effects is None:
-            n_runs = jax.tree.leaves(params)[0].shape[0]
-            effects = jax.tree.map(lambda x: jnp.stack([x] * n_runs), self.env.params)
-        return np.asarray(self._sim(params, effects))
-
-    def real_returns(self, params) -> np.ndarray:
-        """[n_runs, episodes]"""
-        n_runs = jax.tree.leaves(params)[0].shape[0]
-        plants = self.plant if isinstance(self.plant, list) else [self.plant] * n_runs
-        out = []
-        for s in range(n_runs):
-            p = jax.tree.map(lambda x, s=s: x[s], params)
-            ep = rollout(
-                plants[s],
-                self.env.task,
-                self.q0,
-                self.qd0,
-                lambda obs, p=p: np.asarray(self._act(p, jnp.asarray(obs, jnp.float32))),
-                self.env.task.horizon,
-            )
-            out.append(ep.returns)
-        return np.stack(out)
+KEYS = {
+    "run": Path,
+    "method": str,
+    "seed": int,
+    **dict.fromkeys(SWEEP_KEYS, float),
+    "eval_episodes": int,
+    "eval_seed": int,
+}
+KEYS |= {"out": Path, "gif": cli.boolean}
 
 
-def gap_rows(method: str, runs: list[dict], sim: np.ndarray, real: np.ndarray) -> list[dict]:
-    """One row per run of the batch (`runs`: its seed and swept settings), mean over episodes."""
-    rows = []
-    for s, run in enumerate(runs):
-        sim_r, real_r = float(np.mean(sim[s])), float(np.mean(real[s]))
-        rows.append(
-            {
-                "method": method,
-                **run,
-                "sim_return": sim_r,
-                "real_return": real_r,
-                "gap": sim_r - real_r,
-                "gap_relative": (sim_r - real_r) / max(abs(sim_r), 1e-9),
-            }
-        )
-    return rows
+def main(argv: list[str]) -> Path:
+    args, real_overrides = cli.parse(argv, KEYS, "hds.evaluate", passthrough=("real",))
+    setting = {k: args.pop(k) for k in SWEEP_KEYS if k in args}
+    from hds.config import compose
+    from hds.policy import evaluate, load_policy
+    from hds.utils.runtime import enable_compilation_cache
+
+    real = compose(real_overrides).real if real_overrides else None  # validated, before loading
+    enable_compilation_cache()
+    policy = load_policy(args["run"], args.get("method"), args.get("seed"), **setting)
+    name = re.sub(r"[^\w.=,-]+", "_", ",".join(real_overrides)) or "default"
+    out = args.get("out") or args["run"] / "evaluations" / name
+    episodes, seed = args.get("eval_episodes"), args.get("eval_seed")
+    real_eval = evaluate(policy, real, episodes, seed)
+    return write_evaluation(policy, real_eval, out, episodes, seed, gif=args.get("gif", True))
+
+
+def write_evaluation(policy, real_eval, out: Path, episodes, seed, gif: bool = True) -> Path:
+    """evaluation.json (returns on the plant and on the simulator the policy trained on, from
+    the same initial states), plots/trajectories.png and, with gif, sim_vs_real.gif."""
+    from hds import plots
+    from hds.animate import animate
+    from hds.policy import evaluate
+    from hds.utils.io import atomic_write_json
+
+    sim_eval = evaluate(policy, episodes=episodes, seed=seed, plant=policy.training_plant())
+    names, dt = policy.obs_names, policy.dt
+    sim_obs, real_obs = sim_eval.episodes.obs[0], real_eval.episodes.obs[0]
+    titles = (
+        f"simulator: return {sim_eval.returns[0]:.0f}",
+        f"plant: return {real_eval.returns[0]:.0f}",
+    )
+    plots.save(plots.trajectories(sim_obs, real_obs, names, dt), out / "plots" / "trajectories.png")
+    if gif:
+        animate(sim_obs, real_obs, names, dt, out / "sim_vs_real.gif", titles=titles)
+    (sim_mean, *_), (real_mean, *_) = sim_eval.mean_ci(), real_eval.mean_ci()
+    summary = {
+        "run_dir": str(policy.run_dir),
+        "method": policy.method,
+        "run": policy.run,
+        "epoch": policy.epoch,
+        "real": real_eval.to_json(),
+        "sim": sim_eval.to_json(),
+        "gap": sim_mean - real_mean,
+    }
+    atomic_write_json(out / "evaluation.json", summary)
+    return out
+
+
+if __name__ == "__main__":
+    print(f"wrote {cli.one_line_errors(main, sys.argv[1:])}")

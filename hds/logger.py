@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import html
 import os
 from pathlib import Path
 
@@ -10,58 +12,82 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
+from hds.config import run_label
+
 console = Console()
 
 
+def wandb_id(out_dir: Path, method: str) -> str:
+    """The W&B run id of a method's training in a run directory: the same when the run is
+    started again on that directory, so a resumed run continues its W&B run."""
+    return hashlib.sha1(f"{Path(out_dir).resolve()}:{method}".encode()).hexdigest()[:16]
+
+
 class RunLogger:
-    def __init__(self, cfg, out_dir: Path, name: str, total_epochs: int, start_epoch: int = 0):
-        self.wandb = None
-        if cfg.logger.wandb:
+    """One method's training: a progress bar and, with logger.wandb, a W&B run whose metrics
+    are stepped by epoch, labelled per run by seed and swept setting, and whose summary holds
+    the final returns and gaps. `close` ends both, also when training failed."""
+
+    def __init__(self, cfg, out_dir: Path, method: str, runs: list[dict], console: bool = True):
+        self.cfg, self.out_dir, self.method = cfg, Path(out_dir), method
+        self.labels = [run_label(r) for r in runs]
+        self.show = console
+        self.wandb = self.progress = None
+
+    def start(self, first_epoch: int) -> None:
+        if self.cfg.logger.wandb:
             os.environ.setdefault("WANDB_SILENT", "true")
             import wandb
 
             self.wandb = wandb.init(
-                project=cfg.logger.project,
-                group=cfg.logger.group,
-                name=name,
-                dir=str(out_dir),
-                mode=cfg.logger.mode,
-                config=_flat(cfg),
+                project=self.cfg.logger.project,
+                group=self.cfg.logger.group,
+                name=self.method,
+                id=wandb_id(self.out_dir, self.method),
+                resume="allow",
+                dir=str(self.out_dir),
+                mode=self.cfg.logger.mode,
+                config=_flat(self.cfg),
                 reinit="create_new",
             )
-        self.progress = Progress(
-            TextColumn("[bold]{task.description}"),
-            BarColumn(),
-            TextColumn("epoch {task.completed}/{task.total}"),
-            TextColumn("return {task.fields[ret]}"),
-            TimeElapsedColumn(),
-            TimeRemainingColumn(),
-            console=console,
-            transient=False,
-        )
-        self.task = self.progress.add_task(name, total=total_epochs, completed=start_epoch, ret="-")
-        self.progress.start()
+            self.wandb.define_metric("epoch")
+            self.wandb.define_metric("*", step_metric="epoch")
+        if self.show:
+            self.progress = Progress(
+                TextColumn("[bold]{task.description}"),
+                BarColumn(),
+                TextColumn("epoch {task.completed}/{task.total}"),
+                TextColumn("return {task.fields[ret]}"),
+                TimeElapsedColumn(),
+                TimeRemainingColumn(),
+                console=console,
+                transient=False,
+            )
+            self.task = self.progress.add_task(
+                self.method, total=self.cfg.algo.epochs, completed=first_epoch, ret="-"
+            )
+            self.progress.start()
 
     def log_epochs(self, first_epoch: int, metrics: dict, seconds_per_epoch: float) -> None:
-        """`metrics`: {name: [n_seeds, n_epochs]} for epochs first_epoch, first_epoch + 1, ..."""
+        """`metrics`: {name: [n_runs, n_epochs]} for epochs first_epoch, first_epoch + 1, ..."""
         n = next(iter(metrics.values())).shape[1]
-        for i in range(n):
-            row = {k: float(np.nanmean(v[:, i])) for k, v in metrics.items()}
-            if self.wandb:
+        if self.wandb:
+            for i in range(n):
+                row = {k: float(np.nanmean(v[:, i])) for k, v in metrics.items()}
                 row |= {
-                    f"{k}/seed{s}": float(v[s, i])
+                    f"{k}/{label}": float(v[s, i])
                     for k, v in metrics.items()
-                    for s in range(v.shape[0])
+                    for s, label in enumerate(self.labels)
                 }
-                self.wandb.log(
-                    row | {"epoch": first_epoch + i, "wall_time_per_epoch": seconds_per_epoch}
-                )
-        self.progress.update(
-            self.task, advance=n, ret=f"{np.nanmean(metrics['return'][:, -1]):.1f}"
-        )
+                row |= {"epoch": first_epoch + i + 1, "wall_time_per_epoch": seconds_per_epoch}
+                self.wandb.log(row)
+        if self.progress:
+            self.progress.update(
+                self.task, advance=n, ret=f"{np.nanmean(metrics['return'][:, -1]):.1f}"
+            )
 
     def finish(self, rows: list[dict], figures: dict) -> None:
-        self.progress.stop()
+        """The final rows (one per run) as a table and as summary scalars, and the figures."""
         if self.wandb:
             import wandb
 
@@ -69,12 +95,35 @@ class RunLogger:
             self.wandb.log(
                 {"summary": wandb.Table(columns=keys, data=[[r[k] for k in keys] for r in rows])}
             )
+            for key in ("sim_return", "real_return", "gap"):
+                self.wandb.summary[f"{key}/mean"] = float(np.mean([r[key] for r in rows]))
+                for row, label in zip(rows, self.labels):
+                    self.wandb.summary[f"{key}/{label}"] = row[key]
             self.wandb.log({name: wandb.Image(fig) for name, fig in figures.items()})
-            self.wandb.finish()
         import matplotlib.pyplot as plt
 
         for fig in figures.values():
             plt.close(fig)
+
+    def log_files(self, files: dict[str, Path]) -> None:
+        """Media a person opens (a GIF as a video, a report as HTML-escaped text)."""
+        if not self.wandb:
+            return
+        import wandb
+
+        for name, path in files.items():
+            if path.suffix == ".gif":
+                self.wandb.log({name: wandb.Video(str(path), format="gif")})
+            else:
+                self.wandb.log({name: wandb.Html(f"<pre>{html.escape(path.read_text())}</pre>")})
+
+    def close(self, failed: bool = False) -> None:
+        if self.progress:
+            self.progress.stop()
+            self.progress = None
+        if self.wandb:
+            self.wandb.finish(exit_code=1 if failed else 0)
+            self.wandb = None
 
 
 def print_table(rows: list[dict], title: str = "sim2real") -> None:
@@ -89,9 +138,14 @@ def print_table(rows: list[dict], title: str = "sim2real") -> None:
 
 
 def _cell(key: str, value) -> str:
+    """Returns and gaps to one decimal; swept settings (step size 0.01 beside 0.04) as %g."""
+    if value is None:
+        return "-"
     if key == "gap_relative":
         return f"{value:.1%}"
-    return f"{value:.1f}" if isinstance(value, float) else str(value)
+    if key in ("sim_return", "real_return", "gap"):
+        return f"{value:.1f}"
+    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 def _flat(cfg) -> dict:

@@ -10,6 +10,33 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from hds.config import SWEEP_KEYS  # noqa: E402
+
+
+def varying_keys(rows: list[dict], exclude=()) -> list[str]:
+    """The swept keys whose values differ between rows: what tells their runs apart."""
+    return [k for k in SWEEP_KEYS if k not in exclude and len({r.get(k) for r in rows}) > 1]
+
+
+def label(row: dict, keys: list[str]) -> str:
+    """A row's method and its swept settings among `keys`: `pods step_size=0.04`."""
+    return " ".join([str(row["method"]), *(f"{k}={row[k]:g}" for k in keys if k in row)])
+
+
+def histories_by_setting(rows: list[dict], histories: dict, keys: list[str]) -> list[tuple]:
+    """One run's {method: {metric: [n_runs][epochs]}} split by the settings among `keys`:
+    [(first row of the group, its history)]. A method's history rows follow its rows."""
+    out = []
+    for method, history in histories.items():
+        method_rows = [r for r in rows if r["method"] == method]
+        groups: dict[str, list[int]] = {}
+        for i, r in enumerate(method_rows):
+            groups.setdefault(label(r, keys), []).append(i)
+        for index in groups.values():
+            picked = {k: [v[i] for i in index] for k, v in history.items()}
+            out.append((method_rows[index[0]], picked))
+    return out
+
 
 def learning_curves(histories: dict[str, dict]) -> plt.Figure:
     """histories: {method: {metric: [n_seeds, n_epochs]}}; mean and range over seeds."""
@@ -24,13 +51,13 @@ def learning_curves(histories: dict[str, dict]) -> plt.Figure:
                     epochs, values.min(0), values.max(0), alpha=0.2, color=line.get_color()
                 )
             ax.set_xlabel("epoch")
-            ax.set_title(
-                {
-                    "return": "return on the simulator",
-                    "loss": "regression loss",
-                    "step_size": "action step size",
-                }[key]
-            )
+            title, ylabel = {
+                "return": ("return on the simulator", "return (sum of rewards)"),
+                "loss": ("regression loss", "mean squared error"),
+                "step_size": ("action step size", "alpha"),
+            }[key]
+            ax.set_title(title)
+            ax.set_ylabel(ylabel)
     axes[1].set_yscale("log")
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), frameon=False)
@@ -39,22 +66,32 @@ def learning_curves(histories: dict[str, dict]) -> plt.Figure:
 
 
 def sim_vs_real(rows: list[dict]) -> plt.Figure:
-    """Mean return on the simulator and on the real plant per method, seeds as dots."""
+    """Mean return on the simulator and on the real plant per method and swept setting, seeds
+    as dots."""
+    keys = varying_keys(rows)
+    rows = [{**r, "method": label(r, keys)} for r in rows]
     methods = list(dict.fromkeys(r["method"] for r in rows))
-    fig, ax = plt.subplots(figsize=(1.8 + 1.6 * len(methods), 3.6))
+    fig, ax = plt.subplots(figsize=(3.2 + 1.6 * len(methods), 3.6))
     x = np.arange(len(methods))
-    for offset, key, label in (
+    for offset, key, where in (
         (-0.18, "sim_return", "simulator"),
         (0.18, "real_return", "real plant"),
     ):
         vals = [[r[key] for r in rows if r["method"] == m] for m in methods]
-        ax.bar(x + offset, [np.mean(v) for v in vals], width=0.34, label=label, alpha=0.8)
+        ax.bar(x + offset, [np.mean(v) for v in vals], width=0.34, label=where, alpha=0.8)
         for i, v in enumerate(vals):
             ax.scatter(np.full(len(v), x[i] + offset), v, color="k", s=8, zorder=3)
-    ax.set_xticks(x, methods)
+    ax.set_xticks(
+        x,
+        methods,
+        rotation=20 if len(methods) > 3 else 0,
+        ha="right" if len(methods) > 3 else "center",
+    )
     ax.set_ylabel("return")
     ax.set_title("sim2real gap")
-    ax.legend()
+    ax.legend(
+        loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False
+    )  # beside, not on, the bars
     fig.tight_layout()
     return fig
 
@@ -78,6 +115,28 @@ def gap_vs_friction(summary: list[dict]) -> plt.Figure:
         ax.set_xlabel("friction gap (x the plant's friction)")
     axes[0].legend()
     fig.tight_layout()
+    return fig
+
+
+def trajectories(sim_obs, real_obs, names, dt: float) -> plt.Figure:
+    """One episode of a policy from the same initial state on the simulator and on the plant:
+    each observed variable against time."""
+    n = len(names)
+    cols = min(n, 4)
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False)
+    t = np.arange(len(sim_obs)) * dt
+    for i, ax in enumerate(axes.flat):
+        if i >= n:
+            ax.axis("off")
+            continue
+        ax.plot(t, sim_obs[:, i], label="simulator")
+        ax.plot(t, real_obs[:, i], "--", label="plant")
+        ax.set_title(names[i])
+        ax.set_xlabel("time (s)")
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=2, frameon=False)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     return fig
 
 

@@ -26,31 +26,36 @@ from scipy import stats
 from hds import plots
 from hds.utils.io import atomic_write_bytes, read_json
 
-COLUMNS = (
-    "method",
-    "friction_gap",
-    "seed",
-    "sim_return",
-    "real_return",
-    "gap",
-    "gap_relative",
-    "job",
-)
+ROW_COLUMNS = ("seed", "sim_return", "real_return", "gap", "gap_relative", "job")
+
+
+def settings_of(rows: list[dict]) -> list[str]:
+    """The swept keys that tell rows apart, besides the friction gap (a column of its own)."""
+    return plots.varying_keys(rows, exclude=("friction_gap",))
 
 
 def collect_rows(root: Path) -> tuple[list[dict], list[tuple]]:
     """Every row of every run summary below root (a sweep's gathered summary is skipped: its
-    jobs are read directly), with the plant's friction gap; and every (method, friction gap,
-    job, history). Both empty when root holds no run (a gap-discovery directory)."""
-    rows, histories = [], []
+    jobs are read directly), with the plant's friction gap; and every (label: method and swept
+    setting, friction gap, job, history of those runs). Both empty when root holds no run."""
+    rows, runs = [], []
     for path in sorted(root.rglob("summary.json")):
         summary = read_json(path)
         if "history" not in summary:  # the sweep-level summary gathered from its jobs
             continue
         gap = summary.get("real", {}).get("friction_gap")
         job = str(path.parent.relative_to(root)) if path.parent != root else "."
-        rows += [{"friction_gap": gap, **r, "job": job} for r in summary["rows"]]  # swept: own
-        histories += [(m, gap, job, h) for m, h in summary["history"].items()]
+        job_rows = [{"friction_gap": gap, **r, "job": job} for r in summary["rows"]]  # swept: own
+        rows += job_rows
+        runs.append((job, job_rows, summary["history"]))
+    keys = settings_of(rows)
+    histories = []
+    for job, job_rows, history in runs:
+        swept_gap = len({r["friction_gap"] for r in job_rows}) > 1
+        for row, h in plots.histories_by_setting(
+            job_rows, history, [*keys, "friction_gap"] if swept_gap else keys
+        ):
+            histories.append((plots.label(row, keys), row["friction_gap"], job, h))
     return rows, histories
 
 
@@ -65,14 +70,17 @@ def mean_ci(values) -> tuple[float, float, float]:
 
 
 def aggregate(rows: list[dict]) -> list[dict]:
+    """Mean and 95% interval over seeds of each method at each friction gap and swept setting
+    (`label`: the method and its settings)."""
+    keys = settings_of(rows)
     groups = defaultdict(list)
     for r in rows:
-        groups[(r["method"], r["friction_gap"])].append(r)
+        groups[(plots.label(r, keys), r["friction_gap"])].append(r)
     out = []
-    for (method, gap), group in sorted(
-        groups.items(), key=lambda kv: (str(kv[0][0]), kv[0][1] or 0)
-    ):
-        entry = {"method": method, "friction_gap": gap, "runs": len(group)}
+    for (name, gap), group in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1] or 0)):
+        first = group[0]
+        entry = {"method": first["method"], "label": name, "friction_gap": gap, "runs": len(group)}
+        entry |= {k: first[k] for k in keys if k in first}
         for key in ("sim_return", "real_return", "gap"):
             entry[key] = mean_ci([r[key] for r in group])
         out.append(entry)
@@ -87,30 +95,32 @@ def markdown_table(summary: list[dict]) -> str:
     fmt = lambda m, lo, hi: f"{m:.1f} [{lo:.1f}, {hi:.1f}]"  # noqa: E731
     for e in summary:
         lines.append(
-            f"| {e['method']} | {e['friction_gap']} | {e['runs']} | {fmt(*e['sim_return'])} "
+            f"| {e['label']} | {e['friction_gap']} | {e['runs']} | {fmt(*e['sim_return'])} "
             f"| {fmt(*e['real_return'])} | {fmt(*e['gap'])} |"
         )
     return "\n".join(lines)
 
 
 def pivot_table(summary: list[dict], key: str) -> str:
-    """One row per method, one column per friction gap: the mean of `key` over seeds."""
+    """One row per method (and setting), one column per friction gap: the mean over seeds."""
     gaps = sorted({e["friction_gap"] for e in summary})
-    methods = list(dict.fromkeys(e["method"] for e in summary))
-    means = {(e["method"], e["friction_gap"]): e[key][0] for e in summary}
+    labels = list(dict.fromkeys(e["label"] for e in summary))
+    means = {(e["label"], e["friction_gap"]): e[key][0] for e in summary}
     lines = [
         "| method | " + " | ".join(f"gap x{g:g}" for g in gaps) + " |",
         "| --- |" + " ---: |" * len(gaps),
     ]
-    for m in methods:
+    for m in labels:
         cells = [f"{means[(m, g)]:.0f}" if (m, g) in means else "-" for g in gaps]
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 def write_csv(rows: list[dict], path: Path) -> None:
+    """One row per run: method, friction gap, every swept setting, seed, returns, gap, job."""
+    columns = ["method", "friction_gap", *settings_of(rows), *ROW_COLUMNS]
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=COLUMNS, extrasaction="ignore")
+    writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore")
     writer.writeheader()
     writer.writerows(rows)
     atomic_write_bytes(path, buf.getvalue().encode())
@@ -206,7 +216,9 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
         "report_sim_vs_real": plots.sim_vs_real([r for r in rows if r["friction_gap"] == shown]),
     }
     if len(gaps) > 1:
-        figures["report_gap_vs_friction"] = plots.gap_vs_friction(summary)
+        figures["report_gap_vs_friction"] = plots.gap_vs_friction(
+            [{**e, "method": e["label"]} for e in summary]
+        )
     for name, fig in figures.items():
         plots.save(fig, out / "plots" / f"{name}.png")
     write_csv(rows, out / "report.csv")

@@ -11,9 +11,7 @@ import pytest
 os.environ.setdefault("WANDB_MODE", "offline")
 os.environ.setdefault("WANDB_SILENT", "true")
 
-from hydra import compose, initialize_config_dir  # noqa: E402
-
-from hds.config import validate  # noqa: E402
+from hds.config import compose  # noqa: E402
 from hds.utils.runtime import enable_compilation_cache  # noqa: E402
 
 enable_compilation_cache()
@@ -26,10 +24,15 @@ SHARED = ROOT.parent / "shared"
 def make_config(*overrides: str, config_name: str = "config"):
     """Compose a primary config (conf/config.yaml: `python -m hds.run`; conf/discover.yaml:
     `python -m hds.discover`) with overrides and validate it, as the command does."""
-    if config_name == "discover":
-        import hds.discover.config  # noqa: F401  (registers discover's schema)
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return validate(compose(config_name, overrides=list(overrides)))
+    return compose(list(overrides), config_name)
+
+
+def trained(*args, **kwargs):
+    """(params, history) of hds.experiment.train(*args, **kwargs)."""
+    from hds.experiment import train
+
+    training = train(*args, **kwargs)
+    return training.params, training.history
 
 
 @pytest.fixture(scope="session")

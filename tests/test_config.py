@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import pytest
 from hydra.errors import ConfigCompositionException
-from omegaconf.errors import ConfigKeyError
 
 from tests.conftest import CONF, make_config
 
@@ -151,7 +150,7 @@ def test_retrain_composes_with_a_plant_that_has_effects():
 
 
 def test_method_presets_choose_the_groups_and_the_row_label():
-    from hds.run import method_name
+    from hds.experiment import method_name
 
     expected = {
         "pods": ("pods", "none", "none", "nominal", "pods"),
@@ -179,7 +178,7 @@ def test_method_presets_choose_the_groups_and_the_row_label():
     ],
 )
 def test_unknown_keys_fail(override, allowed):
-    with pytest.raises((ConfigCompositionException, ConfigKeyError)) as err:
+    with pytest.raises(ValueError) as err:
         make_config(override)
     assert override.split("=")[0].split(".")[-1] in str(err.value)
     assert allowed in str(err.value)
@@ -194,7 +193,7 @@ def test_unknown_keys_forced_in_with_plus_fail_at_validation():
 
 
 def test_unknown_keys_of_discover_list_the_allowed_ones():
-    with pytest.raises(ConfigCompositionException) as err:
+    with pytest.raises(ValueError) as err:
         make_config("data=x.npz", "discover.horizn=3", config_name="discover")
     assert "discover has no key 'horizn'" in str(err.value)
     assert "horizon, stride, warmup" in str(err.value)

@@ -18,7 +18,7 @@ import pytest
 from hds import dynamics
 from hds.config import EffectConfig
 from hds.envs import make_env
-from tests.conftest import make_config
+from tests.conftest import make_config, trained
 
 # The analytic backend (MuJoCo-exact cart-pole, compiles in seconds); the models do not depend
 # on the backend (the residual one on generalized was checked once: 210 s to compile the trainer).
@@ -308,16 +308,14 @@ def test_residual_step_has_a_finite_jacobian(setup, fitted):
 def test_a_vmapped_beta_sweep_gives_the_numbers_of_separate_runs(setup, fitted, tmp_path):
     """sweep.beta trains every share of model rollouts in one program (the widest split, each
     run using its own share): the numbers of one run per beta, beta = 0 being plain PODS."""
-    from hds import run as hds_run
-
     _, env, *_ = setup
     model, _ = fitted("ensemble")
     betas = (0.0, 0.25, 0.75)
     swept = make_config(*SMALL, f"sweep.beta=[{','.join(map(str, betas))}]")
-    together, history, *_ = hds_run.train(swept, env, tmp_path / "vmapped", "hds", model)
+    together, history = trained(swept, env, tmp_path / "vmapped", "hds", model)
     for i, beta in enumerate(betas):
         alone_cfg = make_config(*SMALL, f"dynamics.beta={beta}")
-        alone, alone_history, *_ = hds_run.train(
+        alone, alone_history = trained(
             alone_cfg, env, tmp_path / f"alone{i}", "hds", model if beta else None
         )
         for a, b in zip(jax.tree.leaves(together), jax.tree.leaves(alone), strict=True):

@@ -19,10 +19,11 @@ import jax
 import numpy as np
 import pytest
 
+from hds import experiment
 from hds import run as hds_run
 from hds.envs import make_env
 from hds.envs.system import ASSETS
-from tests.conftest import ROOT, make_config
+from tests.conftest import ROOT, make_config, trained
 
 TINY = (
     "env.backend=analytic",
@@ -99,9 +100,9 @@ def test_a_vmapped_sweep_gives_the_numbers_of_separate_runs(tmp_path, swept, set
     values = (0.1, 0.5) if swept == "noise_decay" else (0.01, 0.04)
     cfg = make_config(*TINY, *base, f"sweep.{swept}=[{values[0]},{values[1]}]")
     env = make_env(cfg.env)
-    together, history, *_ = hds_run.train(cfg, env, tmp_path / "vmapped", "pods")
+    together, history = trained(cfg, env, tmp_path / "vmapped", "pods")
     for i, value in enumerate(values):
-        alone, alone_history, *_ = hds_run.train(
+        alone, alone_history = trained(
             make_config(*TINY, *base, f"{setting}={value}"), env, tmp_path / f"alone{i}", "pods"
         )
         for a, b in zip(jax.tree.leaves(together), jax.tree.leaves(alone)):
@@ -114,13 +115,13 @@ def test_a_vmapped_friction_gap_sweep_gives_the_numbers_of_separate_runs(tmp_pat
     """The oracle trains on each gap's dynamics and every run meets its own plant, in one
     program; the same numbers as one run per gap."""
     base = (*TINY, "method=oracle", "env.task.horizon=20")
-    together = hds_run.run(make_config(*base, "sweep.friction_gap=[0,3]"), tmp_path / "vmapped")
+    together = experiment.run(make_config(*base, "sweep.friction_gap=[0,3]"), tmp_path / "vmapped")
     assert "friction_gap" in capsys.readouterr().out  # the console table tells the runs apart
-    rows = {r["friction_gap"]: r for r in together["rows"]}
+    rows = {r["friction_gap"]: r for r in together.rows}
     for gap in (0.0, 3.0):
-        (alone,) = hds_run.run(make_config(*base, f"real.friction_gap={gap}"), tmp_path / f"{gap}")[
-            "rows"
-        ]
+        (alone,) = experiment.run(
+            make_config(*base, f"real.friction_gap={gap}"), tmp_path / f"{gap}"
+        ).rows
         for key in ("sim_return", "real_return"):
             assert rows[gap][key] == pytest.approx(alone[key], rel=1e-5), (gap, key)
     assert abs(rows[3.0]["real_return"] - rows[0.0]["real_return"]) > 1.0  # the gap matters
@@ -131,14 +132,14 @@ def test_a_seeds_numbers_do_not_depend_on_the_seeds_beside_it(tmp_path):
     `seeds=2` is bit for bit seed 1 alone. Vmapping them (vmap_runs=0) agrees to float level."""
     cfg = make_config(*TINY, "seeds=2")
     env = make_env(cfg.env)
-    looped, history, *_ = hds_run.train(cfg, env, tmp_path / "looped", "pods")
-    alone, alone_history, *_ = hds_run.train(
+    looped, history = trained(cfg, env, tmp_path / "looped", "pods")
+    alone, alone_history = trained(
         make_config(*TINY, "seed=1"), env, tmp_path / "alone", "pods"
     )
     for a, b in zip(jax.tree.leaves(looped), jax.tree.leaves(alone)):
         np.testing.assert_array_equal(a[1], b[0])
     assert history["return"][1] == alone_history["return"][0]
-    vmapped, _, *_ = hds_run.train(
+    vmapped, _ = trained(
         make_config(*TINY, "seeds=2", "vmap_runs=0"), env, tmp_path / "vmapped", "pods"
     )
     for a, b in zip(jax.tree.leaves(looped), jax.tree.leaves(vmapped)):
@@ -167,11 +168,11 @@ def test_runs_map_as_vmap_runs_says(setting, vmapped):
 
 def test_the_batch_is_sharded_across_two_host_devices(tmp_path):
     code = (
-        "import jax, json, sys; from tests.conftest import make_config; from hds import run;"
+        "import jax, json, sys; from tests.conftest import make_config, trained;"
         "from hds.envs import make_env;"
         f"cfg = make_config(*{list(TINY)!r}, 'seeds=2');"
         "out = __import__('pathlib').Path(sys.argv[1]);"
-        "p, h, *_ = run.train(cfg, make_env(cfg.env), out, 'pods');"
+        "p, h = trained(cfg, make_env(cfg.env), out, 'pods');"
         "leaf = jax.tree.leaves(p)[0];"
         "print(json.dumps({'devices': jax.device_count(), 'shards': len(leaf.sharding.device_set),"
         " 'return': h['return']}))"
@@ -189,7 +190,7 @@ def test_the_batch_is_sharded_across_two_host_devices(tmp_path):
     out = json.loads(proc.stdout.strip().splitlines()[-1])
     assert out["devices"] == 2 and out["shards"] == 2
     cfg = make_config(*TINY, "seeds=2")
-    _, history, *_ = hds_run.train(cfg, make_env(cfg.env), tmp_path / "single", "pods")
+    _, history = trained(cfg, make_env(cfg.env), tmp_path / "single", "pods")
     np.testing.assert_allclose(out["return"], history["return"], rtol=1e-5)
 
 
@@ -338,8 +339,8 @@ def test_hds_report_names_what_it_expects_where_there_is_nothing(tmp_path):
 @pytest.fixture(scope="module")
 def vmapped_seeds(tmp_path_factory):
     """Seeds 0 and 1 trained together in one program (`seeds=2`)."""
-    summary = hds_run.run(make_config(*TINY, "seeds=2"), tmp_path_factory.mktemp("vmapped"))
-    return {r["seed"]: r for r in summary["rows"]}
+    result = experiment.run(make_config(*TINY, "seeds=2"), tmp_path_factory.mktemp("vmapped"))
+    return {r["seed"]: r for r in result.rows}
 
 
 @pytest.mark.parametrize("launcher", ["local_processes", "local_submitit"])

@@ -16,8 +16,8 @@ import pytest
 
 from hds.algo.pods import make_train
 from hds.envs import make_env
-from hds.evaluate import Evaluator
-from tests.conftest import ROOT, make_config
+from hds.evaluation import Evaluator
+from tests.conftest import ROOT, make_config, trained
 
 # Small budgets on the analytic backend, which compiles in seconds (tests/test_analytic.py
 # checks it against brax and MuJoCo).
@@ -168,12 +168,11 @@ def test_a_nan_gradient_is_skipped_and_counted(setup):
 
 
 def test_kill_and_resume_gives_identical_parameters(tmp_path, monkeypatch):
-    from hds import run as hds_run
     from hds.checkpoint import Checkpoints
 
     cfg = make_config(*TINY)
     env = make_env(cfg.env)
-    full, history, *_ = hds_run.train(cfg, env, tmp_path / "full", "pods")
+    full, history = trained(cfg, env, tmp_path / "full", "pods")
 
     real_save = Checkpoints.save
 
@@ -183,9 +182,9 @@ def test_kill_and_resume_gives_identical_parameters(tmp_path, monkeypatch):
 
     monkeypatch.setattr(Checkpoints, "save", save_then_die)
     with pytest.raises(KeyboardInterrupt):
-        hds_run.train(cfg, env, tmp_path / "killed", "pods")
+        trained(cfg, env, tmp_path / "killed", "pods")
     monkeypatch.setattr(Checkpoints, "save", real_save)
-    resumed, resumed_history, *_ = hds_run.train(cfg, env, tmp_path / "killed", "pods")
+    resumed, resumed_history = trained(cfg, env, tmp_path / "killed", "pods")
 
     for a, b in zip(jax.tree.leaves(full), jax.tree.leaves(resumed)):
         np.testing.assert_array_equal(a, b)
@@ -228,24 +227,22 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
     """simulator=corrected trains on the effects gap discovery names on plant data, and
     simulator=real (the oracle) on the plant's own: both then predict the plant's return far
     better than the nominal simulator does (20 N of Coulomb friction on the rail, C MuJoCo)."""
-    from hds.run import run
+    from hds.experiment import run, simulator_of
 
     small_data = ("dynamics.episodes=16", "dynamics.horizon=60", "discover.stride=2")
     gaps = {}
     for simulator in ("nominal", "corrected", "real"):
         cfg = make_config(*TINY, *small_data, f"simulator={simulator}", "seeds=2")
-        summary = run(cfg, tmp_path / simulator)
-        gaps[simulator] = np.mean([abs(r["gap"]) for r in summary["rows"]])
+        result = run(cfg, tmp_path / simulator)
+        gaps[simulator] = np.mean([abs(r["gap"]) for r in result.rows])
         if simulator == "corrected":
-            assert {r["method"] for r in summary["rows"]} == {"pods+corrected"}
-            (found,) = summary["discovery"]["effects"]
+            assert {r["method"] for r in result.rows} == {"pods+corrected"}
+            (found,) = result.discovery["effects"]
             assert (found["name"], found["target"]) == ("coulomb_friction", "slider")
             assert found["params"]["force"] == pytest.approx(20.0, rel=0.1)
             assert (tmp_path / simulator / "discovery" / "report.md").is_file()
             # the GIF of hds.report rebuilds this simulator from what the run wrote
-            from hds.animate import simulator_of
-
-            sites = simulator_of(cfg, tmp_path / simulator).sim.effects.sites
+            sites = simulator_of(cfg, tmp_path / simulator)[0].sim.effects.sites
             assert [(e.name, e.target) for e in sites] == [("coulomb_friction", "slider")]
     assert gaps["corrected"] < 0.25 * gaps["nominal"], gaps
     assert gaps["real"] < 0.25 * gaps["nominal"], gaps

@@ -18,6 +18,7 @@ One epoch:
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -42,14 +43,30 @@ class TrainState:
 
 
 @dataclass(frozen=True)
+class Stages:
+    """An epoch's three stages on the simulator, the functions the epoch itself runs (so
+    benchmarks time the real ones); jit them yourself. `params`: the effect parameters.
+      collect(params, count, policy_params, hparams, epoch, key)
+          -> (starts, obs [B, T, n_obs], actions [B, T, n_act], rewards [B, T], improve_key)
+      improve(params, policy_params, hparams, epoch, starts, obs, actions, key)
+          -> (obs, ImproveResult whose actions are the regression targets, alpha)
+      regress(policy_params, opt_state, obs [N, n_obs], targets [N, n_act], key, tol=...)
+          -> (policy_params, opt_state, loss)"""
+
+    collect: Callable
+    improve: Callable
+    regress: Callable
+
+
+@dataclass(frozen=True)
 class Trainer:
     init: Callable
     run_chunk: Callable
     train: Callable
     chunk: int  # epochs per chunk
-    chunks: int
     policy: object  # the flax module; apply with TrainState.policy
     default_hparams: dict
+    stages: Stages
 
 
 def chunk_length(epochs: int, most: int) -> int:
@@ -103,27 +120,27 @@ def make_train(cfg, env, model=None) -> Trainer:
         params = policy.init(init_key, jnp.zeros(sim.n_obs))
         return TrainState(params, optimizer.init(params), jnp.array(0, jnp.int32), key)
 
-    def collect_and_improve(engine, params_key, count, state, hparams, key):
-        params = hparams[params_key] if params_key else None
+    def collect(engine, params, count, policy_params, hparams, epoch, key):
+        """Stage 1: roll the (noisy) policy out from `count` initial states. Returns the
+        starts, observations, controls, rewards and the keys left for stage 2."""
         k_reset, k_roll, k_improve = jax.random.split(key, 3)
         starts = jax.vmap(engine.reset)(jax.random.split(k_reset, count))
-        act = lambda o: policy.apply(state.policy, o)  # noqa: E731
+        act = lambda o: policy.apply(policy_params, o)  # noqa: E731
         obs, actions, rewards = jax.vmap(
             lambda s, k: policy_rollout(
-                engine,
-                params,
-                task,
-                act,
-                s,
-                k,
-                sigma(hparams, state.epoch),
-                task.horizon,
-                low,
-                high,
+                engine, params, task, act, s, k, sigma(hparams, epoch), task.horizon, low, high
             )
         )(starts, jax.random.split(k_roll, count))
-        alpha = anneal.step_size(hparams["step_size"], cfg.anneal.step_decay, state.epoch)
-        temp = anneal.temperature(cfg.anneal.temperature, cfg.anneal.cooling, state.epoch)
+        return starts, obs, actions, rewards, k_improve
+
+    def improve_batch(engine, params, policy_params, hparams, epoch, starts, obs, actions, key):
+        """Stage 2: improve every rollout's actions (open loop) or perturbations of the
+        policy's controls (closed loop); the result's actions are the regression targets, and
+        (closed loop) its observations the improved trajectory's. Returns (obs, result, alpha)."""
+        count = jax.tree.leaves(starts)[0].shape[0]
+        act = lambda o: policy.apply(policy_params, o)  # noqa: E731
+        alpha = anneal.step_size(hparams["step_size"], cfg.anneal.step_decay, epoch)
+        temp = anneal.temperature(cfg.anneal.temperature, cfg.anneal.cooling, epoch)
         closed = algo.improve_in == "closed_loop"
         step = jax.vmap(
             lambda s, a, k: improve(
@@ -143,7 +160,7 @@ def make_train(cfg, env, model=None) -> Trainer:
         )
         if closed:  # the perturbations that reproduce the rollout: u = act(o) + delta
             actions = actions - jax.vmap(jax.vmap(act))(obs)
-        result = step(starts, actions, jax.random.split(k_improve, count))
+        result = step(starts, actions, jax.random.split(key, count))
         if algo.improve_steps > 1:  # further steps from the improved actions
 
             def again(result, k):
@@ -154,13 +171,40 @@ def make_train(cfg, env, model=None) -> Trainer:
                     skipped=result.skipped | nxt.skipped,
                 ), None
 
-            keys = jax.random.split(jax.random.fold_in(k_improve, 1), algo.improve_steps - 1)
+            keys = jax.random.split(jax.random.fold_in(key, 1), algo.improve_steps - 1)
             result, _ = jax.lax.scan(again, result, keys)
         if closed:  # regress onto the improved trajectory: its states and its controls
             obs, controls, _ = jax.vmap(
                 lambda s, d: perturbed_rollout(engine, params, task, act, s, d, low, high)
             )(starts, result.actions)
             result = result._replace(actions=controls)
+        return obs, result, alpha
+
+    def regress_batch(params, opt_state, obs, targets, key, tol=algo.early_stop):
+        """Stage 3: regress the policy onto the targets (rows of obs [N, n_obs] and targets
+        [N, n_act]); `tol`: the early stop (-inf: every inner epoch)."""
+        return regress(
+            policy.apply,
+            optimizer,
+            params,
+            opt_state,
+            obs,
+            targets,
+            jnp.ones(obs.shape[0]),
+            key,
+            inner_epochs=algo.inner_epochs,
+            minibatch=algo.minibatch,
+            tol=tol,
+        )
+
+    def collect_and_improve(engine, params_key, count, state, hparams, key):
+        params = hparams[params_key] if params_key else None
+        starts, obs, actions, rewards, k_improve = collect(
+            engine, params, count, state.policy, hparams, state.epoch, key
+        )
+        obs, result, alpha = improve_batch(
+            engine, params, state.policy, hparams, state.epoch, starts, obs, actions, k_improve
+        )
         return obs, result, rewards.sum(-1), alpha
 
     def epoch(state: TrainState, hparams):
@@ -174,18 +218,8 @@ def make_train(cfg, env, model=None) -> Trainer:
         masks, rows = shares(hparams)
         obs = jnp.concatenate([o[0] for o in outs])[rows].reshape(-1, sim.n_obs)
         targets = jnp.concatenate([o[1].actions for o in outs])[rows].reshape(-1, sim.n_act)
-        params, opt_state, loss = regress(
-            policy.apply,
-            optimizer,
-            state.policy,
-            state.opt_state,
-            obs,
-            targets,
-            jnp.ones(obs.shape[0]),
-            regress_key,
-            inner_epochs=algo.inner_epochs,
-            minibatch=algo.minibatch,
-            tol=algo.early_stop,
+        params, opt_state, loss = regress_batch(
+            state.policy, state.opt_state, obs, targets, regress_key
         )
 
         def used(value_of, part):  # a part's values, NaN where this run does not use them
@@ -222,4 +256,7 @@ def make_train(cfg, env, model=None) -> Trainer:
         "beta": jnp.asarray(cfg.dynamics.beta, jnp.float32),
         "effects": env.params,
     }
-    return Trainer(init, run_chunk, train, chunk, algo.epochs // chunk, policy, hparams)
+    stages = Stages(
+        functools.partial(collect, env), functools.partial(improve_batch, env), regress_batch
+    )
+    return Trainer(init, run_chunk, train, chunk, policy, hparams, stages)

@@ -10,37 +10,23 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from hds.config import EnvConfig
+from hds.config import env_config
 
 log = logging.getLogger("hds")
 
 
-def env_config(env: dict) -> EnvConfig:
-    """A checked EnvConfig from a plain dict (e.g. the corrected env)."""
-    cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(EnvConfig), env))
-    cfg.check()
-    for effect in cfg.effects:
-        effect.check()
-    return cfg
-
-
 def retrain(cfg, corrected_env: dict, out_dir: Path) -> dict:
     from hds.envs import make_env
-    from hds.evaluate import Evaluator, gap_rows
+    from hds.experiment import Hooks, evaluate_training, method_logger, train
     from hds.real import make_plant
-    from hds.run import batch_of, train
 
     plant = make_plant(cfg.real, cfg.env)
     rows = []
     for method, env_cfg in (("original", cfg.env), ("corrected", env_config(corrected_env))):
-        env = make_env(env_cfg)
         log.info("retrain: PODS on the %s simulator", method)
-        params, _, timing, logger, trainer = train(cfg, env, Path(out_dir), f"pods_{method}")
-        evaluator = Evaluator(env, trainer.policy, plant, cfg.eval_episodes, cfg.eval_seed)
-        method_rows = gap_rows(
-            method, batch_of(cfg), evaluator.sim_returns(params), evaluator.real_returns(params)
-        )
-        if logger:
+        with method_logger(cfg, Path(out_dir), method, Hooks()) as logger:
+            training = train(cfg, make_env(env_cfg), Path(out_dir), method, logger=logger)
+            method_rows = evaluate_training(cfg, training, plant)
             logger.finish(method_rows, {})
         rows += method_rows
     plant_desc = {

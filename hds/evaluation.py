@@ -1,0 +1,98 @@
+"""The sim2real gap: a trained policy's return on the simulator and on the "real" plant, from
+the same initial states. gap = sim return - real return (positive: the policy does worse on the
+real system than the simulator promised)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hds.algo.rollout import policy_rollout
+from hds.real import rollout
+
+
+def initial_states(task, episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The evaluation's initial states (q [episodes, nq], qd [episodes, nv]): one set per seed,
+    shared by every method, plant and job so that returns compare like for like."""
+    keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
+    return tuple(np.asarray(x) for x in jax.vmap(task.initial)(keys))
+
+
+class Evaluator:
+    """Compiled once per run: deterministic policy on the simulator (batched over the runs of
+    the batch and episodes) and on the plant (a host loop with a jitted policy). `plant` is one
+    plant, or one per run of the batch (a swept friction gap)."""
+
+    def __init__(self, env, policy, plant, episodes: int = 32, seed: int = 12345):
+        self.env, self.policy, self.plant = env, policy, plant
+        task, sim = env.task, env.sim
+        self.q0, self.qd0 = initial_states(task, episodes, seed)
+        low, high = jnp.asarray(sim.ctrl_range[:, 0]), jnp.asarray(sim.ctrl_range[:, 1])
+
+        def sim_returns(params, effects):
+            act = lambda o: policy.apply(params, o)  # noqa: E731
+
+            def one(q, qd):
+                _, _, r = policy_rollout(
+                    env,
+                    effects,
+                    task,
+                    act,
+                    env.sim.init(q, qd, effects),
+                    jax.random.PRNGKey(0),
+                    0.0,
+                    task.horizon,
+                    low,
+                    high,
+                )
+                return r.sum()
+
+            return jax.vmap(one)(jnp.asarray(self.q0), jnp.asarray(self.qd0))
+
+        self._sim = jax.jit(jax.vmap(sim_returns))  # over the batch of runs
+        self._act = jax.jit(policy.apply)
+
+    def sim_returns(self, params, effects=None) -> np.ndarray:
+        """[n_runs, episodes]; `effects`: each run's effect parameters, stacked (default: the
+        env's own for every run)."""
+        if effects is None:
+            n_runs = jax.tree.leaves(params)[0].shape[0]
+            effects = jax.tree.map(lambda x: jnp.stack([x] * n_runs), self.env.params)
+        return np.asarray(self._sim(params, effects))
+
+    def real_returns(self, params) -> np.ndarray:
+        """[n_runs, episodes]"""
+        n_runs = jax.tree.leaves(params)[0].shape[0]
+        plants = self.plant if isinstance(self.plant, list) else [self.plant] * n_runs
+        out = []
+        for s in range(n_runs):
+            p = jax.tree.map(lambda x, s=s: x[s], params)
+            ep = rollout(
+                plants[s],
+                self.env.task,
+                self.q0,
+                self.qd0,
+                lambda obs, p=p: np.asarray(self._act(p, jnp.asarray(obs, jnp.float32))),
+                self.env.task.horizon,
+            )
+            out.append(ep.returns)
+        return np.stack(out)
+
+
+def gap_rows(method: str, runs: list[dict], sim: np.ndarray, real: np.ndarray) -> list[dict]:
+    """One row per run of the batch (`runs`: its seed and swept settings), mean over episodes."""
+    rows = []
+    for s, run in enumerate(runs):
+        sim_r, real_r = float(np.mean(sim[s])), float(np.mean(real[s]))
+        rows.append(
+            {
+                "method": method,
+                **run,
+                "sim_return": sim_r,
+                "real_return": real_r,
+                "gap": sim_r - real_r,
+                "gap_relative": (sim_r - real_r) / max(abs(sim_r), 1e-9),
+            }
+        )
+    return rows

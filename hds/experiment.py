@@ -1,0 +1,439 @@
+"""The experiment layer: a validated config -> the batch of runs -> training with hooks ->
+evaluation on the simulator and the plant -> a typed `Result`.
+
+Everything above the jitted core calls this module (`python -m hds.run`, gap discovery's
+retrain, `hds.load_policy`, animations, benchmarks, tests); it calls only downward (config,
+envs, plants, the trainer, checkpoints, the logger). What it opens (checkpoint managers,
+progress bars, W&B runs) it closes, also when a run fails.
+
+    result = hds.train(hds.compose(["method=pods_cl", "seeds=3"]), out_dir="outputs/mine")
+    result.rows                                      # per method and run: sim/real return, gap
+    policy = hds.load_policy(result.run_dir, seed=1) # u = policy(obs)  (hds/policy.py)
+
+A directory trained again with the same config resumes from its checkpoints and ends with
+exactly the numbers an uninterrupted run gives.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from hds import plots
+from hds.algo.pods import Trainer, make_train
+from hds.checkpoint import Checkpoints
+from hds.config import Config, env_config
+from hds.effects.apply import place
+from hds.envs import Env, make_env
+from hds.evaluation import Evaluator, gap_rows
+from hds.logger import RunLogger, print_table
+from hds.real import make_plant
+from hds.utils.io import atomic_write_json, read_json
+from hds.utils.runtime import enable_compilation_cache, over_runs, runs_vmapped
+
+log = logging.getLogger("hds")
+
+
+@dataclass
+class Hooks:
+    """What a caller sees of training, as brax's trainers offer it.
+
+    progress_fn(epoch, metrics): after every epoch; metrics {name: array [n_runs]} of that
+        epoch (return, loss, step_size, ...) plus "method" (the rows' label).
+    policy_params_fn(epoch, params): after every compiled chunk of epochs (and checkpoint);
+        params: the policy parameters of every run, stacked [n_runs, ...].
+    console: the progress bar and the final table.
+    """
+
+    progress_fn: Callable[[int, dict], None] | None = None
+    policy_params_fn: Callable[[int, object], None] | None = None
+    console: bool = True
+
+
+@dataclass
+class Training:
+    """What one method's training returns: the parameters of every run [n_runs, ...], the
+    metric history {name: [n_runs][epochs]}, timings, and the trainer (its policy module)."""
+
+    method: str
+    params: object
+    history: dict
+    timing: dict
+    trainer: Trainer
+    env: Env
+    effects: object = None  # each run's effect parameters of env, stacked (None: env's own)
+
+
+@dataclass
+class Result:
+    """A finished experiment: its rows (one per method and run of the batch: method, seed,
+    swept settings, sim_return, real_return, gap, gap_relative) and everything summary.json
+    records."""
+
+    name: str
+    run_dir: Path
+    rows: list[dict]
+    histories: dict = field(default_factory=dict)
+    timing: dict = field(default_factory=dict)
+    dynamics: dict = field(default_factory=dict)
+    discovery: dict = field(default_factory=dict)
+    real: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        return {
+            "name": self.name,
+            "rows": self.rows,
+            "timing": self.timing,
+            "dynamics": self.dynamics,
+            "discovery": self.discovery,
+            "real": self.real,
+            "history": self.histories,
+        }
+
+    @classmethod
+    def from_summary(cls, summary: dict, run_dir: Path) -> Result:
+        return cls(
+            summary["name"],
+            Path(run_dir),
+            summary["rows"],
+            summary.get("history", {}),
+            summary.get("timing", {}),
+            summary.get("dynamics", {}),
+            summary.get("discovery", {}),
+            summary.get("real", {}),
+        )
+
+
+# --- the batch of runs ------------------------------------------------------------------------
+
+
+def method_name(cfg: Config) -> str:
+    """The label of the run's rows: its algorithm, learned model and simulator (pods, hds+mlp,
+    pods+corrected, oracle)."""
+    if cfg.simulator == "real":
+        return "oracle" if cfg.algo.name == "pods" else f"{cfg.algo.name}+oracle"
+    parts = [cfg.algo.name]
+    if cfg.uses_model():
+        parts.append(cfg.dynamics.model)
+    if cfg.simulator == "corrected":
+        parts.append("corrected")
+    return "+".join(parts)
+
+
+def friction_gap_of(cfg: Config, run: dict) -> float:
+    return run.get("friction_gap", cfg.real.friction_gap)
+
+
+# --- what each method trains on -----------------------------------------------------------------
+
+
+def real_dynamics(cfg: Config):
+    """The simulator with the plant's own effects (friction smoothed so it differentiates),
+    and each run's effect parameters (its friction gap), stacked."""
+    env = make_env(cfg.env, effects=list(cfg.real.effects), friction_gap=cfg.real.friction_gap)
+    per_run = [
+        place(list(cfg.real.effects), env.sim.targets, friction_gap_of(cfg, r))[1]
+        for r in cfg.runs()
+    ]
+    return env, jax.tree.map(lambda *x: jnp.stack(x), *per_run)
+
+
+def run_plants(cfg: Config) -> list:
+    """The plant each run of the batch is evaluated on: one per friction gap."""
+    gaps = [friction_gap_of(cfg, r) for r in cfg.runs()]
+    plants = {
+        g: make_plant(dataclasses.replace(cfg.real, friction_gap=g), cfg.env) for g in set(gaps)
+    }
+    return [plants[g] for g in gaps]
+
+
+def dynamics_model(cfg: Config, env, plant, out_dir: Path):
+    """The learned dynamics engine for HDS, or None when dynamics.model is none."""
+    if not cfg.uses_model():
+        return None, {}
+    from hds.dynamics import build
+
+    return build(cfg.dynamics, env, plant, jax.random.PRNGKey(cfg.seed), out_dir / "dynamics")
+
+
+def corrected_simulator(cfg: Config, env, plant, out_dir: Path):
+    """The simulator plus the effects gap discovery names on data measured on the plant (the
+    same data a learned model of this seed is fitted on); its report goes to out_dir/discovery.
+    Returns (env, JSON-ready summary of the findings)."""
+    from hds.discover import corrected_env, discover, write_report
+    from hds.dynamics import measured_data
+
+    data, source = measured_data(
+        cfg.dynamics, env, plant, jax.random.split(jax.random.PRNGKey(cfg.seed))[0]
+    )
+    result = discover(data, cfg.env, cfg.discover)
+    write_report(
+        result, cfg.env, out_dir / "discovery", cfg.discover.plot_episodes, cfg.discover.bins
+    )
+    found = [e.to_json() for e in result.missing_effects]
+    log.info(
+        "gap discovery named: %s",
+        ", ".join(f"{e['name']}@{e['target']} {e['params']}" for e in found) or "nothing",
+    )
+    for warning in result.warnings:
+        log.warning("gap discovery: %s", warning)
+    summary = {**source, "effects": found, "warnings": result.warnings}
+    return make_env(env_config(corrected_env(cfg.env, result))), summary
+
+
+def simulator_of(cfg: Config, run_dir: Path, method: str | None = None) -> tuple[Env, object]:
+    """The simulator a finished run's `method` trained on, and its runs' effect parameters
+    (None: the env's own), rebuilt from what the run wrote (no data is measured again)."""
+    method = method or method_name(cfg)
+    if cfg.simulator == "real" or method == "oracle":
+        return real_dynamics(cfg)
+    if cfg.simulator == "corrected":  # the env config gap discovery wrote into the run
+        from omegaconf import OmegaConf
+
+        found = sorted((Path(run_dir) / "discovery" / "conf" / "env").glob("*.yaml"))
+        if not found:
+            raise FileNotFoundError(
+                f"{run_dir}/discovery/conf/env/ holds no corrected env config: the run did not "
+                "finish its gap discovery; train it again on the same directory"
+            )
+        return make_env(env_config(OmegaConf.to_container(OmegaConf.load(found[0])))), None
+    return make_env(cfg.env), None
+
+
+def methods_of(cfg: Config, out_dir: Path, plant):
+    """(method, env, effects, model) of each policy the run trains, and the JSON reports of the
+    learned model and of gap discovery."""
+    env = make_env(cfg.env)
+    model, model_report = dynamics_model(cfg, env, plant, out_dir)
+    train_env, effects, discovery = env, None, {}
+    if cfg.simulator == "real":
+        train_env, effects = real_dynamics(cfg)
+    elif cfg.simulator == "corrected":
+        train_env, discovery = corrected_simulator(cfg, env, plant, out_dir)
+    methods = [(method_name(cfg), train_env, effects, model)]
+    if cfg.oracle and cfg.real.plant == "brax" and cfg.simulator != "real":
+        methods.append(("oracle", *real_dynamics(cfg), None))
+    return methods, model_report, discovery
+
+
+# --- training ----------------------------------------------------------------------------------
+
+
+def _shard(tree):
+    """Split the batch axis across devices when there are several and it divides evenly."""
+    devices = jax.devices()
+    n = jax.tree.leaves(tree)[0].shape[0]
+    if len(devices) == 1 or n % len(devices):
+        return tree
+    sharding = NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch"))
+    return jax.device_put(tree, sharding)
+
+
+def batch_hparams(cfg: Config, trainer: Trainer, effects=None) -> dict:
+    """The trainer's numeric hyperparameters for every run of the batch, stacked: the
+    defaults, each swept setting, and each run's effect parameters when given."""
+    runs = cfg.runs()
+    hparams = jax.tree.map(lambda x: jnp.stack([x] * len(runs)), trainer.default_hparams)
+    for key, _ in cfg.sweep.items():
+        if key in hparams:
+            hparams[key] = jnp.asarray([r[key] for r in runs], jnp.float32)
+    if effects is not None:
+        hparams["effects"] = effects
+    return hparams
+
+
+def compiled_programs(cfg: Config, trainer: Trainer, hparams):
+    """The batch's jitted `init(keys, hparams)` and `run_chunk(state, hparams)`, mapped over the
+    runs as `cfg.vmap_runs` says, and the runs' keys (sharded where the batch is vmapped)."""
+    runs = cfg.runs()
+    keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray([r["seed"] for r in runs]))
+    vmapped = runs_vmapped(cfg.vmap_runs, len(runs))
+    if vmapped == len(runs):  # a loop over the runs cannot be split across devices
+        keys, hparams = _shard((keys, hparams))
+    init = jax.jit(over_runs(trainer.init, vmapped, len(runs)))
+    run_chunk = jax.jit(over_runs(trainer.run_chunk, vmapped, len(runs)))
+    return init, run_chunk, keys, hparams
+
+
+def abstract_state(cfg: Config, trainer: Trainer):
+    """The shapes and dtypes of the batch's train state, with nothing computed: what a
+    checkpoint is restored into."""
+    hparams = batch_hparams(cfg, trainer)
+    init, _, keys, hparams = compiled_programs(cfg, trainer, hparams)
+    return jax.eval_shape(init, keys, hparams)
+
+
+def train(
+    cfg: Config,
+    env: Env,
+    out_dir: Path,
+    method: str,
+    model=None,
+    effects=None,
+    hooks: Hooks | None = None,
+    logger: RunLogger | None = None,
+) -> Training:
+    """Train the batch of `cfg.runs()` together on `env` (and a learned `model`);
+    `effects`: each run's effect parameters of env, stacked. Resumes from
+    out_dir/checkpoints/<method> when it has a checkpoint; `logger` (optional) shows progress
+    and records to W&B."""
+    hooks = hooks or Hooks()
+    trainer = make_train(cfg, env, model)
+    hparams = batch_hparams(cfg, trainer, effects)
+    init, run_chunk, keys, hparams = compiled_programs(cfg, trainer, hparams)
+
+    start = time.perf_counter()
+    state = init(keys, hparams)
+    compiled = run_chunk.lower(state, hparams).compile()
+    timing = {"compile_s": time.perf_counter() - start}
+
+    ckpt = Checkpoints(out_dir / "checkpoints" / method, keep=cfg.checkpoints_kept)
+    try:
+        history: dict[str, list] = {}
+        if ckpt.latest() is not None:
+            state, meta = ckpt.restore(state)
+            history = {k: [list(map(float, row)) for row in v] for k, v in meta["history"].items()}
+            log.info("resuming %s from epoch %d", method, int(state.epoch[0]))
+        if logger:
+            logger.start(int(state.epoch[0]))
+        start = time.perf_counter()
+        while int(state.epoch[0]) < cfg.algo.epochs:
+            t0 = time.perf_counter()
+            epoch0 = int(state.epoch[0])
+            state, metrics = compiled(state, hparams)
+            metrics = {k: np.asarray(v, dtype=float) for k, v in metrics.items()}
+            for k, v in metrics.items():
+                rows = history.setdefault(k, [[] for _ in range(v.shape[0])])
+                for s in range(v.shape[0]):
+                    rows[s].extend(map(float, v[s]))
+            ckpt.save(int(state.epoch[0]), state, {"history": history, "method": method})
+            seconds = (time.perf_counter() - t0) / trainer.chunk
+            _report_chunk(hooks, logger, method, epoch0, metrics, seconds)
+            _check_finite(state, method)
+            if hooks.policy_params_fn:
+                hooks.policy_params_fn(int(state.epoch[0]), state.policy)
+        timing["train_s"] = time.perf_counter() - start
+    finally:
+        ckpt.close()
+    return Training(method, state.policy, history, timing, trainer, env, effects)
+
+
+def _report_chunk(hooks: Hooks, logger, method: str, epoch0: int, metrics: dict, seconds: float):
+    if logger:
+        logger.log_epochs(epoch0, metrics, seconds)
+    if hooks.progress_fn:
+        for i in range(next(iter(metrics.values())).shape[1]):
+            hooks.progress_fn(
+                epoch0 + i + 1, {"method": method, **{k: v[:, i] for k, v in metrics.items()}}
+            )
+
+
+def _check_finite(state, method: str) -> None:
+    if not all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(state.policy)):
+        raise FloatingPointError(
+            f"{method}: the policy parameters are no longer finite; lower algo.learning_rate or "
+            "algo.step_size, or check the simulator for NaN states (env.backend, env.timestep)"
+        )
+
+
+# --- evaluation --------------------------------------------------------------------------------
+
+
+def evaluate_training(cfg: Config, training: Training, plants) -> list[dict]:
+    """One row per run: mean return on the simulator the policy trained on (what it was
+    promised) and on its plant, from the same initial states."""
+    evaluator = Evaluator(
+        training.env, training.trainer.policy, plants, cfg.eval_episodes, cfg.eval_seed
+    )
+    return gap_rows(
+        training.method,
+        cfg.runs(),
+        evaluator.sim_returns(training.params, training.effects),
+        evaluator.real_returns(training.params),
+    )
+
+
+# --- the whole experiment ------------------------------------------------------------------------
+
+
+def run(cfg: Config, out_dir: str | Path | None = None, hooks: Hooks | None = None) -> Result:
+    """Train and evaluate every method of the run (`hds.train`); write out_dir/summary.json,
+    checkpoints/, plots/ and W&B logs (default out_dir: outputs/runs/<name>/<time>). A
+    directory that already has its summary.json is a finished job (of a sweep started again):
+    its result is read back, nothing is trained."""
+    hooks = hooks or Hooks()
+    enable_compilation_cache()
+    out_dir = Path(out_dir or Path("outputs/runs") / cfg.name / time.strftime("%Y-%m-%d_%H-%M-%S"))
+    if (out_dir / "summary.json").is_file():
+        log.info("%s is finished (summary.json exists): skipped", out_dir)
+        return Result.from_summary(read_json(out_dir / "summary.json"), out_dir)
+    plants = run_plants(cfg)
+    # all alike unless the gap is swept, which excludes a learned model and a corrected simulator
+    methods, model_report, discovery = methods_of(cfg, out_dir, plants[0])
+    result = Result(
+        cfg.name,
+        out_dir,
+        [],
+        dynamics=model_report,
+        discovery=discovery,
+        real={"plant": cfg.real.plant, "friction_gap": cfg.real.friction_gap},
+    )
+    for method, method_env, method_effects, method_model in methods:
+        with method_logger(cfg, out_dir, method, hooks) as logger:
+            training = train(
+                cfg, method_env, out_dir, method, method_model, method_effects, hooks, logger
+            )
+            rows = evaluate_training(cfg, training, plants)
+            logger.finish(rows, _method_figures(method, training.history, rows))
+            if discovery and method == methods[0][0]:
+                logger.log_files({"discovery_report": out_dir / "discovery" / "report.md"})
+        result.rows += rows
+        result.histories[method], result.timing[method] = training.history, training.timing
+    if hooks.console:
+        print_table(
+            result.rows,
+            title=f"{cfg.name}: return on the simulator and on the {cfg.real.plant} plant",
+        )
+    keys = plots.varying_keys(result.rows)
+    figures = {
+        "learning_curves": plots.learning_curves(
+            {
+                plots.label(row, keys): h
+                for row, h in plots.histories_by_setting(result.rows, result.histories, keys)
+            }
+        ),
+        "sim_vs_real": plots.sim_vs_real(result.rows),
+    }
+    for name, fig in figures.items():
+        plots.save(fig, out_dir / "plots" / f"{name}.png")
+    atomic_write_json(out_dir / "summary.json", result.summary())
+    return result
+
+
+def _method_figures(method: str, history: dict, rows: list[dict]) -> dict:
+    return {
+        "learning_curves": plots.learning_curves({method: history}),
+        "sim_vs_real": plots.sim_vs_real(rows),
+    }
+
+
+@contextlib.contextmanager
+def method_logger(cfg: Config, out_dir: Path, method: str, hooks: Hooks):
+    """The progress bar and W&B run of one method, closed however training ends."""
+    logger = RunLogger(cfg, out_dir, method, cfg.runs(), console=hooks.console)
+    try:
+        yield logger
+    except BaseException:
+        logger.close(failed=True)
+        raise
+    logger.close()
