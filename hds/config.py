@@ -180,19 +180,23 @@ class DynamicsConfig:
     path: str | None = None  # a saved model to reuse instead of training one
     data: str | None = None  # a measured dataset (.npz/.csv) to fit on instead of collecting
     # network and fitting (hds.dynamics)
-    hidden: list[int] = field(default_factory=lambda: [128, 128])
+    hidden: list[int] = field(default_factory=lambda: [128, 128])  # widths (silu)
     ensemble_size: int = 5  # members of model=ensemble (mlp and residual have one)
     learning_rate: float = 1e-3
     minibatch: int = 256  # transitions per Adam step
     epochs: int = 300  # most passes over the training transitions
-    patience: int = 100  # stop after this many epochs without a better validation loss
+    # stop after this many epochs without a better validation loss (its curve can rise for a
+    # while and fall again: keep this generous)
+    patience: int = 100
     val_fraction: float = 0.2  # share of episodes held out for early stopping and metrics
     eval_steps: list[int] = field(default_factory=lambda: [1, 10, 25])  # open-loop k-step errors
     # data collected from the plant when no dataset is given
     episodes: int = 64
     horizon: int = 100  # steps per episode
     excitation: str = "steps"  # steps | chirp | prbs (hds.data.excitation)
-    excitation_scale: float = 0.2  # largest amplitude (share of half range), spread over episodes
+    # largest amplitude (share of the half range), spread evenly over the episodes; near 1 the
+    # cart-pole slams into its rail limits
+    excitation_scale: float = 0.2
 
     def check(self):
         _one_of("dynamics.model", self.model, ("none", "mlp", "ensemble", "residual"))
@@ -329,6 +333,12 @@ class SweepConfig:
 
 
 @dataclass
+class PathsConfig:
+    shared: str = "../shared"  # data beside the repository (conf/paths/default.yaml)
+    outputs: str = "outputs"  # run and sweep directories
+
+
+@dataclass
 class Config:
     env: EnvConfig = MISSING
     real: RealConfig = MISSING
@@ -356,6 +366,7 @@ class Config:
     checkpoints_kept: int = 3
     sweep: SweepConfig = field(default_factory=lambda: SweepConfig())
     discover: DiscoverConfig = field(default_factory=DiscoverConfig)
+    paths: PathsConfig = field(default_factory=PathsConfig)
 
     def runs(self) -> list[dict]:
         """The runs trained together: every seed crossed with every setting of `sweep`, each

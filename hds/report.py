@@ -161,8 +161,6 @@ def discovery_errors(report: dict) -> str:
     """k-step (rollout) RMSE per state variable before and after the named effects were added,
     on each data set of the discovery (identification, held-out, validation)."""
     sets = report.get("errors") or {}
-    if not sets and "error_before" in report:
-        sets = {"held-out": {"before": report["error_before"], "after": report["error_after"]}}
     if not sets:
         return ""
     names = next(iter(sets.values()))["before"]["names"]

@@ -4,6 +4,7 @@ function once per session (session-scoped fixtures), with the persistent compila
 from __future__ import annotations
 
 import os
+import struct
 from pathlib import Path
 
 import pytest
@@ -33,6 +34,44 @@ def trained(*args, **kwargs):
 
     training = train(*args, **kwargs)
     return training.params, training.history
+
+
+def wandb_records(run_dir: Path) -> dict[str, list]:
+    """Every record of every offline W&B run below run_dir ({run directory name: records}),
+    read back from its `run-<id>.wandb` file: protobuf records in leveldb's log format (32 KiB
+    blocks after a 7-byte `:W&B` header; each chunk: crc32, length, type 1 full / 2 first /
+    3 middle / 4 last)."""
+    from wandb.proto.wandb_internal_pb2 import Record
+
+    out = {}
+    for path in sorted(Path(run_dir).glob("wandb/offline-run-*/run-*.wandb")):
+        data, records = path.read_bytes(), []
+        assert data[:4] == b":W&B", path
+        pos, chunks = 7, b""
+        while pos + 7 <= len(data):
+            if 32768 - pos % 32768 < 7:  # a block's trailer
+                pos += 32768 - pos % 32768
+                continue
+            _, length, kind = struct.unpack("<IHB", data[pos : pos + 7])
+            chunks += data[pos + 7 : pos + 7 + length]
+            pos += 7 + length
+            if kind in (1, 4):
+                records.append(Record.FromString(chunks))
+                chunks = b""
+        out[path.parent.name] = records
+    return out
+
+
+def wandb_keys(records, field: str) -> dict[str, str]:
+    """{key: value_json} of the history rows (field="history") or summary updates ("summary")
+    of W&B records; nested keys joined by "/" (W&B splits keys that hold one)."""
+    items = [
+        i
+        for r in records
+        if r.HasField(field)
+        for i in (r.history.item if field == "history" else r.summary.update)
+    ]
+    return {i.key or "/".join(i.nested_key): i.value_json for i in items}
 
 
 @pytest.fixture(scope="session")

@@ -395,7 +395,7 @@ def test_retrain_shrinks_the_policys_sim2real_gap(plants, task, env_cfg, tmp_pat
     """retrain=true: PODS on the original and on the corrected simulator (a tiny budget),
     both evaluated on the plant that produced the data. The correction closes the gap."""
     from hds.discover.report import corrected_env
-    from hds.discover.retrain import retrain
+    from hds.experiment import retrain
 
     hidden = HIDDEN["coulomb_slider"]
     result = discover(record(plants("mujoco", [hidden]), task), env_cfg, CFG)

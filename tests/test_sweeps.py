@@ -9,7 +9,6 @@ import json
 import os
 import shutil
 import signal
-import struct
 import subprocess
 import sys
 import time
@@ -23,7 +22,7 @@ from hds import experiment
 from hds import run as hds_run
 from hds.envs import make_env
 from hds.envs.system import ASSETS
-from tests.conftest import ROOT, make_config, trained
+from tests.conftest import ROOT, make_config, trained, wandb_records
 
 TINY = (
     "env.backend=analytic",
@@ -61,32 +60,11 @@ def assert_every_job_finished(sweep: Path, jobs: set[str]) -> dict:
 
 
 def wandb_groups(run_dir: Path) -> list[str]:
-    """The W&B group of every offline run below run_dir, read back from the run record of its
-    `run-<id>.wandb` file: protobuf records in leveldb's log format (32 KiB blocks after a 7-byte
-    `:W&B` header; each chunk: crc32, length, type 1 full / 2 first / 3 middle / 4 last)."""
-    from wandb.proto.wandb_internal_pb2 import Record
-
-    groups = []
-    for path in sorted(run_dir.glob("wandb/offline-run-*/run-*.wandb")):
-        data = path.read_bytes()
-        assert data[:4] == b":W&B", path
-        pos, chunks = 7, b""
-        while pos + 7 <= len(data):
-            if 32768 - pos % 32768 < 7:  # a block's trailer
-                pos += 32768 - pos % 32768
-                continue
-            _, length, kind = struct.unpack("<IHB", data[pos : pos + 7])
-            chunks += data[pos + 7 : pos + 7 + length]
-            pos += 7 + length
-            if kind in (1, 4):
-                record = Record.FromString(chunks)
-                chunks = b""
-                if record.HasField("run"):
-                    groups.append(record.run.run_group)
-                    break
-        else:
-            raise AssertionError(f"no run record in {path}")
-    return groups
+    """The W&B group of every offline run below run_dir, read back from its run record."""
+    return [
+        next(r.run.run_group for r in records if r.HasField("run"))
+        for records in wandb_records(run_dir).values()
+    ]
 
 
 @pytest.mark.parametrize(
@@ -133,9 +111,7 @@ def test_a_seeds_numbers_do_not_depend_on_the_seeds_beside_it(tmp_path):
     cfg = make_config(*TINY, "seeds=2")
     env = make_env(cfg.env)
     looped, history = trained(cfg, env, tmp_path / "looped", "pods")
-    alone, alone_history = trained(
-        make_config(*TINY, "seed=1"), env, tmp_path / "alone", "pods"
-    )
+    alone, alone_history = trained(make_config(*TINY, "seed=1"), env, tmp_path / "alone", "pods")
     for a, b in zip(jax.tree.leaves(looped), jax.tree.leaves(alone)):
         np.testing.assert_array_equal(a[1], b[0])
     assert history["return"][1] == alone_history["return"][0]

@@ -3,7 +3,7 @@
 A. Janot, M. Gautier, M. Brunot, "Data Set and Reference Models of EMPS", Nonlinear System
 Identification Benchmarks workshop, 2019 (cite it wherever the data is used). The files
 (DATA_EMPS.mat: estimation, DATA_EMPS_PULSES.mat: validation) are not part of this project;
-they live in ../shared/data/emps/ next to the repository (`DEFAULT_DIR`).
+they live in ../shared/data/emps/ next to the repository (`paths.shared`, conf/paths/).
 
 The system is one prismatic joint driven by the motor force gtau * vir (the MJCF
 hds/envs/assets/emps.xml, whose actuator gear is gtau, so the action is the voltage vir). Only
@@ -26,7 +26,6 @@ import numpy as np
 
 from hds.data.format import Dataset
 
-DEFAULT_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "emps"
 ESTIMATION, VALIDATION = "DATA_EMPS.mat", "DATA_EMPS_PULSES.mat"
 SAMPLE_DT = 1e-3  # s, the record's sampling period
 # The benchmark's reference model: M qdd = gtau vir - Fv qd - Fc sign(qd) - offset
@@ -42,7 +41,8 @@ def read_mat(path: str | Path) -> dict[str, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(
-            f"no EMPS file at {path} (the benchmark's files live in {DEFAULT_DIR})"
+            f"no EMPS file at {path}: the benchmark's files live in <paths.shared>/data/emps "
+            "(conf/paths/default.yaml; set HDS_SHARED to the folder holding data/emps)"
         )
     try:
         raw = loadmat(str(path))

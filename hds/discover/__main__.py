@@ -37,7 +37,7 @@ def main(dcfg) -> float:
     result = discover(dataset, cfg.env, cfg.discover, validation)
     gaps = None
     if cfg.retrain:
-        from hds.discover.retrain import retrain
+        from hds.experiment import retrain
 
         gaps = retrain(cfg, corrected_env(cfg.env, result), out_dir)
     write_report(

@@ -1,0 +1,250 @@
+"""hds as a library: the Python API of the README, policies loaded, evaluated and exported, the
+command-line tools over a finished run, and a two-step-size sweep labelled right everywhere."""
+
+from __future__ import annotations
+
+import ast
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import mujoco
+import numpy as np
+import pytest
+
+import hds
+from hds.experiment import Hooks
+from tests.conftest import ROOT, wandb_keys, wandb_records
+
+# Two step sizes x two seeds: four runs in one program.
+SWEEP = ("debug=fast", "algo.epochs=3", "algo.chunk=3", "seeds=2", "sweep.step_size=[0.01,0.04]")
+ENV = {**os.environ, "WANDB_MODE": "offline"}
+
+
+def cli(*args, cwd=ROOT):
+    proc = subprocess.run(
+        [sys.executable, "-m", *args], cwd=cwd, env=ENV, capture_output=True, text=True
+    )
+    return proc
+
+
+@pytest.fixture(scope="module")
+def sweep_run(tmp_path_factory):
+    """`python -m hds.run` on the sweep, with W&B offline; its directory and console."""
+    out = tmp_path_factory.mktemp("sweep") / "run"
+    proc = cli("hds.run", *SWEEP, f"hydra.run.dir={out}")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return out, proc.stdout
+
+
+def test_a_sweep_of_two_step_sizes_is_labelled_everywhere(sweep_run, tmp_path):
+    out, console = sweep_run
+    # console: every swept value printed as it is (not 0.0 for both)
+    assert "0.01" in console and "0.04" in console
+    # summary.json: one row per run, each with its seed and step size
+    rows = json.loads((out / "summary.json").read_text())["rows"]
+    assert sorted((r["seed"], r["step_size"]) for r in rows) == [
+        (0, 0.01), (0, 0.04), (1, 0.01), (1, 0.04)
+    ]  # fmt: skip
+    # report.md and report.csv: a row per setting (not averaged as seeds), a step_size column
+    proc = cli("hds.report", str(out), "--out", str(tmp_path))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    report = (tmp_path / "report.md").read_text()
+    assert "| pods step_size=0.01 | 1.0 | 2 |" in report
+    assert "| pods step_size=0.04 | 1.0 | 2 |" in report
+    with open(tmp_path / "report.csv") as f:
+        table = list(csv.DictReader(f))
+    assert {(r["seed"], r["step_size"]) for r in table} == {
+        ("0", "0.01"), ("0", "0.04"), ("1", "0.01"), ("1", "0.04")
+    }  # fmt: skip
+    # W&B: per-run keys named by seed and setting, epoch as the step, final returns as summary
+    (records,) = wandb_records(out).values()
+    keys = wandb_keys(records, "history")
+    for label in ("seed0_step_size0.01", "seed1_step_size0.01", "seed1_step_size0.04"):
+        assert f"return/{label}" in keys
+    assert "epoch" in keys
+    summary = wandb_keys(records, "summary")
+    assert {"real_return/mean", "gap/seed1_step_size0.04", "sim_return/seed0_step_size0.01"} <= (
+        set(summary)
+    )
+
+
+def test_a_saved_policy_loads_and_gives_the_run_s_numbers(sweep_run):
+    out, _ = sweep_run
+    rows = json.loads((out / "summary.json").read_text())["rows"]
+    row = next(r for r in rows if (r["seed"], r["step_size"]) == (1, 0.04))
+    policy = hds.load_policy(out, seed=1, step_size=0.04)
+    assert policy.method == "pods" and policy.run == {"seed": 1, "step_size": 0.04}
+    assert policy.epoch == 3
+    # its return on the run's plant, from the run's evaluation states, is the row's
+    assert hds.evaluate(policy).mean_ci()[0] == pytest.approx(row["real_return"], rel=1e-5)
+    # numpy in, numpy out; jax in, jax out (differentiable)
+    obs = np.zeros((3, len(policy.obs_names)), np.float32)
+    u = policy(obs)
+    assert isinstance(u, np.ndarray) and u.shape == (3, 1)
+    grad = jax.grad(lambda o: policy(o).sum())(jax.numpy.asarray(obs[0]))
+    assert np.all(np.isfinite(grad)) and np.any(grad != 0)
+    # ambiguous or unknown runs are named
+    with pytest.raises(ValueError, match="seed0_step_size0.01"):
+        hds.load_policy(out, seed=1)
+    with pytest.raises(FileNotFoundError, match="no checkpoint of method 'hds"):
+        hds.load_policy(out, method="hds+mlp")
+
+
+def test_a_policy_runs_on_a_raw_mujoco_data_as_the_readme_says(sweep_run):
+    out, _ = sweep_run
+    policy = hds.load_policy(out, seed=0, step_size=0.01)
+    model = policy.mj_model()
+    data = mujoco.MjData(model)
+    data.qpos[:] = [0.1, 0.05]
+    for _ in range(25):
+        data.ctrl[:] = policy(policy.observe(data))
+        mujoco.mj_step(model, data, policy.frames)
+    assert np.all(np.isfinite(data.qpos)) and data.time == pytest.approx(25 * policy.dt)
+
+
+def test_the_exported_policy_gives_the_in_process_return_on_c_mujoco(sweep_run, tmp_path):
+    out, _ = sweep_run
+    proc = cli("hds.export", f"run={out}", "seed=1", "step_size=0.01", f"out={tmp_path}")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    contract = json.loads((tmp_path / "policy.json").read_text())
+    assert contract["observations"] == ["q_slider", "q_hinge", "qd_slider", "qd_hinge"]
+    assert contract["actions"] == ["slide"] and contract["control_range"] == [[-3.0, 3.0]]
+    assert contract["dt"] == pytest.approx(0.04) and (tmp_path / contract["mjcf"]).is_file()
+    # numpy_policy.py runs with numpy alone: import it in a process that has no jax
+    code = (
+        "import sys, json, numpy as np; sys.modules['jax'] = None; sys.path.insert(0, sys.argv[1]);"
+        "import numpy_policy; p = numpy_policy.load(sys.argv[1]);"
+        "print(json.dumps(p(np.ones((2, 4), np.float32)).tolist()))"
+    )
+    numpy_out = subprocess.run(
+        [sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True
+    )
+    assert numpy_out.returncode == 0, numpy_out.stderr
+    policy = hds.load_policy(out, seed=1, step_size=0.01)
+    np.testing.assert_allclose(
+        json.loads(numpy_out.stdout), policy(np.ones((2, 4), np.float32)), atol=1e-6
+    )
+    # the same return on the C MuJoCo plant
+    sys.path.insert(0, str(tmp_path))
+    try:
+        import numpy_policy
+
+        exported = numpy_policy.load(tmp_path)
+    finally:
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop("numpy_policy", None)
+    in_process = hds.evaluate(policy, episodes=8)
+    from hds.evaluation import initial_states
+    from hds.real import make_plant, rollout
+
+    plant = make_plant(policy.config.real, policy.env)
+    q0, qd0 = initial_states(policy.simulator.task, 8, policy.config.eval_seed)
+    task = policy.simulator.task
+    returns = rollout(plant, task, q0, qd0, exported, task.horizon).returns
+    np.testing.assert_allclose(returns, in_process.returns, rtol=1e-4)
+
+
+def test_hds_evaluate_runs_a_saved_policy_on_another_plant(sweep_run, tmp_path):
+    out, _ = sweep_run
+    args = (f"run={out}", "seed=0", "step_size=0.04", "eval_episodes=4", f"out={tmp_path}")
+    proc = cli("hds.evaluate", *args, "real=brax", "real.friction_gap=3")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads((tmp_path / "evaluation.json").read_text())
+    assert result["real"]["plant"] == {
+        "plant": "brax",
+        "friction_gap": 3.0,
+        "effects": result["real"]["plant"]["effects"],
+    }
+    assert len(result["real"]["returns"]) == len(result["sim"]["returns"]) == 4
+    assert result["gap"] == pytest.approx(result["sim"]["mean"] - result["real"]["mean"])
+    assert (tmp_path / "plots" / "trajectories.png").is_file()
+    assert (tmp_path / "sim_vs_real.gif").stat().st_size > 0
+    # more friction, a worse return than on the run's own plant
+    own = hds.evaluate(hds.load_policy(out, seed=0, step_size=0.04), episodes=4)
+    assert result["real"]["mean"] < own.mean_ci()[0]
+    # what the user can fix is one line
+    bad = cli("hds.evaluate", f"run={out}", "seed=7", "step_size=0.04")
+    assert bad.returncode != 0 and "Traceback" not in bad.stderr
+    assert "none of this run's runs match seed=7" in bad.stderr
+
+
+def test_train_calls_its_hooks_and_returns_a_typed_result(tmp_path):
+    epochs, params_seen = [], []
+    hooks = Hooks(
+        progress_fn=lambda epoch, metrics: epochs.append((epoch, metrics)),
+        policy_params_fn=lambda epoch, params: params_seen.append((epoch, params)),
+        console=False,
+    )
+    cfg = hds.compose(["debug=fast", "logger=none", "seeds=2", "real=none"])
+    result = hds.train(cfg, out_dir=tmp_path, hooks=hooks)
+    assert [e for e, _ in epochs] == list(range(1, cfg.algo.epochs + 1))
+    assert {m["method"] for _, m in epochs} == {"pods"}
+    assert all(m["return"].shape == (2,) for _, m in epochs)
+    history = np.asarray(result.histories["pods"]["return"])
+    np.testing.assert_allclose(history[:, -1], epochs[-1][1]["return"])
+    assert [e for e, _ in params_seen] == [3, 6]
+    assert jax.tree.leaves(params_seen[-1][1])[0].shape[0] == 2
+    assert [(r["method"], r["seed"]) for r in result.rows] == [("pods", 0), ("pods", 1)]
+    assert json.loads((tmp_path / "summary.json").read_text()) == json.loads(
+        json.dumps(result.summary())
+    )
+
+
+def test_a_failing_run_closes_its_w_and_b_run_and_a_resume_continues_it(tmp_path):
+    cfg = hds.compose(["debug=fast", "real=none", "logger.group=test"])
+
+    def die_after_first_chunk(epoch, params):
+        raise KeyboardInterrupt("killed after the first checkpoint")
+
+    with pytest.raises(KeyboardInterrupt):
+        hds.train(cfg, tmp_path, Hooks(policy_params_fn=die_after_first_chunk, console=False))
+    (first,) = wandb_records(tmp_path).values()
+    assert [r.exit.exit_code for r in first if r.HasField("exit")] == [1]
+    hds.train(cfg, tmp_path, Hooks(console=False))
+    runs = wandb_records(tmp_path)
+    assert len(runs) == 2 and len({name.rsplit("-", 1)[1] for name in runs}) == 1  # one run id
+    second = runs[max(runs)]
+    assert "real_return/mean" in wandb_keys(second, "summary")
+    epochs = [
+        json.loads(i.value_json)
+        for r in second
+        if r.HasField("history")
+        for i in r.history.item
+        if (i.key or "/".join(i.nested_key)) == "epoch"
+    ]
+    assert sorted(set(epochs)) == [4, 5, 6]  # the resumed run logs the epochs after the checkpoint
+
+
+# Each layer calls downward only: the jitted core never imports the experiment layer, the
+# experiment layer never the tools built on it.
+TOOLS = {"run", "evaluate", "export", "report", "animate", "callbacks", "policy"}
+LAYERS = {
+    "core": ("algo", "envs", "effects", "real", "data", "dynamics", "networks", "noise"),
+    "experiment": ("experiment",),
+}
+
+
+def _imports(path: Path) -> set[str]:
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("hds."):
+            names.add(node.module.split(".")[1])
+        elif isinstance(node, ast.Import):
+            names |= {a.name.split(".")[1] for a in node.names if a.name.startswith("hds.")}
+    return names
+
+
+def test_no_module_imports_upward():
+    package = ROOT / "hds"
+    for path in package.rglob("*.py"):
+        top = path.relative_to(package).parts[0].removesuffix(".py")
+        above = TOOLS | {"experiment"} if top in LAYERS["core"] else set()
+        if top == "experiment":
+            above = TOOLS
+        wrong = _imports(path) & above
+        assert not wrong, f"{path.relative_to(ROOT)} imports {wrong}, a layer above it"
