@@ -7,16 +7,21 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy import stats
 
 from hds.algo.rollout import policy_rollout
+from hds.data import initial_states
 from hds.real import rollout
 
 
-def initial_states(task, episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """The evaluation's initial states (q [episodes, nq], qd [episodes, nv]): one set per seed,
-    shared by every method, plant and job so that returns compare like for like."""
-    keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
-    return tuple(np.asarray(x) for x in jax.vmap(task.initial)(keys))
+def mean_ci(values) -> tuple[float, float, float]:
+    """Mean and 95% Student-t interval (the interval is the mean alone for one value)."""
+    values = np.asarray(values, dtype=float)
+    mean = float(values.mean())
+    if len(values) < 2:
+        return mean, mean, mean
+    half = float(stats.t.ppf(0.975, len(values) - 1) * stats.sem(values))
+    return mean, mean - half, mean + half
 
 
 class Evaluator:
@@ -27,7 +32,7 @@ class Evaluator:
     def __init__(self, env, policy, plant, episodes: int = 32, seed: int = 12345):
         self.env, self.policy, self.plant = env, policy, plant
         task, sim = env.task, env.sim
-        self.q0, self.qd0 = initial_states(task, episodes, seed)
+        self.q0, self.qd0 = initial_states(task, seed, episodes)
         low, high = jnp.asarray(sim.ctrl_range[:, 0]), jnp.asarray(sim.ctrl_range[:, 1])
 
         def sim_returns(params, effects):

@@ -282,11 +282,12 @@ def train(
     effects=None,
     hooks: Hooks | None = None,
     logger: RunLogger | None = None,
+    init_params=None,
 ) -> Training:
     """Train the batch of `cfg.runs()` together on `env` (and a learned `model`);
     `effects`: each run's effect parameters of env, stacked. Resumes from
     out_dir/checkpoints/<method> when it has a checkpoint; `logger` (optional) shows progress
-    and records to W&B."""
+    and records to W&B; `init_params` (the policies of every run, stacked) warm-starts it."""
     hooks = hooks or Hooks()
     trainer = make_train(cfg, env, model)
     hparams = batch_hparams(cfg, trainer, effects)
@@ -294,6 +295,8 @@ def train(
 
     start = time.perf_counter()
     state = init(keys, hparams)
+    if init_params is not None:
+        state = state.replace(policy=init_params)
     compiled = run_chunk.lower(state, hparams).compile()
     timing = {"compile_s": time.perf_counter() - start}
 

@@ -19,14 +19,14 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from scipy import stats
 
 from hds.algo.pods import make_train
 from hds.checkpoint import Checkpoints
 from hds.config import Config, EnvConfig, RealConfig, load_config, run_label
+from hds.data import initial_states
 from hds.envs import Env, make_env
 from hds.envs.system import load_spec, resolve_xml
-from hds.evaluation import initial_states
+from hds.evaluation import mean_ci
 from hds.experiment import abstract_state, method_name, simulator_of
 from hds.real import Episodes, make_plant, rollout
 from hds.utils.io import atomic_write_bytes, atomic_write_json
@@ -173,9 +173,7 @@ class Evaluation:
 
     def mean_ci(self) -> tuple[float, float, float]:
         """Mean return and its 95% Student-t interval over episodes."""
-        r = self.returns
-        half = float(stats.t.ppf(0.975, len(r) - 1) * stats.sem(r)) if len(r) > 1 else 0.0
-        return float(r.mean()), float(r.mean()) - half, float(r.mean()) + half
+        return mean_ci(self.returns)
 
     def to_json(self) -> dict:
         mean, lo, hi = self.mean_ci()
@@ -207,7 +205,7 @@ def evaluate(
     else:
         description = {"plant": type(plant).__name__}
     q0, qd0 = initial_states(
-        env.task, episodes or cfg.eval_episodes, cfg.eval_seed if seed is None else seed
+        env.task, cfg.eval_seed if seed is None else seed, episodes or cfg.eval_episodes
     )
     return Evaluation(rollout(plant, env.task, q0, qd0, policy, env.task.horizon), description)
 

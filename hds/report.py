@@ -20,10 +20,8 @@ import os
 from collections import defaultdict
 from pathlib import Path
 
-import numpy as np
-from scipy import stats
-
 from hds import plots
+from hds.evaluation import mean_ci
 from hds.utils.io import atomic_write_bytes, read_json
 
 ROW_COLUMNS = ("seed", "sim_return", "real_return", "gap", "gap_relative", "job")
@@ -57,16 +55,6 @@ def collect_rows(root: Path) -> tuple[list[dict], list[tuple]]:
         ):
             histories.append((plots.label(row, keys), row["friction_gap"], job, h))
     return rows, histories
-
-
-def mean_ci(values) -> tuple[float, float, float]:
-    """Mean and 95% Student-t interval over seeds (the interval is the mean alone for one seed)."""
-    values = np.asarray(values, dtype=float)
-    mean = float(values.mean())
-    if len(values) < 2:
-        return mean, mean, mean
-    half = float(stats.t.ppf(0.975, len(values) - 1) * stats.sem(values))
-    return mean, mean - half, mean + half
 
 
 def aggregate(rows: list[dict]) -> list[dict]:

@@ -139,11 +139,11 @@ def test_the_exported_policy_gives_the_in_process_return_on_c_mujoco(sweep_run, 
         sys.path.remove(str(tmp_path))
         sys.modules.pop("numpy_policy", None)
     in_process = hds.evaluate(policy, episodes=8)
-    from hds.evaluation import initial_states
+    from hds.data import initial_states
     from hds.real import make_plant, rollout
 
     plant = make_plant(policy.config.real, policy.env)
-    q0, qd0 = initial_states(policy.simulator.task, 8, policy.config.eval_seed)
+    q0, qd0 = initial_states(policy.simulator.task, policy.config.eval_seed, 8)
     task = policy.simulator.task
     returns = rollout(plant, task, q0, qd0, exported, task.horizon).returns
     np.testing.assert_allclose(returns, in_process.returns, rtol=1e-4)

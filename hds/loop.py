@@ -1,0 +1,231 @@
+"""`python -m hds.loop`: the iterative real2sim2real loop.
+
+  round 0   train on the simulator (cfg.env), evaluate on the plant;
+  round r   deploy the current policy on the plant (`loop.deploy_episodes`) and excite it
+            open loop (`loop.excitation_episodes`, stronger while the data do not move every
+            joint: active excitation); gap discovery on all data so far; a learned model
+            (HDS) refitted on it; train warm-started on the corrected simulator
+            (`loop.epochs`); evaluate on the plant.
+Each round reports the named effects with intervals, the real return (mean and 95% interval
+over the runs), the sim2real gap and the data used, in <out>/rounds/<r>/round.json and a
+final table; the loop stops when the real return no longer rises above the previous round's
+interval. Every round is checkpointed: a killed loop started again on its directory resumes
+and ends with the numbers of an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import sys
+from pathlib import Path
+
+os.environ.setdefault("WANDB_MODE", "offline")
+os.environ.setdefault("WANDB_SILENT", "true")
+
+import hydra  # noqa: E402
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+from hydra.core.hydra_config import HydraConfig  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+
+from hds import experiment  # noqa: E402
+from hds.algo.pods import make_train  # noqa: E402
+from hds.config import Config, env_config, validate  # noqa: E402
+from hds.data import collect, initial_states  # noqa: E402
+from hds.data.format import Dataset, load, save  # noqa: E402
+from hds.envs import make_env  # noqa: E402
+from hds.evaluation import mean_ci  # noqa: E402
+from hds.logger import print_table  # noqa: E402
+from hds.utils.io import atomic_write_json, read_json  # noqa: E402
+
+log = logging.getLogger("hds")
+
+
+def joint_motion(data: Dataset, threshold: float) -> dict[str, float]:
+    """Per joint velocity channel: the share of samples moving faster than `threshold`."""
+    names = data.obs_names or ()
+    return {
+        n: float(np.mean(np.abs(data.obs[..., i]) > threshold))
+        for i, n in enumerate(names)
+        if n.startswith("qd_")
+    }
+
+
+def record(cfg: Config, env, plant, params, key, scale: float) -> Dataset:
+    """One round's data: the policy (the batch's first run) deployed from the task's initial
+    states, and open-loop excitation whose amplitudes rise to `scale` of the half range."""
+    from hds.dynamics import excite
+
+    k_deploy, k_excite, k_u = jax.random.split(key, 3)
+    horizon = env.task.horizon
+    first = jax.tree.map(lambda x: x[0], params)
+    act = jax.jit(make_train(cfg, env).policy.apply)
+    q0, qd0 = initial_states(env.task, k_deploy, cfg.loop.deploy_episodes)
+    deployed = collect(plant, env.task, q0, qd0, lambda o: np.asarray(act(first, o)), horizon)
+    excitation = dataclasses.replace(
+        cfg.dynamics,
+        episodes=cfg.loop.excitation_episodes,
+        horizon=horizon,
+        excitation_scale=scale,
+    )
+    q0, qd0 = initial_states(env.task, k_excite, cfg.loop.excitation_episodes)
+    excited = collect(plant, env.task, q0, qd0, excite(excitation, env, k_u), horizon)
+    return concatenate([deployed, excited])
+
+
+def concatenate(datasets: list[Dataset]) -> Dataset:
+    first = datasets[0]
+    return Dataset(
+        np.concatenate([d.obs for d in datasets]),
+        np.concatenate([d.actions for d in datasets]),
+        first.dt,
+        first.obs_names,
+        first.action_names,
+    )
+
+
+def excite_until_identifiable(cfg: Config, env, plant, params, key, data_so_far):
+    """Record a round's data; while some joint moves in fewer than `loop.min_motion` of the
+    samples (all data so far: friction it never overcomes cannot be identified), double the
+    excitation's amplitude, up to the actuator's whole range, and record again."""
+    scale, notes = cfg.dynamics.excitation_scale, []
+    while True:
+        key, sub = jax.random.split(key)
+        new = record(cfg, env, plant, params, sub, scale)
+        data = concatenate([*data_so_far, new])
+        motion = joint_motion(data, cfg.loop.motion_threshold)
+        still = {n: m for n, m in motion.items() if m < cfg.loop.min_motion}
+        data_so_far = [*data_so_far, new]
+        if not still or scale >= 1.0:
+            if still:
+                notes.append(f"joints {sorted(still)} still barely move at full excitation")
+            return data_so_far, scale, notes
+        notes.append(
+            f"{', '.join(f'{n} moves in {m:.1%} of samples' for n, m in still.items())} at "
+            f"excitation {scale:g}: recorded more at {min(1.0, 2 * scale):g}"
+        )
+        scale = min(1.0, 2 * scale)
+
+
+def round_budget(cfg: Config, r: int) -> Config:
+    """Round 0 trains for algo.epochs; each later round loop.epochs more, warm-started."""
+    if r == 0 or not cfg.loop.epochs:
+        return cfg
+    return dataclasses.replace(cfg, algo=dataclasses.replace(cfg.algo, epochs=cfg.loop.epochs))
+
+
+def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) -> list[dict]:
+    """Every round of the loop (see the module's doc); returns the rounds' reports."""
+    out_dir = Path(out_dir)
+    hooks = hooks or experiment.Hooks()
+    experiment.enable_compilation_cache()
+    plant = experiment.run_plants(cfg)[0]
+    env_cfg, params, data, rounds = cfg.env, None, [], []
+    key = jax.random.PRNGKey(cfg.seed + 7919)  # the loop's data, apart from training's keys
+    for r in range(cfg.loop.rounds + 1):
+        key, round_key = jax.random.split(key)
+        rdir = out_dir / "rounds" / str(r)
+        found, notes, scale = [], [], None
+        if r > 0:
+            if (rdir / "data.npz").is_file():  # recorded before the loop was stopped
+                new = [load(rdir / "data.npz")]
+                scale = read_json(rdir / "excitation.json")["scale"]
+            else:
+                env = make_env(env_cfg)
+                data_all, scale, notes = excite_until_identifiable(
+                    cfg, env, plant, params, round_key, data
+                )
+                new = data_all[len(data) :]
+                save(concatenate(new), rdir / "data.npz")
+                atomic_write_json(rdir / "excitation.json", {"scale": scale, "notes": notes})
+            data = [*data, *new]
+            env_cfg, found = discover_round(cfg, concatenate(data), rdir)
+        report = train_round(cfg, r, env_cfg, params, data, rdir, hooks)
+        params = report.pop("params")
+        report |= {"round": r, "effects": found, "excitation_scale": scale, "notes": notes}
+        report["data_episodes"] = int(sum(d.n_episodes for d in data))
+        rounds.append(report)
+        if r > 0 and not improved(rounds[-2], rounds[-1]):
+            log.info("round %d: the real return no longer improves; the loop stops", r)
+            break
+    atomic_write_json(out_dir / "loop.json", {"rounds": rounds})
+    if hooks.console:
+        print_table([_round_row(x) for x in rounds], title=f"{cfg.name}: the sim2real loop")
+    return rounds
+
+
+def discover_round(cfg: Config, data: Dataset, rdir: Path):
+    """Gap discovery on all data so far: the corrected env config and the named effects."""
+    from hds.discover import corrected_env, discover, write_report
+
+    result = discover(data, cfg.env, cfg.discover)
+    write_report(result, cfg.env, rdir / "discovery", cfg.discover.plot_episodes, cfg.discover.bins)
+    return env_config(corrected_env(cfg.env, result)), [e.to_json() for e in result.missing_effects]
+
+
+def train_round(cfg, r, env_cfg, params, data, rdir, hooks) -> dict:
+    """Train (warm-started from `params` after round 0) on the round's simulator and, for HDS,
+    a model refitted on the loop's data; evaluate on the plant. Cached in round.json."""
+    round_cfg = round_budget(cfg, r)
+    env = make_env(env_cfg)
+    model = None
+    if r > 0 and cfg.uses_model():
+        from hds.dynamics import build
+
+        save(concatenate(data), rdir / "model_data.npz")
+        dyn = dataclasses.replace(cfg.dynamics, data=str(rdir / "model_data.npz"))
+        model, _ = build(dyn, env, None, jax.random.PRNGKey(cfg.seed), rdir / "dynamics")
+    method = f"loop{r}"
+    with experiment.method_logger(round_cfg, rdir, method, hooks) as logger:
+        training = experiment.train(
+            round_cfg, env, rdir, method, model, hooks=hooks, logger=logger, init_params=params
+        )
+        rows = experiment.evaluate_training(round_cfg, training, experiment.run_plants(cfg))
+        logger.finish(rows, {})
+    real, gap = (mean_ci([row[k] for row in rows]) for k in ("real_return", "gap"))
+    report = {"rows": rows, "real_return": real, "gap": gap}
+    atomic_write_json(rdir / "round.json", report)
+    return report | {"params": training.params}
+
+
+def improved(before: dict, after: dict) -> bool:
+    """Whether the real return rose above the previous round's 95% interval."""
+    return after["real_return"][0] > before["real_return"][2]
+
+
+def _round_row(report: dict) -> dict:
+    names = ", ".join(
+        f"{e['name']}@{e['target']} "
+        + " ".join(
+            f"{v:.3g} [{e['ci95'][k][0]:.3g}, {e['ci95'][k][1]:.3g}]"
+            for k, v in e["params"].items()
+        )
+        for e in report["effects"]
+    )
+    (real, lo, hi), (gap, *_) = report["real_return"], report["gap"]
+    return {
+        "round": report["round"],
+        "real_return": real,
+        "interval": f"[{lo:.1f}, {hi:.1f}]",
+        "gap": gap,
+        "episodes": report["data_episodes"],
+        "named": names or "-",
+    }
+
+
+@hydra.main(config_path="../conf", config_name="config", version_base="1.3")
+def main(dcfg) -> float:
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    OmegaConf.save(dcfg, out_dir / "config.yaml", resolve=True)
+    cfg = validate(dcfg)
+    rounds = run_loop(cfg, out_dir)
+    return float(rounds[-1]["real_return"][0])
+
+
+if __name__ == "__main__":
+    from hds.run import check_command_line
+
+    check_command_line(sys.argv[1:])
+    main()

@@ -1,0 +1,92 @@
+"""The real2sim2real loop (hds/loop.py): it names a hidden friction and shrinks the gap, a
+killed loop resumes to the same numbers, and active excitation pushes harder (within the
+actuator's range) when the data never move a joint past its friction."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from hds import loop
+from hds.envs import make_env
+from hds.experiment import Hooks, run_plants
+from tests.conftest import make_config
+
+# Round 0 and one correction round, on a tiny budget: 20 N of Coulomb friction on the rail of
+# the C MuJoCo plant (the default `real`).
+LOOP = (
+    "debug=fast",
+    "logger=none",
+    "seeds=2",
+    "loop.rounds=1",
+    "loop.deploy_episodes=6",
+    "loop.excitation_episodes=10",
+    "loop.epochs=3",
+    "env.task.horizon=50",
+    "discover.stride=2",
+)
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    out = tmp_path_factory.mktemp("loop")
+    return loop.run_loop(make_config(*LOOP), out, Hooks(console=False)), out
+
+
+def test_the_loop_names_the_friction_and_shrinks_the_gap(uninterrupted):
+    rounds, out = uninterrupted
+    first, second = rounds
+    (found,) = second["effects"]
+    assert (found["name"], found["target"]) == ("coulomb_friction", "slider")
+    assert found["params"]["force"] == pytest.approx(20.0, rel=0.1)
+    assert abs(second["gap"][0]) < 0.5 * abs(first["gap"][0]), (first["gap"], second["gap"])
+    assert second["data_episodes"] >= 16 and first["data_episodes"] == 0
+    report = json.loads((out / "loop.json").read_text())
+    assert [r["round"] for r in report["rounds"]] == [0, 1]
+    assert (out / "rounds" / "1" / "discovery" / "report.md").is_file()
+
+
+def test_a_killed_loop_resumes_to_the_same_numbers(uninterrupted, tmp_path):
+    rounds, _ = uninterrupted
+
+    def die_in_round_1(epoch, metrics):
+        if metrics["method"] == "loop1":
+            raise KeyboardInterrupt("killed in round 1")
+
+    with pytest.raises(KeyboardInterrupt):
+        loop.run_loop(
+            make_config(*LOOP), tmp_path, Hooks(progress_fn=die_in_round_1, console=False)
+        )
+    resumed = loop.run_loop(make_config(*LOOP), tmp_path, Hooks(console=False))
+    for a, b in zip(rounds, resumed, strict=True):
+        assert a["rows"] == b["rows"]
+        assert a["effects"] == b["effects"]
+
+
+def test_active_excitation_pushes_harder_within_the_actuator_range():
+    """80 N of rail friction: the gentle default excitation (20% of the half range, 60 N at
+    the rail) never moves the cart; the loop doubles the amplitude until it does."""
+    cfg = make_config(
+        *LOOP, "real.friction_gap=4", "loop.deploy_episodes=2", "loop.excitation_episodes=6"
+    )
+    env = make_env(cfg.env)
+    plant = run_plants(cfg)[0]
+    from hds.algo.pods import make_train
+
+    trainer = make_train(cfg, env)
+    params = jax.vmap(trainer.init, in_axes=(0, None))(
+        jax.random.split(jax.random.PRNGKey(0), 1), trainer.default_hparams
+    ).policy
+    data, scale, notes = loop.excite_until_identifiable(
+        cfg, env, plant, params, jax.random.PRNGKey(1), []
+    )
+    assert scale > cfg.dynamics.excitation_scale and notes
+    assert "qd_slider" in notes[0]
+    moving = loop.joint_motion(loop.concatenate(data), cfg.loop.motion_threshold)
+    assert moving["qd_slider"] >= cfg.loop.min_motion or scale == 1.0
+    actions = np.concatenate([d.actions for d in data])
+    low, high = env.sim.ctrl_range[0]
+    assert actions.min() >= low and actions.max() <= high
