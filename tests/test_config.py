@@ -4,12 +4,35 @@ from __future__ import annotations
 
 import pytest
 from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
 
 from tests.conftest import CONF, make_config
 
 
 def options(group: str) -> list[str]:
     return sorted(p.stem for p in (CONF / group).glob("*.yaml"))
+
+
+def assert_values_landed(cfg, yaml_path, prefix: str = "") -> None:
+    """Every value the YAML file states (not its defaults list, not hydra's, not an
+    interpolation or a missing value) is the composed config's at the same key."""
+    own = OmegaConf.to_container(OmegaConf.load(yaml_path), resolve=False)
+    composed = OmegaConf.structured(cfg)
+    for key, node in own.items():
+        if key in ("defaults", "hydra"):
+            continue
+        for path, value in _leaves(node, f"{prefix}{key}"):
+            if isinstance(value, str) and ("${" in value or value == "???"):
+                continue
+            assert OmegaConf.select(composed, path) == value, (yaml_path.name, path)
+
+
+def _leaves(node, path):
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield from _leaves(v, f"{path}.{k}")
+    else:
+        yield path, node
 
 
 @pytest.mark.parametrize("group", ["env", "real", "algo", "noise", "anneal", "dynamics", "logger"])
@@ -31,7 +54,7 @@ def test_every_option_composes(group):
             # models lack: validate() rejects it (test_bad_values_fail_at_composition)
             overrides.append("real=none")
         cfg = make_config(*overrides)
-        assert getattr(cfg, group) is not None
+        assert_values_landed(cfg, CONF / group / f"{option}.yaml", prefix=f"{group}.")
 
 
 @pytest.mark.parametrize("experiment", options("experiment"))
@@ -40,7 +63,7 @@ def test_every_experiment_composes(experiment):
     text = (CONF / "experiment" / f"{experiment}.yaml").read_text()
     config_name = "discover" if "python -m hds.discover" in text else "config"
     cfg = make_config(f"+experiment={experiment}", config_name=config_name)
-    assert cfg.name
+    assert_values_landed(cfg, CONF / "experiment" / f"{experiment}.yaml")
 
 
 LAUNCHERS = {
