@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import make_config
 from test_analytic import batched_rollout, deviation, effect, mujoco_rollout
 
 from bench.engine import random_tree_xml
@@ -215,3 +216,73 @@ def test_unsupported_models_are_refused_naming_the_way_out(tmp_path, feature):
 def test_the_simulator_runs_the_tree_module():
     sim, _ = make_simulator("acrobot.xml", "tree")
     assert sim.pipeline is tree
+
+
+# -- the three systems: tasks, the C MuJoCo plant, the GIF ------------------------------------
+
+TASKS = {  # env config: the height of the highest geom end when upright (q = 0)
+    "double_cartpole_swingup": 0.6,
+    "double_cartpole_balance": 0.6,
+    "furuta_swingup": 0.129,
+    "furuta_balance": 0.129,
+    "acrobot_swingup": 2.0,
+}
+
+
+@pytest.mark.parametrize("task", list(TASKS))
+def test_the_c_mujoco_plant_runs_each_task_as_mujoco_does(task):
+    """hds/real/mujoco_plant.py, unchanged, on the new systems: its steps are MuJoCo's at the
+    config's timestep and frames, and its observations carry the MJCF's names."""
+    from hds.real.mujoco_plant import MujocoPlant
+
+    cfg = make_config(f"env={task}", "real=none").env
+    plant = MujocoPlant(cfg)
+    assert cfg.backend == "tree"
+    rng = np.random.default_rng(0)
+    nq = len(cfg.task.q_mean)
+    q0 = np.asarray(cfg.task.q_mean) + rng.uniform(-0.1, 0.1, (2, nq))
+    qd0 = rng.uniform(-0.1, 0.1, (2, nq))
+    u = rng.uniform(-1, 1, (2, 10, plant.model.nu)) * plant.ctrl_range[:, 1]
+    plant.reset(q0, qd0)
+    obs = np.stack([plant.step(u[:, t]) for t in range(10)], axis=1)
+    spec = make_config(f"env={task}", "real=none").env
+    reference = mujoco_rollout(spec.xml, q0, qd0, u, spec.frames_per_step)
+    np.testing.assert_allclose(obs, reference, atol=1e-9)
+    assert plant.obs_names[:nq] == tuple(f"q_{j}" for j in JOINTS[cfg.xml])
+
+
+JOINTS = {
+    "double_cartpole.xml": ("slider", "hinge1", "hinge2"),
+    "furuta.xml": ("arm", "pendulum"),
+    "acrobot.xml": ("shoulder", "elbow"),
+}
+
+
+@pytest.mark.parametrize("task", ["double_cartpole_balance", "furuta_balance", "acrobot_swingup"])
+def test_the_gif_draws_the_kinematic_tree(task, tmp_path):
+    from hds.animate import animate, geom_segments, model_of
+    from hds.envs.system import state_names
+
+    cfg = make_config(f"env={task}", "real=none").env
+    model = model_of(tuple(state_names(mujoco_model(cfg.xml))))  # found by its names
+    names = tuple(state_names(model))
+    upright = np.zeros((1, len(names)))
+    top = geom_segments(model, upright, names)[0, :, :, 2].max()
+    assert top == pytest.approx(TASKS[task], abs=1e-6)
+    hanging = upright.copy()
+    hanging[0, names.index(f"q_{JOINTS[cfg.xml][-2 if task != 'furuta_balance' else -1]}")] = np.pi
+    assert geom_segments(model, hanging, names)[0, :, :, 2].max() < top
+    obs = np.repeat(upright, 4, axis=0)
+    obs[:, 0] = np.linspace(0.0, 0.5, 4)
+    gif = animate(obs, obs, names, 0.1, tmp_path / "run.gif")
+    from PIL import Image
+
+    assert Image.open(gif).n_frames == 4
+
+
+def mujoco_model(xml: str):
+    import mujoco
+
+    from hds.envs.system import resolve_xml
+
+    return mujoco.MjModel.from_xml_path(str(resolve_xml(xml)))
