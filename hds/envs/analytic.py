@@ -164,6 +164,25 @@ def quat_matrix(quat, xp):
     )
 
 
+def system_geometry(sys) -> tuple[dict, object]:
+    """The System's frames, axes and gravity (effects never edit them) and the array module
+    for them: numpy float64 when known at trace time, else the traced arrays and jax.numpy."""
+    parts = {
+        "rot": sys.link.transform.rot,
+        "pos": sys.link.transform.pos,
+        "irot": sys.link.inertia.transform.rot,
+        "ipos": sys.link.inertia.transform.pos,
+        "jpos": sys.link.joint.pos,
+        "ang": sys.dof.motion.ang,
+        "vel": sys.dof.motion.vel,
+        "gravity": sys.gravity,
+    }
+    values = concrete(list(parts.values()))
+    if values is None:
+        return parts, jnp
+    return dict(zip(parts, values)), np
+
+
 def _geometry(sys) -> dict:
     """The mass-independent terms of the dynamics, from the System's frames and axes.
 
@@ -172,20 +191,9 @@ def _geometry(sys) -> dict:
     Returns the dot products of P and W with gravity and the slide axis, |d_perp|^2, and the
     hinge axis in the link's principal inertia frame. Computed in numpy when the geometry is
     known at trace time (effects never edit it), so a step carries only the terms that vary."""
-    parts = (
-        sys.link.transform.rot,
-        sys.link.inertia.transform.pos,
-        sys.link.inertia.transform.rot,
-        sys.link.joint.pos,
-        sys.dof.motion.ang,
-        sys.dof.motion.vel,
-        sys.gravity,
-    )
-    try:
-        parts, xp = [np.asarray(a, dtype=np.float64) for a in parts], np
-    except jax.errors.TracerArrayConversionError:
-        xp = jnp
-    rot, ipos, irot, jpos, ang, vel, gravity = parts
+    parts, xp = system_geometry(sys)
+    rot, ipos, irot, jpos = parts["rot"], parts["ipos"], parts["irot"], parts["jpos"]
+    ang, vel, gravity = parts["ang"], parts["vel"], parts["gravity"]
     h = sys.num_links() - 1  # the hinge's link (and dof): the last of one or two
     frame = quat_matrix(rot[h], xp)  # the hinge link's frame at hinge = 0, in world
     slide = xp.zeros(3)

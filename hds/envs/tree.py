@@ -36,11 +36,11 @@ from brax import actuator
 from hds.envs.analytic import (
     State,
     check_options,
-    concrete,
     init,
     limit_terms,
     put,
     quat_matrix,
+    system_geometry,
     take,
 )
 
@@ -78,19 +78,9 @@ def check(sys) -> None:
 
 def _constants(sys) -> dict:
     """The geometry (effects never edit it): numpy when known at trace time, else traced."""
-    parts = (
-        sys.link.transform.rot,
-        sys.link.transform.pos,
-        sys.link.inertia.transform.rot,
-        sys.link.inertia.transform.pos,
-        sys.link.joint.pos,
-        sys.dof.motion.ang,
-        sys.dof.motion.vel,
-        sys.gravity,
-    )
-    values = concrete(parts)
-    xp = jnp if values is None else np
-    rot, pos, irot, ipos, jpos, ang, vel, gravity = parts if values is None else values
+    parts, xp = system_geometry(sys)
+    rot, pos, irot, ipos = parts["rot"], parts["pos"], parts["irot"], parts["ipos"]
+    jpos, ang, vel, gravity = parts["jpos"], parts["ang"], parts["vel"], parts["gravity"]
     n = len(sys.link_names)
     hinge = [bool(np.any(np.asarray(a) != 0)) for a in np.asarray(sys.dof.motion.ang)]
     axis = xp.where(xp.asarray(hinge)[:, None], ang, vel)
