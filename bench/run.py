@@ -7,6 +7,7 @@ other processes compete for the cores):
   peers      brax's PPO and APG vs PODS and HDS: time and env steps to a return threshold
   scaling    seeds vmapped, horizon, rollouts per epoch: wall time and peak memory
   compile    cold and warm (persistent cache) compile, each in its own process
+  engine     the tree engine vs brax generalized and MJX per system: compile, env-steps/s
   discovery  time to a gap-discovery report (skipped where hds.discover does not exist)
   gpu        skipped on CPU
 
@@ -41,6 +42,7 @@ SECTIONS = {
     "peers": "bench.peers",
     "scaling": "bench.scaling",
     "compile": "bench.compilation",
+    "engine": "bench.engine",
     "discovery": "bench.discovery",
     "gpu": "bench.gpu",
 }

@@ -5,44 +5,94 @@ from __future__ import annotations
 from pathlib import Path
 
 import matplotlib
+import mujoco
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
 
+from hds.envs.system import ASSETS, resolve_xml, state_names  # noqa: E402
 
-def pole_positions(obs: np.ndarray, names: tuple[str, ...], length: float = 0.6):
-    """Cart x and pole tip (x, z) over time from observations [T, n_obs] (hinge = 0 is up)."""
-    x = obs[:, names.index("q_slider")] if "q_slider" in names else np.zeros(len(obs))
-    theta = obs[:, names.index("q_hinge")]
-    return x, x + length * np.sin(theta), length * np.cos(theta)
+
+def model_of(names: tuple[str, ...], xml: str | None = None) -> mujoco.MjModel:
+    """The MJCF to draw: `xml` when given, else the shipped asset whose observation names are
+    `names` (the names are the data contract)."""
+    if xml is not None:
+        return mujoco.MjModel.from_xml_path(str(resolve_xml(xml)))
+    for path in sorted(ASSETS.glob("*.xml")):
+        model = mujoco.MjModel.from_xml_path(str(path))
+        if tuple(state_names(model)) == tuple(names):
+            return model
+    raise ValueError(
+        f"no shipped MJCF has the observations {list(names)}: pass xml= (the simulator's "
+        "sim.xml) to draw a custom model"
+    )
+
+
+def geom_segments(model: mujoco.MjModel, obs: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
+    """[T, G, 2, 3]: the two ends, in world coordinates, of every geom on a moving body over
+    time, from MuJoCo's forward kinematics at the observed q (capsules and cylinders along
+    their axis; other shapes are a point)."""
+    columns = [names.index(n) for n in state_names(model)[: model.nq]]
+    geoms = [g for g in range(model.ngeom) if model.geom_bodyid[g] != 0]
+    long = (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER))
+    half = np.array([model.geom_size[g, 1] if model.geom_type[g] in long else 0.0 for g in geoms])
+    data = mujoco.MjData(model)
+    out = np.zeros((len(obs), len(geoms), 2, 3))
+    for t, q in enumerate(np.asarray(obs)[:, columns]):
+        data.qpos[:] = q
+        mujoco.mj_kinematics(model, data)
+        centre = data.geom_xpos[geoms]
+        axis = data.geom_xmat[geoms].reshape(-1, 3, 3)[:, :, 2] * half[:, None]
+        out[t] = np.stack([centre - axis, centre + axis], axis=1)
+    return out
+
+
+def project(points: np.ndarray) -> np.ndarray:
+    """[..., 3] -> [..., 2]: the x-z plane, with an oblique view of y where the motion leaves
+    that plane (the Furuta pendulum's arm)."""
+    x, y, z = points[..., 0], points[..., 1], points[..., 2]
+    if np.ptp(y) < 1e-6:
+        return np.stack([x, z], axis=-1)
+    return np.stack([x - 0.5 * y, z - 0.3 * y], axis=-1)
 
 
 def animate(
-    sim_obs, real_obs, names, dt: float, path: Path, titles=("simulator", "real plant")
+    sim_obs,
+    real_obs,
+    names,
+    dt: float,
+    path: Path,
+    titles=("simulator", "real plant"),
+    xml: str | None = None,
 ) -> Path:
+    """A GIF of two episodes side by side, drawing the model's kinematic tree (its geoms)."""
+    model = model_of(tuple(names), xml)
+    tracks = [project(geom_segments(model, o, tuple(names))) for o in (sim_obs, real_obs)]
+    points = np.concatenate([t.reshape(-1, 2) for t in tracks])
+    lo, hi = points.min(axis=0) - 0.2, points.max(axis=0) + 0.2
     fig, axes = plt.subplots(1, 2, figsize=(8, 3.2))
-    tracks = [pole_positions(o, names) for o in (sim_obs, real_obs)]
-    span = max(1.0, max(float(np.abs(t[0]).max()) for t in tracks) + 0.8)
     artists = []
     for ax, title in zip(axes, titles):
-        ax.set_xlim(-span, span)
-        ax.set_ylim(-0.8, 0.8)
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
         ax.set_aspect("equal")
         ax.axhline(0, color="0.7", lw=1)
         ax.set_title(title)
-        (cart,) = ax.plot([], [], "s", ms=14, color="tab:blue")
-        (pole,) = ax.plot([], [], "-", lw=4, color="tab:brown")
-        artists.append((cart, pole))
+        lines = [
+            ax.plot([], [], "o-", lw=4, ms=5, color="tab:brown")[0]
+            for _ in range(tracks[0].shape[1])
+        ]
+        artists.append(lines)
     label = fig.suptitle("")
 
     def frame(t):
-        for (cart, pole), (x, tip_x, tip_z) in zip(artists, tracks):
-            cart.set_data([x[t]], [0.0])
-            pole.set_data([x[t], tip_x[t]], [0.0, tip_z[t]])
+        for lines, track in zip(artists, tracks):
+            for line, seg in zip(lines, track[t]):
+                line.set_data(seg[:, 0], seg[:, 1])
         label.set_text(f"t = {t * dt:.2f} s")
-        return [a for pair in artists for a in pair] + [label]
+        return [a for lines in artists for a in lines] + [label]
 
     anim = FuncAnimation(fig, frame, frames=len(sim_obs), blit=False)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -77,4 +127,5 @@ def animate_run(
             f"simulator: return {sim.returns[0]:.0f}",
             f"{policy.config.real.plant} plant: return {real.returns[0]:.0f}",
         ),
+        xml=policy.env.xml,
     )

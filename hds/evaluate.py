@@ -68,7 +68,7 @@ def write_evaluation(policy, real_eval, out: Path, episodes, seed, gif: bool = T
     )
     plots.save(plots.trajectories(sim_obs, real_obs, names, dt), out / "plots" / "trajectories.png")
     if gif:
-        animate(sim_obs, real_obs, names, dt, out / "sim_vs_real.gif", titles=titles)
+        animate(sim_obs, real_obs, names, dt, out / "sim_vs_real.gif", titles, policy.env.xml)
     (sim_mean, *_), (real_mean, *_) = sim_eval.mean_ci(), real_eval.mean_ci()
     summary = {
         "run_dir": str(policy.run_dir),

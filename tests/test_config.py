@@ -102,7 +102,7 @@ def test_every_launcher_composes(launcher):
         ("dynamics.beta=2", "dynamics.beta = 2.0 is out of range"),
         (
             "env.backend=bullet",
-            "choose one of ['generalized', 'spring', 'positional', 'mjx', 'analytic']",
+            "choose one of ['generalized', 'spring', 'positional', 'mjx', 'analytic', 'tree']",
         ),
         ("algo.order=third", "algo.order = 'third' is not allowed"),
         ("algo.grad_window=-1", "algo.grad_window = -1 is out of range"),

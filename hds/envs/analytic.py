@@ -117,25 +117,32 @@ def check(sys) -> str:
 
     Returns the structure ('cartpole' or 'pendulum'); raises ValueError otherwise."""
     structure = _structure(sys)
-    mj = getattr(sys, "mj_model", None)
-    if mj is not None:
-        if int(mj.opt.integrator) != 0:
-            raise ValueError(
-                "the analytic backend integrates like MuJoCo's Euler integrator, as brax's "
-                "backends do: set <option integrator='Euler'/> in the MJCF"
-            )
-        problems = []
-        if _may_collide(mj):
-            problems.append("geoms that can collide (contacts are not modelled)")
-        if mj.ntendon > 0:
-            problems.append("tendons")
-        if mj.neq > 0:
-            problems.append("equality constraints")
-        if mj.opt.viscosity > 0 or mj.opt.density > 0:
-            problems.append("fluid forces (viscosity or density)")
-        if problems:
-            raise ValueError(f"{_SUPPORTED}: it has {', '.join(problems)}")
+    check_options(sys, "analytic", _SUPPORTED)
     return structure
+
+
+def check_options(sys, backend: str, supported: str) -> None:
+    """Refuse what a smooth-dynamics backend does not model: another integrator, contacts,
+    tendons, equality constraints, fluid forces. `supported` starts the message."""
+    mj = getattr(sys, "mj_model", None)
+    if mj is None:
+        return
+    if int(mj.opt.integrator) != 0:
+        raise ValueError(
+            f"the {backend} backend integrates like MuJoCo's Euler integrator, as brax's "
+            "backends do: set <option integrator='Euler'/> in the MJCF"
+        )
+    problems = []
+    if _may_collide(mj):
+        problems.append("geoms that can collide (contacts are not modelled)")
+    if mj.ntendon > 0:
+        problems.append("tendons")
+    if mj.neq > 0:
+        problems.append("equality constraints")
+    if mj.opt.viscosity > 0 or mj.opt.density > 0:
+        problems.append("fluid forces (viscosity or density)")
+    if problems:
+        raise ValueError(f"{supported}: it has {', '.join(problems)}")
 
 
 def init(sys, q: jax.Array, qd: jax.Array, *args, **kwargs) -> State:
@@ -145,7 +152,7 @@ def init(sys, q: jax.Array, qd: jax.Array, *args, **kwargs) -> State:
     return State(q=q, qd=qd, qdd=jnp.zeros_like(qd))
 
 
-def _quat_matrix(quat, xp):
+def quat_matrix(quat, xp):
     """Rotation matrix of a quaternion (w, x, y, z), in numpy or jax.numpy."""
     w, x, y, z = quat / xp.linalg.norm(quat)
     return xp.array(
@@ -157,6 +164,25 @@ def _quat_matrix(quat, xp):
     )
 
 
+def system_geometry(sys) -> tuple[dict, object]:
+    """The System's frames, axes and gravity (effects never edit them) and the array module
+    for them: numpy float64 when known at trace time, else the traced arrays and jax.numpy."""
+    parts = {
+        "rot": sys.link.transform.rot,
+        "pos": sys.link.transform.pos,
+        "irot": sys.link.inertia.transform.rot,
+        "ipos": sys.link.inertia.transform.pos,
+        "jpos": sys.link.joint.pos,
+        "ang": sys.dof.motion.ang,
+        "vel": sys.dof.motion.vel,
+        "gravity": sys.gravity,
+    }
+    values = concrete(list(parts.values()))
+    if values is None:
+        return parts, jnp
+    return dict(zip(parts, values)), np
+
+
 def _geometry(sys) -> dict:
     """The mass-independent terms of the dynamics, from the System's frames and axes.
 
@@ -165,26 +191,15 @@ def _geometry(sys) -> dict:
     Returns the dot products of P and W with gravity and the slide axis, |d_perp|^2, and the
     hinge axis in the link's principal inertia frame. Computed in numpy when the geometry is
     known at trace time (effects never edit it), so a step carries only the terms that vary."""
-    parts = (
-        sys.link.transform.rot,
-        sys.link.inertia.transform.pos,
-        sys.link.inertia.transform.rot,
-        sys.link.joint.pos,
-        sys.dof.motion.ang,
-        sys.dof.motion.vel,
-        sys.gravity,
-    )
-    try:
-        parts, xp = [np.asarray(a, dtype=np.float64) for a in parts], np
-    except jax.errors.TracerArrayConversionError:
-        xp = jnp
-    rot, ipos, irot, jpos, ang, vel, gravity = parts
+    parts, xp = system_geometry(sys)
+    rot, ipos, irot, jpos = parts["rot"], parts["ipos"], parts["irot"], parts["jpos"]
+    ang, vel, gravity = parts["ang"], parts["vel"], parts["gravity"]
     h = sys.num_links() - 1  # the hinge's link (and dof): the last of one or two
-    frame = _quat_matrix(rot[h], xp)  # the hinge link's frame at hinge = 0, in world
+    frame = quat_matrix(rot[h], xp)  # the hinge link's frame at hinge = 0, in world
     slide = xp.zeros(3)
     if h == 1:  # cart-pole: the pole's frame hangs from the cart's
-        frame = _quat_matrix(rot[0], xp) @ frame
-        slide = _quat_matrix(rot[0], xp) @ (vel[0] / xp.linalg.norm(vel[0]))
+        frame = quat_matrix(rot[0], xp) @ frame
+        slide = quat_matrix(rot[0], xp) @ (vel[0] / xp.linalg.norm(vel[0]))
     axis = ang[h] / xp.linalg.norm(ang[h])
     v = ipos[h] - jpos[h]
     v_perp = v - axis * xp.dot(axis, v)
@@ -196,7 +211,7 @@ def _geometry(sys) -> dict:
         "sw": xp.dot(slide, w),
         "gs": xp.dot(gravity, slide),
         "rho2": xp.dot(v_perp, v_perp),
-        "axis_i": _quat_matrix(irot[h], xp).T @ axis,
+        "axis_i": quat_matrix(irot[h], xp).T @ axis,
     }
     if xp is np:
         terms = {k: np.asarray(x, dtype=np.float32) for k, x in terms.items()}
@@ -230,7 +245,7 @@ def _inverse(mass: jax.Array) -> jax.Array:
     return jnp.array([[d, -b], [-b, a]]) / (a * d - b * b)
 
 
-def _concrete(arrays):
+def concrete(arrays):
     """The arrays in numpy (float64) when known at trace time, else None (a traced System)."""
     try:
         return [np.asarray(a, dtype=np.float64) for a in arrays]
@@ -247,10 +262,10 @@ def _limit_constants(sys, h):
     if sys.dof.limit is None:
         return np.zeros(0, dtype=np.int32), {}
     parts = (*sys.dof.limit, sys.dof.solver_params, sys.dof.invweight, h)
-    concrete = _concrete(parts)
-    xp = jnp if concrete is None else np
-    lo, hi, params, invweight, h = parts if concrete is None else concrete
-    if concrete is None:
+    values = concrete(parts)
+    xp = jnp if values is None else np
+    lo, hi, params, invweight, h = parts if values is None else values
+    if values is None:
         dofs = np.arange(n)
     else:
         dofs = np.flatnonzero(np.isfinite(lo) | np.isfinite(hi))
@@ -277,12 +292,12 @@ def _limit_constants(sys, h):
         "scale_hi": 1 / (1 - mid) ** (power - 1),
         "invweight": invweight,
     }
-    if concrete is not None:
+    if values is not None:
         terms = {key: np.asarray(x, dtype=np.float32) for key, x in terms.items()}
     return dofs.astype(np.int32), terms
 
 
-def _take(x: jax.Array, dofs: np.ndarray) -> jax.Array:
+def take(x: jax.Array, dofs: np.ndarray) -> jax.Array:
     """x[dofs], as a static slice when the dofs are contiguous (no gather under vmap and grad)."""
     first = int(dofs[0])
     if np.array_equal(dofs, np.arange(first, first + dofs.size)):
@@ -290,7 +305,7 @@ def _take(x: jax.Array, dofs: np.ndarray) -> jax.Array:
     return x[dofs]
 
 
-def _put(values: jax.Array, dofs: np.ndarray, n: int) -> jax.Array:
+def put(values: jax.Array, dofs: np.ndarray, n: int) -> jax.Array:
     """A length-n vector with `values` at `dofs` and zeros elsewhere."""
     first = int(dofs[0])
     if np.array_equal(dofs, np.arange(first, first + dofs.size)):
@@ -298,15 +313,16 @@ def _put(values: jax.Array, dofs: np.ndarray, n: int) -> jax.Array:
     return jnp.zeros(n, values.dtype).at[dofs].set(values)
 
 
-def _limit_force(sys, q, qd, acc_free, mass_inv, h):
-    """MuJoCo's soft joint-limit force, per joint, given the unconstrained acceleration."""
+def limit_terms(sys, q, qd, h):
+    """MuJoCo's soft joint-limit terms at (q, qd): the limited dofs (numpy indices) and, per
+    limited dof, whether it is active, the side it pushes (+1: the lower limit pushes up), the
+    reference acceleration and the regulariser. None when the model has no limits."""
     dofs, c = _limit_constants(sys, h)
     if dofs.size == 0:
-        return jnp.zeros_like(q)
-    n = q.shape[0]
-    q, qd, acc_free = _take(q, dofs), _take(qd, dofs), _take(acc_free, dofs)
+        return None
+    q, qd = take(q, dofs), take(qd, dofs)
     dist_lo, dist_hi = q - c["lo"], c["hi"] - q
-    side = jnp.where(dist_lo < dist_hi, 1.0, -1.0)  # +1: the lower limit pushes up
+    side = jnp.where(dist_lo < dist_hi, 1.0, -1.0)
     dist = jnp.minimum(dist_lo, dist_hi)
     active = dist < 0
     pos = jnp.where(active, dist, 0.0)
@@ -323,9 +339,18 @@ def _limit_force(sys, q, qd, acc_free, mass_inv, h):
     imp = c["dmin"] + y * (c["dmax"] - c["dmin"])
     aref = -c["b"] * side * qd - c["k"] * imp * pos
     reg = jnp.maximum(_MINVAL, (1 - imp) / imp * c["invweight"])
-    a = _take(jnp.diagonal(mass_inv), dofs)
-    force = jnp.maximum(0.0, (aref - side * acc_free) / (a + reg))
-    return _put(jnp.where(active, side * force, 0.0), dofs, n)
+    return dofs, active, side, aref, reg
+
+
+def _limit_force(sys, q, qd, acc_free, mass_inv, h):
+    """MuJoCo's soft joint-limit force, per joint, given the unconstrained acceleration."""
+    terms = limit_terms(sys, q, qd, h)
+    if terms is None:
+        return jnp.zeros_like(q)
+    dofs, active, side, aref, reg = terms
+    a = take(jnp.diagonal(mass_inv), dofs)
+    force = jnp.maximum(0.0, (aref - side * take(acc_free, dofs)) / (a + reg))
+    return put(jnp.where(active, side * force, 0.0), dofs, q.shape[0])
 
 
 def step(sys, state: State, act: jax.Array, *args, **kwargs) -> State:

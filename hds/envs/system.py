@@ -16,7 +16,8 @@ from hds.effects import EffectParams, EffectSet, place
 from hds.utils.quiet import quiet_brax
 
 ASSETS = Path(__file__).parent / "assets"
-BACKENDS = ("generalized", "spring", "positional", "mjx", "analytic")
+BACKENDS = ("generalized", "spring", "positional", "mjx", "analytic", "tree")
+_OWN_BACKENDS = ("analytic", "tree")  # modules of hds.envs; the others are brax pipelines
 _FORCE_PREFIX = "hds_force_"  # the virtual motors through which effect forces enter
 
 
@@ -186,16 +187,14 @@ def make_simulator(
         sys = mjcf.load_model(spec.compile())  # load_model edits its argument: a fresh model
     if backend == "mjx":  # the default solver loop is a while_loop, which reverse mode rejects
         sys = sys.tree_replace({"opt.iterations": 1})
-    if backend == "analytic":  # closed-form dynamics: refuse unsupported models here, once
-        from hds.envs import analytic
-
-        analytic.check(sys)
+    if backend in _OWN_BACKENDS:  # refuse unsupported models here, once
+        importlib.import_module(f"hds.envs.{backend}").check(sys)
     ctrl_range = np.array(model.actuator_ctrlrange, dtype=np.float32)
     ctrl_range[model.actuator_ctrllimited == 0] = [-np.inf, np.inf]
     sim = Simulator(
         sys=sys,
         pipeline=importlib.import_module(
-            "hds.envs.analytic" if backend == "analytic" else f"brax.{backend}.pipeline"
+            f"hds.envs.{backend}" if backend in _OWN_BACKENDS else f"brax.{backend}.pipeline"
         ),
         frames=int(frames),
         timestep=float(model.opt.timestep),
