@@ -90,3 +90,35 @@ def gap_rows(method: str, runs: list[dict], sim: np.ndarray, real: np.ndarray) -
             }
         )
     return rows
+
+
+def diverged(method: str, runs: list[dict], sim: np.ndarray, real: np.ndarray) -> list[str]:
+    """A line for each run of the batch some of whose evaluation rollouts diverged (NaN or inf
+    returns), saying how many of them, on the simulator and on the plant."""
+    lines = []
+    for s, run in enumerate(runs):
+        counts = {
+            where: (int((~np.isfinite(r[s])).sum()), r[s].size)
+            for where, r in (("simulator", sim), ("plant", real))
+        }
+        bad = [f"{n} of {total} on the {where}" for where, (n, total) in counts.items() if n]
+        if bad:
+            every = " (every rollout)" if all(n == t for n, t in counts.values()) else ""
+            label = ", ".join(f"{k}={v}" for k, v in run.items())
+            lines.append(
+                f"{method} {label}: evaluation rollouts diverged to NaN or inf{every}: "
+                f"{' and '.join(bad)}; lower env.timestep, check env.effects and "
+                "real.effects for huge values, or lower algo.step_size"
+            )
+    return lines
+
+
+def no_finite_result(rows: list[dict]) -> str | None:
+    """The message of a run none of whose rows is finite (it exits non-zero), else None."""
+    finite = [np.isfinite([r["sim_return"], r["real_return"]]).all() for r in rows]
+    if rows and not any(finite):
+        return (
+            f"no finite result: every row ({len(rows)}) has a NaN or inf return (see the "
+            "warnings above); summary.json writes them as null and lists them under non_finite"
+        )
+    return None

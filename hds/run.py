@@ -28,15 +28,14 @@ import numpy as np  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from hydra.types import RunMode  # noqa: E402
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
 
-from hds import plots  # noqa: E402
+from hds import plots, rundir  # noqa: E402
 from hds.algo.pods import make_train  # noqa: E402
 from hds.checkpoint import Checkpoints  # noqa: E402
 from hds.config import Config, validate  # noqa: E402
 from hds.effects.apply import place  # noqa: E402
 from hds.envs import make_env  # noqa: E402
-from hds.evaluate import Evaluator, gap_rows  # noqa: E402
+from hds.evaluate import Evaluator, diverged, gap_rows, no_finite_result  # noqa: E402
 from hds.logger import RunLogger, print_table  # noqa: E402
 from hds.real import make_plant  # noqa: E402
 from hds.utils.io import atomic_write_bytes, atomic_write_json, read_json  # noqa: E402
@@ -231,12 +230,10 @@ def run(cfg: Config, out_dir: Path) -> dict:
         )
         # sim return: on the simulator the policy trained on (what it was promised)
         evaluator = Evaluator(method_env, trainer.policy, plants, cfg.eval_episodes, cfg.eval_seed)
-        method_rows = gap_rows(
-            method,
-            batch_of(cfg),
-            evaluator.sim_returns(params, method_effects),
-            evaluator.real_returns(params),
-        )
+        sim, real = evaluator.sim_returns(params, method_effects), evaluator.real_returns(params)
+        method_rows = gap_rows(method, batch_of(cfg), sim, real)
+        for line in diverged(method, batch_of(cfg), sim, real):
+            log.warning(line)
         rows += method_rows
         histories[method], timings[method] = history, timing
         if logger:
@@ -272,13 +269,17 @@ def main(dcfg) -> float:
     if dcfg.logger.group is None:
         dcfg.logger.group = wandb_group(hydra_cfg)
     out_dir = Path(hydra_cfg.runtime.output_dir)
-    OmegaConf.save(dcfg, out_dir / "config.yaml", resolve=True)
+    hydra_dir = out_dir / hydra_cfg.output_subdir if hydra_cfg.output_subdir else None
     try:
-        cfg = validate(dcfg)  # every range check, before anything compiles
-        enable_compilation_cache()
-        summary = run(cfg, out_dir)
-    except Exception:
+        with rundir.claim(out_dir, dcfg, hydra_dir):  # locked; its config.yaml is dcfg's
+            cfg = validate(dcfg)  # every range check, before anything compiles
+            enable_compilation_cache()
+            summary = run(cfg, out_dir)
+        if failure := no_finite_result(summary["rows"]):
+            raise FloatingPointError(failure)
+    except Exception as err:
         if hydra_cfg.mode != RunMode.MULTIRUN:
+            rundir.print_one_line(err)
             raise
         # One failed job must not stop the sweep: record why, let the others run. Starting
         # the sweep again reruns this job and skips the finished ones.
