@@ -44,12 +44,19 @@ class SweepSummary(Callback):
             )
 
 
-class WritableDirectory(Callback):
-    """Name the run or sweep directory when it cannot be written, before Hydra configures its
-    log file there (whose error hides the path in a chained exception)."""
+class StartChecks(Callback):
+    """What Hydra itself would fail on unclearly, checked before anything runs: a run or sweep
+    directory that cannot be written (Hydra's log-file error hides the path), and a launcher
+    timeout that gives the jobs no time (submitit then fails with no job directory)."""
 
     def on_run_start(self, config, **kwargs) -> None:
         check_writable(config.hydra.run.dir, "hydra.run.dir")
 
     def on_multirun_start(self, config, **kwargs) -> None:
         check_writable(config.hydra.sweep.dir, "hydra.sweep.dir")
+        timeout = config.hydra.launcher.get("timeout_min")
+        if timeout is not None and timeout < 1:
+            sys.exit(
+                f"Error: hydra.launcher.timeout_min = {timeout} gives every job no time: give "
+                "the minutes a job may run (at least 1)"
+            )

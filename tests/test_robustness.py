@@ -21,7 +21,7 @@ from omegaconf import OmegaConf
 from hds import run as hds_run
 from hds import rundir
 from hds.algo.pods import make_train
-from hds.callbacks import WritableDirectory
+from hds.callbacks import StartChecks
 from hds.checkpoint import Checkpoints
 from hds.data import Dataset, validate
 from hds.envs import make_env
@@ -243,7 +243,7 @@ def test_an_unwritable_run_directory_is_named_with_the_fix(tmp_path):
     blocker.write_text("")
     config = OmegaConf.create({"hydra": {"run": {"dir": str(blocker / "run")}}})
     with pytest.raises(SystemExit, match=rf"hydra.run.dir = {blocker / 'run'} cannot be written"):
-        WritableDirectory().on_run_start(config)
+        StartChecks().on_run_start(config)
 
 
 def test_a_sweep_with_failed_jobs_exits_non_zero_naming_them(tmp_path):
@@ -251,3 +251,11 @@ def test_a_sweep_with_failed_jobs_exits_non_zero_naming_them(tmp_path):
     assert proc.returncode == 1
     assert "2 of 2 jobs failed: 0, 1" in proc.stderr
     assert all((tmp_path / job / "failed.txt").is_file() for job in ("0", "1"))
+
+
+def test_a_launcher_timeout_of_zero_is_refused_before_the_sweep(tmp_path):
+    config = OmegaConf.create(
+        {"hydra": {"sweep": {"dir": str(tmp_path)}, "launcher": {"timeout_min": 0}}}
+    )
+    with pytest.raises(SystemExit, match="hydra.launcher.timeout_min = 0 gives every job no time"):
+        StartChecks().on_multirun_start(config)

@@ -179,15 +179,26 @@ def check(dataset: Dataset, where: str = "dataset") -> None:
 
 
 def _first_bad(array: np.ndarray, names, kind: str, where: str):
-    bad = ~np.isfinite(array)
+    _refuse_first(
+        ~np.isfinite(array),
+        array,
+        names,
+        kind,
+        where,
+        "non-finite value(s) (NaN or inf)",
+        "drop or repair those episodes (e.g. cut them before the gap) before using the data",
+    )
+
+
+def _refuse_first(bad: np.ndarray, array: np.ndarray, names, kind, where, what, fix) -> None:
+    """Refuse the entries of `array` [E, T, n] where `bad`: how many, the first, and the fix."""
     if not bad.any():
         return
     e, k, i = (int(x) for x in np.argwhere(bad)[0])
     var = f"'{names[i]}'" if names is not None else f"number {i}"
     raise ValueError(
-        f"{where}: the {kind}s hold {int(bad.sum())} non-finite value(s) (NaN or inf); the first "
-        f"is {array[e, k, i]} at episode {e}, step {k}, {kind} {var}: drop or repair those "
-        "episodes (e.g. cut them before the gap) before using the data"
+        f"{where}: the {kind}s hold {int(bad.sum())} {what}; the first "
+        f"is {array[e, k, i]} at episode {e}, step {k}, {kind} {var}: {fix}"
     )
 
 
@@ -197,15 +208,14 @@ LARGEST = float(np.sqrt(np.finfo(np.float32).max))
 
 
 def _first_huge(array: np.ndarray, names, kind: str, where: str):
-    huge = np.abs(array) > LARGEST
-    if not huge.any():
-        return
-    e, k, i = (int(x) for x in np.argwhere(huge)[0])
-    var = f"'{names[i]}'" if names is not None else f"number {i}"
-    raise ValueError(
-        f"{where}: the {kind}s hold {int(huge.sum())} value(s) beyond {LARGEST:.1e}, which "
-        f"overflow the simulator's float32; the first is {array[e, k, i]:.3g} at episode {e}, "
-        f"step {k}, {kind} {var}: check the units, or drop those episodes"
+    _refuse_first(
+        np.abs(array) > LARGEST,
+        array,
+        names,
+        kind,
+        where,
+        f"value(s) beyond {LARGEST:.1e}, which overflow the simulator's float32",
+        "check the units, or drop those episodes",
     )
 
 
