@@ -30,6 +30,7 @@ log = logging.getLogger("hds")
 
 CONFIG = "config.yaml"
 LOCK = ".lock"
+ACCEPTED = "accepted"  # in .hydra/: Hydra's files of the accepted configuration
 RESULTS = ("summary.json", "checkpoints", "dynamics", "discovery")  # what a run leaves behind
 IGNORED = ("logger", "resume_changed")  # keys that change no result
 ONE_LINE = (ValueError, FileNotFoundError, FloatingPointError)  # errors whose message says all
@@ -65,6 +66,7 @@ def claim(out_dir: str | Path, cfg: DictConfig, hydra_dir: str | Path | None = N
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
+            _restore_hydra_files(hydra_dir)
             lock.seek(0)
             holder = lock.read().strip() or "another process"
             raise RunDirectoryError(
@@ -116,7 +118,6 @@ def _flat(cfg: DictConfig) -> dict[str, object]:
 
 def _check_identity(out_dir: Path, cfg: DictConfig, hydra_dir: str | Path | None) -> None:
     recorded = out_dir / CONFIG
-    accepted = Path(hydra_dir) / "accepted" if hydra_dir else None
     has_results = any((out_dir / name).exists() for name in RESULTS)
     if recorded.is_file() and has_results:
         changed = differences(OmegaConf.load(recorded), cfg)
@@ -124,7 +125,7 @@ def _check_identity(out_dir: Path, cfg: DictConfig, hydra_dir: str | Path | None
             return
         finished = (out_dir / "summary.json").is_file()
         if finished or not cfg.get("resume_changed", False):
-            _restore_hydra_files(accepted, hydra_dir)
+            _restore_hydra_files(hydra_dir)
             raise RunDirectoryError(_refusal(out_dir, changed, finished))
         log.warning(
             "resume_changed=true: %s continues with another configuration (%s); the one it "
@@ -134,7 +135,8 @@ def _check_identity(out_dir: Path, cfg: DictConfig, hydra_dir: str | Path | None
             _keep_previous(recorded).name,
         )
     OmegaConf.save(cfg, recorded, resolve=True)
-    if accepted is not None:
+    if hydra_dir is not None:
+        accepted = Path(hydra_dir) / ACCEPTED
         accepted.mkdir(parents=True, exist_ok=True)
         for path in Path(hydra_dir).glob("*.yaml"):
             shutil.copy2(path, accepted / path.name)
@@ -158,9 +160,9 @@ def _keep_previous(recorded: Path) -> Path:
     return previous
 
 
-def _restore_hydra_files(accepted: Path | None, hydra_dir: str | Path | None) -> None:
+def _restore_hydra_files(hydra_dir: str | Path | None) -> None:
     """Put back Hydra's record of the accepted configuration, which this start overwrote."""
-    if accepted is None or not accepted.is_dir():
+    if hydra_dir is None:
         return
-    for path in accepted.glob("*.yaml"):
+    for path in (Path(hydra_dir) / ACCEPTED).glob("*.yaml"):
         shutil.copy2(path, Path(hydra_dir) / path.name)

@@ -104,13 +104,17 @@ def test_a_refused_rerun_prints_one_line_and_keeps_hydras_record(tmp_path):
 
 
 def test_a_second_run_on_a_directory_in_use_is_refused_at_once(tmp_path):
-    cfg = composed(*S)
-    with rundir.claim(tmp_path, cfg):
+    cfg, hydra_dir = composed(*S), tmp_path / ".hydra"
+    hydra_dir.mkdir()
+    (hydra_dir / "overrides.yaml").write_text("[first]")
+    with rundir.claim(tmp_path, cfg, hydra_dir):
+        (hydra_dir / "overrides.yaml").write_text("[second]")  # Hydra writes before main()
         with pytest.raises(
             rundir.RunDirectoryError, match=rf"in use by another run \(pid {os.getpid()}\)"
         ):
-            with rundir.claim(tmp_path, cfg):
+            with rundir.claim(tmp_path, cfg, hydra_dir):
                 pass
+        assert (hydra_dir / "overrides.yaml").read_text() == "[first]"  # the first run's record
     with rundir.claim(tmp_path, cfg):  # free again once the first ended
         pass
 
