@@ -92,9 +92,12 @@ def gap_rows(method: str, runs: list[dict], sim: np.ndarray, real: np.ndarray) -
     return rows
 
 
-def diverged(method: str, runs: list[dict], sim: np.ndarray, real: np.ndarray) -> list[str]:
+def diverged(
+    method: str, runs: list[dict], sim: np.ndarray, real: np.ndarray, train_returns=None
+) -> list[str]:
     """A line for each run of the batch some of whose evaluation rollouts diverged (NaN or inf
-    returns), saying how many of them, on the simulator and on the plant."""
+    returns), saying how many of them, on the simulator and on the plant, and whether its
+    training rollouts diverged in every epoch (`train_returns`: per run, each epoch's mean)."""
     lines = []
     for s, run in enumerate(runs):
         counts = {
@@ -105,9 +108,15 @@ def diverged(method: str, runs: list[dict], sim: np.ndarray, real: np.ndarray) -
         if bad:
             every = " (every rollout)" if all(n == t for n, t in counts.values()) else ""
             label = ", ".join(f"{k}={v}" for k, v in run.items())
+            trained = ""
+            if train_returns is not None and not np.isfinite(train_returns[s]).any():
+                trained = (
+                    "; its training rollouts diverged in every epoch too, and were all skipped "
+                    "as non-finite: the policy never learned"
+                )
             lines.append(
                 f"{method} {label}: evaluation rollouts diverged to NaN or inf{every}: "
-                f"{' and '.join(bad)}; lower env.timestep, check env.effects and "
+                f"{' and '.join(bad)}{trained}; lower env.timestep, check env.effects and "
                 "real.effects for huge values, or lower algo.step_size"
             )
     return lines

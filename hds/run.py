@@ -232,7 +232,7 @@ def run(cfg: Config, out_dir: Path) -> dict:
         evaluator = Evaluator(method_env, trainer.policy, plants, cfg.eval_episodes, cfg.eval_seed)
         sim, real = evaluator.sim_returns(params, method_effects), evaluator.real_returns(params)
         method_rows = gap_rows(method, batch_of(cfg), sim, real)
-        for line in diverged(method, batch_of(cfg), sim, real):
+        for line in diverged(method, batch_of(cfg), sim, real, history["return"]):
             log.warning(line)
         rows += method_rows
         histories[method], timings[method] = history, timing

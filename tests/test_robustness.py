@@ -183,6 +183,7 @@ def test_a_diverging_simulator_is_reported_and_gives_no_finite_result(tmp_path, 
     huge = "env.effects=[{name:coulomb_friction,target:slider,params:{force:1e30}}]"
     summary = hds_run.run(make_config(*S, huge), tmp_path)
     assert "evaluation rollouts diverged to NaN or inf: 2 of 2 on the simulator" in caplog.text
+    assert "training rollouts diverged in every epoch too, and were all skipped" in caplog.text
     assert no_finite_result(summary["rows"]).startswith("no finite result: every row (1)")
     written = json.loads((tmp_path / "summary.json").read_text())
     assert written["rows"][0]["sim_return"] is None and written["non_finite"]
