@@ -124,7 +124,10 @@ def diverged(
 
 def no_finite_result(rows: list[dict]) -> str | None:
     """The message of a run none of whose rows is finite (it exits non-zero), else None."""
-    finite = [np.isfinite([r["sim_return"], r["real_return"]]).all() for r in rows]
+    finite = [  # None: a null read back from a finished run's summary.json
+        all(v is not None and np.isfinite(v) for v in (r["sim_return"], r["real_return"]))
+        for r in rows
+    ]
     if rows and not any(finite):
         return (
             f"no finite result: every row ({len(rows)}) has a NaN or inf return (see the "

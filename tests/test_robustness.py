@@ -194,6 +194,8 @@ def test_every_rollout_diverged_is_said_so():
     lines = diverged("pods", runs, np.full((1, 3), np.nan), np.full((1, 3), np.inf))
     assert lines and "(every rollout): 3 of 3 on the simulator and 3 of 3 on the plant" in lines[0]
     assert diverged("pods", runs, np.zeros((1, 3)), np.zeros((1, 3))) == []
+    read_back = [{"sim_return": None, "real_return": -1.0}]  # a finished run's summary.json
+    assert no_finite_result(read_back) and not no_finite_result([{**read_back[0], "sim_return": 0}])
 
 
 @pytest.fixture(scope="module")
