@@ -38,7 +38,7 @@ class SweepSummary(Callback):
             print_table(summary["rows"], title=f"{config.name}: every job of {sweep_dir}")
         if failed := summary["failed_jobs"]:
             sys.exit(
-                f"Error: {len(failed)} of {len(failed) + len(summary['jobs'])} jobs failed: "
+                f"error: {len(failed)} of {len(failed) + len(summary['jobs'])} jobs failed: "
                 f"{', '.join(failed)} (see their failed.txt); run the same sweep again, with "
                 f"hydra.sweep.dir={sweep_dir}, to rerun them and skip the finished ones"
             )
@@ -57,6 +57,6 @@ class StartChecks(Callback):
         timeout = config.hydra.launcher.get("timeout_min")
         if timeout is not None and timeout < 1:
             sys.exit(
-                f"Error: hydra.launcher.timeout_min = {timeout} gives every job no time: give "
+                f"error: hydra.launcher.timeout_min = {timeout} gives every job no time: give "
                 "the minutes a job may run (at least 1)"
             )

@@ -50,7 +50,7 @@ def check_writable(directory: str | Path, key: str) -> None:
             pass
     except OSError as err:
         sys.exit(
-            f"Error: {key} = {directory} cannot be written ({err.strerror or err}): choose a "
+            f"error: {key} = {directory} cannot be written ({err.strerror or err}): choose a "
             f"directory you can write to ({key}=<path>), or fix its permissions"
         )
 
@@ -99,7 +99,7 @@ def print_one_line(err: BaseException) -> None:
     """For a refused configuration or input (`ONE_LINE`): print its message alone and exit 1,
     unless HYDRA_FULL_ERROR=1 asks for the traceback. Any other error: return (to re-raise)."""
     if isinstance(err, ONE_LINE) and os.environ.get("HYDRA_FULL_ERROR") != "1":
-        sys.exit(f"Error: {err}\n(set HYDRA_FULL_ERROR=1 for the traceback)")
+        sys.exit(f"error: {err}")
 
 
 def _flat(cfg: DictConfig) -> dict[str, object]:
