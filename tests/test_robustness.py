@@ -148,10 +148,12 @@ def test_a_checkpoint_of_another_network_is_named_as_such(uninterrupted):
     trainer = make_train(other, env)
     one_run = jax.tree.map(lambda x: x[None], trainer.default_hparams)
     like = jax.eval_shape(jax.vmap(trainer.init), jax.random.PRNGKey(0)[None], one_run)
+    checkpoints = Checkpoints(out / "checkpoints" / "pods")
     with pytest.raises(
         ValueError, match=r"another configuration.*Dense_0.bias \(1, 64\) -> \(1, 32\)"
     ):
-        Checkpoints(out / "checkpoints" / "pods").restore(like)
+        checkpoints.restore(like)
+    checkpoints.close()
 
 
 # --- silent acceptance -----------------------------------------------------------------------
