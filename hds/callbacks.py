@@ -1,13 +1,16 @@
-"""Hydra callbacks: after a multirun, gather the jobs' summaries into the sweep directory."""
+"""Hydra callbacks: before a run, check that its directory can be written; after a multirun,
+gather the jobs' summaries into the sweep directory, and exit non-zero when a job failed."""
 
 from __future__ import annotations
 
 import logging
+import sys
 from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
 from hds.logger import print_table
+from hds.rundir import check_writable
 from hds.utils.io import atomic_write_json, read_json
 
 log = logging.getLogger("hds")
@@ -33,10 +36,27 @@ class SweepSummary(Callback):
         if summary["rows"]:
             atomic_write_json(sweep_dir / "summary.json", summary)
             print_table(summary["rows"], title=f"{config.name}: every job of {sweep_dir}")
-        if summary["failed_jobs"]:
-            log.warning(
-                "jobs %s failed (see their failed.txt); run the same sweep again, with "
-                "hydra.sweep.dir=%s, to rerun them and skip the finished ones",
-                summary["failed_jobs"],
-                sweep_dir,
+        if failed := summary["failed_jobs"]:
+            sys.exit(
+                f"error: {len(failed)} of {len(failed) + len(summary['jobs'])} jobs failed: "
+                f"{', '.join(failed)} (see their failed.txt); run the same sweep again, with "
+                f"hydra.sweep.dir={sweep_dir}, to rerun them and skip the finished ones"
+            )
+
+
+class StartChecks(Callback):
+    """What Hydra itself would fail on unclearly, checked before anything runs: a run or sweep
+    directory that cannot be written (Hydra's log-file error hides the path), and a launcher
+    timeout that gives the jobs no time (submitit then fails with no job directory)."""
+
+    def on_run_start(self, config, **kwargs) -> None:
+        check_writable(config.hydra.run.dir, "hydra.run.dir")
+
+    def on_multirun_start(self, config, **kwargs) -> None:
+        check_writable(config.hydra.sweep.dir, "hydra.sweep.dir")
+        timeout = config.hydra.launcher.get("timeout_min")
+        if timeout is not None and timeout < 1:
+            sys.exit(
+                f"error: hydra.launcher.timeout_min = {timeout} gives every job no time: give "
+                "the minutes a job may run (at least 1)"
             )

@@ -1,19 +1,33 @@
 """Orbax checkpoints of a training run: the train state (policy, optimizer, epoch, RNG key) and
-the metric history so far, so a run started again on the same directory resumes exactly."""
+the metric history so far, so a run started again on the same directory resumes exactly.
+
+A checkpoint that cannot be read (a file truncated by a full disk or a crash outside Orbax's
+atomic write) is deleted with a warning naming it and why, and the one before it restored.
+A checkpoint whose arrays do not fit the state (another network, batch or optimizer) is not
+damaged: restoring it is refused, naming the arrays that differ."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import jax
 import orbax.checkpoint as ocp
+
+log = logging.getLogger("hds")
 
 
 class Checkpoints:
     def __init__(self, directory: str | Path, keep: int = 3):
         self.directory = Path(directory).absolute()
         self.manager = ocp.CheckpointManager(
-            self.directory, options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True)
+            self.directory,
+            options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True),
+            # known before the first restore: item_metadata reads the state's arrays with it
+            item_handlers={
+                "state": ocp.StandardCheckpointHandler(),
+                "meta": ocp.JsonCheckpointHandler(),
+            },
         )
 
     def latest(self) -> int | None:
@@ -29,21 +43,71 @@ class Checkpoints:
         self.manager.wait_until_finished()
 
     def restore(self, like, epoch: int | None = None):
-        """(state, meta) of `epoch` (default: the latest); `like` gives the state's structure."""
-        epoch = self.latest() if epoch is None else epoch
-        if epoch is None:
+        """(state, meta) of `epoch` (default: the latest readable one); `like` gives the
+        state's structure."""
+        epochs = sorted(self.manager.all_steps(), reverse=True) if epoch is None else [epoch]
+        if not epochs:
             raise FileNotFoundError(
                 f"no checkpoint in {self.directory}: train first, or point to a run directory "
                 "that has a checkpoints/ folder"
             )
         abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, like)
-        restored = self.manager.restore(
-            epoch,
-            args=ocp.args.Composite(
-                state=ocp.args.StandardRestore(abstract), meta=ocp.args.JsonRestore()
-            ),
-        )
-        return restored.state, restored.meta
+        for i, step in enumerate(epochs):
+            try:
+                self._check_structure(step, abstract)
+                restored = self.manager.restore(
+                    step,
+                    args=ocp.args.Composite(
+                        state=ocp.args.StandardRestore(abstract), meta=ocp.args.JsonRestore()
+                    ),
+                )
+                return restored.state, restored.meta
+            except StructureError:
+                raise
+            except Exception as err:  # TensorStore and Orbax raise many types for a bad file
+                reason = f"{type(err).__name__}: {str(err).strip().splitlines()[0][:200]}"
+                if i + 1 == len(epochs):
+                    raise ValueError(
+                        f"no checkpoint in {self.directory} can be read (the last: {reason}); "
+                        "delete the folder to train from the start"
+                    ) from err
+            log.warning(
+                "checkpoint %s/%d cannot be read (%s): deleted, resuming from checkpoint %d",
+                self.directory,
+                step,
+                reason,
+                epochs[i + 1],
+            )
+            self.manager.delete(step)  # training saves this epoch again
+
+    def _check_structure(self, step: int, abstract) -> None:
+        """Refuse a checkpoint whose arrays are not the state's: another configuration's."""
+        stored = {
+            leaf.name: tuple(leaf.shape)
+            for leaf in jax.tree.leaves(self.manager.item_metadata(step)["state"])
+        }
+        wanted = {_name(path): tuple(x.shape) for path, x in jax.tree.leaves_with_path(abstract)}
+        if stored != wanted:
+            differ = sorted(
+                f"{k} {stored.get(k, '(absent)')} -> {wanted.get(k, '(absent)')}"
+                for k in stored.keys() | wanted.keys()
+                if stored.get(k) != wanted.get(k)
+            )
+            raise StructureError(
+                f"checkpoint {self.directory}/{step} comes from another configuration: its "
+                f"arrays differ from this run's ({'; '.join(differ[:4])}"
+                f"{'; ...' if len(differ) > 4 else ''}): resume with the configuration that "
+                "wrote it, or start a new run in another directory"
+            )
 
     def close(self) -> None:
         self.manager.close()
+
+
+class StructureError(ValueError):
+    """A checkpoint's arrays are not the restored state's."""
+
+
+def _name(path) -> str:
+    keys = (getattr(k, "name", getattr(k, "key", getattr(k, "idx", k))) for k in path)
+    return ".".join(str(k) for k in keys)

@@ -10,6 +10,8 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import itertools
+import math
+import os
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +34,12 @@ def _one_of(key: str, value: Any, allowed) -> None:
 def _in_range(key: str, value: float, lower: float, upper: float = float("inf")) -> None:
     if not lower <= value <= upper:
         raise ValueError(f"{key} = {value} is out of range: it must lie in [{lower}, {upper}]")
+
+
+def _check_widths(key: str, widths, fewest: int) -> None:
+    if len(widths) < fewest or any(int(w) < 1 for w in widths):
+        many = "one or more" if fewest else "zero or more"
+        raise ValueError(f"{key} = {list(widths)} must be {many} positive layer widths")
 
 
 @dataclass
@@ -124,6 +132,7 @@ class AlgoConfig:
 
     def check(self):
         _one_of("algo.order", self.order, ("first", "second"))
+        _check_widths("algo.hidden", self.hidden, fewest=0)
         _one_of("algo.improve_in", self.improve_in, ("open_loop", "closed_loop"))
         if self.improve_in == "closed_loop" and self.order != "first":
             raise ValueError(
@@ -201,10 +210,7 @@ class DynamicsConfig:
     def check(self):
         _one_of("dynamics.model", self.model, ("none", "mlp", "ensemble", "residual"))
         _in_range("dynamics.beta", self.beta, 0.0, 1.0)
-        if not self.hidden or any(int(w) < 1 for w in self.hidden):
-            raise ValueError(
-                f"dynamics.hidden = {list(self.hidden)} must be one or more positive layer widths"
-            )
+        _check_widths("dynamics.hidden", self.hidden, fewest=1)
         for key in ("ensemble_size", "minibatch", "epochs", "patience", "episodes", "horizon"):
             _in_range(f"dynamics.{key}", getattr(self, key), 1)
         _in_range("dynamics.learning_rate", self.learning_rate, 1e-12)
@@ -386,6 +392,9 @@ class Config:
     # compare like for like and a multirun over seeds matches a run of them together
     eval_seed: int = 10_000
     checkpoints_kept: int = 3
+    # continue a run directory whose run had another configuration (hds/rundir.py refuses
+    # that otherwise): the epochs before and after the change ran with different settings
+    resume_changed: bool = False
     sweep: SweepConfig = field(default_factory=lambda: SweepConfig())
     discover: DiscoverConfig = field(default_factory=DiscoverConfig)
     paths: PathsConfig = field(default_factory=PathsConfig)
@@ -497,11 +506,63 @@ def validate(cfg: DictConfig) -> Config:
     except Exception as err:  # e.g. a required value left as ???
         raise ValueError(f"invalid config: {err}") from None
     try:
+        _check_finite_numbers(OmegaConf.to_container(cfg, resolve=True))
         _check_all(config)
         _check_effect_targets(config)
+        _check_memory(config)
     except ValueError as err:
         raise ValueError(f"invalid config: {err}") from None
     return config
+
+
+def _check_finite_numbers(node, where: str = "") -> None:
+    """Refuse NaN and inf anywhere: no setting means anything at them (an infinite friction gap
+    or noise scale passes every range check, and its results are meaningless)."""
+    if isinstance(node, float) and not math.isfinite(node):
+        raise ValueError(f"{where} = {node} is not a finite number; give a finite value")
+    if isinstance(node, dict):
+        for key, child in node.items():
+            _check_finite_numbers(child, f"{where}.{key}" if where else str(key))
+    elif isinstance(node, list):
+        for i, child in enumerate(node):
+            _check_finite_numbers(child, f"{where}[{i}]")
+
+
+def _check_memory(config) -> None:
+    """Refuse a training program that cannot fit in memory, before it compiles. Its scratch
+    memory grows with the rollouts of an epoch times their steps: per rollout and step, about
+    32 + line_search + sum(algo.hidden) + 4 (nq + nv + nu) float32 numbers, for each run vmapped
+    at once. That is 8 to 16% above `temp_size_in_bytes` of `memory_analysis()` of the compiled
+    first-order `run_chunk` on the analytic cart-pole (rollouts 64 and 256, horizon 100 and
+    200, line_search 8 and 16, hidden [64, 64] and [256, 256]); Gauss-Newton needs more."""
+    if not isinstance(getattr(config, "algo", None), AlgoConfig):
+        return
+    from hds.utils.runtime import runs_vmapped
+
+    algo, horizon = config.algo, config.env.task.horizon
+    model = load_spec(str(resolve_xml(config.env.xml))).compile()
+    numbers = 32 + algo.line_search + sum(algo.hidden) + 4 * (model.nq + model.nv + model.nu)
+    runs = config.seeds * math.prod(len(v) for _, v in config.sweep.items())
+    at_once = runs_vmapped(config.vmap_runs, runs)
+    need = 4 * numbers * algo.rollouts * horizon * at_once
+    have = _memory_available()
+    if need > have:
+        raise ValueError(
+            f"training needs about {need / 1e9:.3g} GB ({algo.rollouts} rollouts (algo.rollouts) "
+            f"x {horizon} steps (env.task.horizon) x {at_once} run(s) at once x {4 * numbers} "
+            f"bytes), and the device has {have / 1e9:.3g} GB: lower algo.rollouts, "
+            "env.task.horizon or algo.hidden (or vmap_runs, to train fewer runs at once)"
+        )
+
+
+def _memory_available() -> float:
+    """Bytes of the default device: an accelerator's memory, or the host's on a CPU."""
+    import jax
+
+    stats = jax.devices()[0].memory_stats() or {}
+    if "bytes_limit" in stats:
+        return float(stats["bytes_limit"])
+    return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
 
 
 def _unknown_key(where: str, key, allowed: list[str]) -> str:

@@ -101,3 +101,47 @@ def gap_rows(method: str, runs: list[dict], sim: np.ndarray, real: np.ndarray) -
             }
         )
     return rows
+
+
+def diverged(
+    method: str, runs: list[dict], sim: np.ndarray, real: np.ndarray, train_returns=None
+) -> list[str]:
+    """A line for each run of the batch some of whose evaluation rollouts diverged (NaN or inf
+    returns), saying how many of them, on the simulator and on the plant, and whether its
+    training rollouts diverged in every epoch (`train_returns`: per run, each epoch's mean)."""
+    lines = []
+    for s, run in enumerate(runs):
+        counts = {
+            where: (int((~np.isfinite(r[s])).sum()), r[s].size)
+            for where, r in (("simulator", sim), ("plant", real))
+        }
+        bad = [f"{n} of {total} on the {where}" for where, (n, total) in counts.items() if n]
+        if bad:
+            every = " (every rollout)" if all(n == t for n, t in counts.values()) else ""
+            label = ", ".join(f"{k}={v}" for k, v in run.items())
+            trained = ""
+            if train_returns is not None and not np.isfinite(train_returns[s]).any():
+                trained = (
+                    "; its training rollouts diverged in every epoch too, and were all skipped "
+                    "as non-finite: the policy never learned"
+                )
+            lines.append(
+                f"{method} {label}: evaluation rollouts diverged to NaN or inf{every}: "
+                f"{' and '.join(bad)}{trained}; lower env.timestep, check env.effects and "
+                "real.effects for huge values, or lower algo.step_size"
+            )
+    return lines
+
+
+def no_finite_result(rows: list[dict]) -> str | None:
+    """The message of a run none of whose rows is finite (it exits non-zero), else None."""
+    finite = [  # None: a null read back from a finished run's summary.json
+        all(v is not None and np.isfinite(v) for v in (r["sim_return"], r["real_return"]))
+        for r in rows
+    ]
+    if rows and not any(finite):
+        return (
+            f"no finite result: every row ({len(rows)}) has a NaN or inf return (see the "
+            "warnings above); summary.json writes them as null and lists them under non_finite"
+        )
+    return None

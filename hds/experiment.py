@@ -35,7 +35,7 @@ from hds.checkpoint import Checkpoints
 from hds.config import Config, env_config
 from hds.effects.apply import place
 from hds.envs import Env, make_env
-from hds.evaluation import Evaluator, gap_rows
+from hds.evaluation import Evaluator, diverged, gap_rows
 from hds.logger import RunLogger, print_table
 from hds.real import make_plant
 from hds.utils.io import atomic_write_json, read_json
@@ -354,16 +354,16 @@ def _check_finite(state, method: str) -> None:
 
 def evaluate_training(cfg: Config, training: Training, plants) -> list[dict]:
     """One row per run: mean return on the simulator the policy trained on (what it was
-    promised) and on its plant, from the same initial states."""
+    promised) and on its plant, from the same initial states. Runs whose rollouts diverged
+    are named in a warning."""
     evaluator = Evaluator(
         training.env, training.trainer.policy, plants, cfg.eval_episodes, cfg.eval_seed
     )
-    return gap_rows(
-        training.method,
-        cfg.runs(),
-        evaluator.sim_returns(training.params, training.effects),
-        evaluator.real_returns(training.params),
-    )
+    sim = evaluator.sim_returns(training.params, training.effects)
+    real = evaluator.real_returns(training.params)
+    for line in diverged(training.method, cfg.runs(), sim, real, training.history.get("return")):
+        log.warning(line)
+    return gap_rows(training.method, cfg.runs(), sim, real)
 
 
 # --- the whole experiment ------------------------------------------------------------------------

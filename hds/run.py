@@ -22,9 +22,10 @@ import hydra  # noqa: E402
 import numpy as np  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from hydra.types import RunMode  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
 
+from hds import rundir  # noqa: E402
 from hds.config import Config, check_override_keys, cli_overrides, config_groups, validate  # noqa: E402
+from hds.evaluation import no_finite_result  # noqa: E402
 from hds.experiment import run  # noqa: E402
 from hds.utils.io import atomic_write_bytes  # noqa: E402
 from hds.utils.runtime import enable_compilation_cache  # noqa: E402
@@ -48,13 +49,17 @@ def main(dcfg) -> float:
     if dcfg.logger.group is None:
         dcfg.logger.group = wandb_group(hydra_cfg)
     out_dir = Path(hydra_cfg.runtime.output_dir)
-    OmegaConf.save(dcfg, out_dir / "config.yaml", resolve=True)
+    hydra_dir = out_dir / hydra_cfg.output_subdir if hydra_cfg.output_subdir else None
     try:
-        cfg = validate(dcfg)  # every range check, before anything compiles
-        enable_compilation_cache()
-        result = run(cfg, out_dir)
-    except Exception:
+        with rundir.claim(out_dir, dcfg, hydra_dir):  # locked; its config.yaml is dcfg's
+            cfg = validate(dcfg)  # every range check, before anything compiles
+            enable_compilation_cache()
+            result = run(cfg, out_dir)
+        if failure := no_finite_result(result.rows):
+            raise FloatingPointError(failure)
+    except Exception as err:
         if hydra_cfg.mode != RunMode.MULTIRUN:
+            rundir.print_one_line(err)
             raise
         # One failed job must not stop the sweep: record why, let the others run. Starting
         # the sweep again reruns this job and skips the finished ones.

@@ -22,7 +22,7 @@ from hds.data import (
     validate,
 )
 from hds.data.excitation import LFSR_TAPS, lfsr_bits
-from hds.data.format import _umask
+from hds.utils.io import file_mode
 
 OBS = ("q_slider", "q_hinge", "qd_slider", "qd_hinge")
 ACT = ("slide",)
@@ -64,7 +64,7 @@ def test_round_trip_is_exact(tmp_path, ext, names):
     assert_same(data, back)
     assert np.signbit(back.actions[2, 0, 0])
     assert sorted(os.listdir(tmp_path)) == [f"d.{ext}"]  # no temporary left behind
-    assert path.stat().st_mode & 0o044 == 0o044 & ~_umask()  # readable like any new file
+    assert path.stat().st_mode & 0o777 == file_mode()  # readable like any new file
 
 
 def test_csv_layout_follows_the_contract(tmp_path):

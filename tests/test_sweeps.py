@@ -44,11 +44,11 @@ def cli_env(env_vars=None) -> dict:
     return {**os.environ, "WANDB_MODE": "offline", **(env_vars or {})}
 
 
-def hds_run_cli(*args, env_vars=None, timeout=900, cwd=ROOT):
+def hds_run_cli(*args, env_vars=None, timeout=900, cwd=ROOT, returncode=0):
     proc = subprocess.run(
         cli(*args), cwd=cwd, env=cli_env(env_vars), capture_output=True, text=True, timeout=timeout
     )
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    assert proc.returncode == returncode, proc.stdout[-2000:] + proc.stderr[-3000:]
     return proc
 
 
@@ -177,7 +177,7 @@ def restarted_sweep(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("sweep")
     late = tmp / "late.xml"
     args = ["-m", *TINY, f"env.xml=cartpole.xml,{late}", f"hydra.sweep.dir={tmp / 'sweep'}"]
-    first = hds_run_cli(*args)
+    first = hds_run_cli(*args, returncode=1)  # a sweep with a failed job exits non-zero
     sweep = tmp / "sweep"
     state = {
         "first_failed": (sweep / "1" / "failed.txt").is_file(),

@@ -60,6 +60,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hds.utils.io import file_mode
+
 ACTION_PREFIX = "u_"
 OBS_PLACEHOLDER = "obs_"
 FORMATS = (".npz", ".csv")
@@ -177,15 +179,64 @@ def check(dataset: Dataset, where: str = "dataset") -> None:
 
 
 def _first_bad(array: np.ndarray, names, kind: str, where: str):
-    bad = ~np.isfinite(array)
+    _refuse_first(
+        ~np.isfinite(array),
+        array,
+        names,
+        kind,
+        where,
+        "non-finite value(s) (NaN or inf)",
+        "drop or repair those episodes (e.g. cut them before the gap) before using the data",
+    )
+
+
+def _refuse_first(bad: np.ndarray, array: np.ndarray, names, kind, where, what, fix) -> None:
+    """Refuse the entries of `array` [E, T, n] where `bad`: how many, the first, and the fix."""
     if not bad.any():
         return
     e, k, i = (int(x) for x in np.argwhere(bad)[0])
     var = f"'{names[i]}'" if names is not None else f"number {i}"
     raise ValueError(
-        f"{where}: the {kind}s hold {int(bad.sum())} non-finite value(s) (NaN or inf); the first "
-        f"is {array[e, k, i]} at episode {e}, step {k}, {kind} {var}: drop or repair those "
-        "episodes (e.g. cut them before the gap) before using the data"
+        f"{where}: the {kind}s hold {int(bad.sum())} {what}; the first "
+        f"is {array[e, k, i]} at episode {e}, step {k}, {kind} {var}: {fix}"
+    )
+
+
+# The simulators compute in float32: a value whose square overflows it (costs, energies,
+# friction laws square or multiply states) makes every prediction NaN or inf.
+LARGEST = float(np.sqrt(np.finfo(np.float32).max))
+
+
+def _first_huge(array: np.ndarray, names, kind: str, where: str):
+    _refuse_first(
+        np.abs(array) > LARGEST,
+        array,
+        names,
+        kind,
+        where,
+        f"value(s) beyond {LARGEST:.1e}, which overflow the simulator's float32",
+        "check the units, or drop those episodes",
+    )
+
+
+def _outside_control_range(dataset: Dataset, ctrl_range, where: str):
+    """Refuse actions the actuator cannot apply: the simulator clips them to its control range,
+    so a fit on them explains the difference with invented forces."""
+    if ctrl_range is None:
+        return
+    low, high = np.asarray(ctrl_range, np.float64).T
+    slack = 1e-6 * np.where(np.isfinite(high - low), high - low, 1.0)
+    outside = (dataset.actions < low - slack) | (dataset.actions > high + slack)
+    if not outside.any():
+        return
+    i = int(np.argwhere(outside)[0][-1])
+    name = dataset.action_names[i] if dataset.action_names else f"number {i}"
+    worst = float(np.abs(dataset.actions[..., i]).max())
+    raise ValueError(
+        f"{where}: {int(outside.sum())} of {outside.size} actions lie outside the actuator's "
+        f"control range (action {name}: [{low[i]:g}, {high[i]:g}], the data reach {worst:.3g}); "
+        "the simulator clips them: check the actions' units and scale, or clip them to the "
+        "range if the actuator saturated"
     )
 
 
@@ -222,6 +273,9 @@ def validate(dataset: Dataset, sim, where: str = "dataset") -> Dataset:
         )
     _first_bad(dataset.obs, dataset.obs_names, "observation", where)
     _first_bad(dataset.actions, dataset.action_names, "action", where)
+    _first_huge(dataset.obs, dataset.obs_names, "observation", where)
+    _first_huge(dataset.actions, dataset.action_names, "action", where)
+    _outside_control_range(dataset, getattr(sim, "ctrl_range", None), where)
     timestep = float(sim.timestep)
     ratio = dataset.dt / timestep
     frames = round(ratio)
@@ -290,18 +344,12 @@ def _atomic(path: Path, mode: str):
             yield f
             f.flush()
             os.fsync(f.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it private; give it a normal file's mode
+        os.chmod(tmp, file_mode())  # mkstemp makes it private; give it a normal file's mode
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
-
-
-def _umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
 
 
 def _load_npz(path: Path) -> Dataset:

@@ -205,6 +205,12 @@ def fit(
     key = jax.random.PRNGKey(0) if key is None else key
     obs, actions = as_arrays(obs, actions, env.sim)
     good = np.isfinite(obs).all((1, 2)) & np.isfinite(actions).all((1, 2))
+    if not good.any():
+        raise ValueError(
+            f"all {len(good)} episodes hold NaN or inf values (in float32, beyond "
+            f"{np.finfo(np.float32).max:.1e}) and were dropped: nothing is left to fit; repair "
+            "or re-record the data"
+        )
     if not good.all():
         log.warning(
             "dropping %d of %d episodes with NaN or inf values", int((~good).sum()), len(good)
