@@ -73,7 +73,7 @@ class RunLogger:
         n = next(iter(metrics.values())).shape[1]
         if self.wandb:
             for i in range(n):
-                row = {k: float(np.nanmean(v[:, i])) for k, v in metrics.items()}
+                row = {k: _finite_mean(v[:, i]) for k, v in metrics.items()}
                 row |= {
                     f"{k}/{label}": float(v[s, i])
                     for k, v in metrics.items()
@@ -82,9 +82,9 @@ class RunLogger:
                 row |= {"epoch": first_epoch + i + 1, "wall_time_per_epoch": seconds_per_epoch}
                 self.wandb.log(row)
         if self.progress:
-            self.progress.update(
-                self.task, advance=n, ret=f"{np.nanmean(metrics['return'][:, -1]):.1f}"
-            )
+            ret = _finite_mean(metrics["return"][:, -1])
+            shown = f"{ret:.1f}" if np.isfinite(ret) else "diverged (every rollout non-finite)"
+            self.progress.update(self.task, advance=n, ret=shown)
 
     def finish(self, rows: list[dict], figures: dict) -> None:
         """The final rows (one per run) as a table and as summary scalars, and the figures."""
@@ -124,6 +124,13 @@ class RunLogger:
         if self.wandb:
             self.wandb.finish(exit_code=1 if failed else 0)
             self.wandb = None
+
+
+def _finite_mean(values) -> float:
+    """The mean of the finite values; NaN (silently) when there is none."""
+    values = np.asarray(values, dtype=float)
+    finite = values[np.isfinite(values)]
+    return float(finite.mean()) if finite.size else float("nan")
 
 
 def print_table(rows: list[dict], title: str = "sim2real") -> None:
