@@ -32,6 +32,7 @@ from omegaconf import OmegaConf  # noqa: E402
 
 from hds import plots  # noqa: E402
 from hds.algo.pods import make_train  # noqa: E402
+from hds.algo.randomize import randomized_env  # noqa: E402
 from hds.checkpoint import Checkpoints  # noqa: E402
 from hds.config import Config, validate  # noqa: E402
 from hds.effects.apply import place  # noqa: E402
@@ -151,6 +152,8 @@ def method_name(cfg: Config) -> str:
         parts.append(cfg.dynamics.model)
     if cfg.simulator == "corrected":
         parts.append("corrected")
+    if cfg.simulator == "randomized":
+        parts.append("dr")
     return "+".join(parts)
 
 
@@ -220,6 +223,8 @@ def run(cfg: Config, out_dir: Path) -> dict:
         train_env, effects = real_dynamics(cfg)
     elif cfg.simulator == "corrected":
         train_env, discovery = corrected_simulator(cfg, env, plant, out_dir)
+    elif cfg.simulator == "randomized":
+        train_env = randomized_env(cfg)
     methods = [(method_name(cfg), train_env, effects, model)]
     if cfg.oracle and cfg.real.plant == "brax" and cfg.simulator != "real":
         methods.append(("oracle", *real_dynamics(cfg), None))

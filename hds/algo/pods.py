@@ -28,6 +28,7 @@ from flax import struct
 
 from hds import anneal, noise
 from hds.algo.improve import ImproveSettings, improve
+from hds.algo.randomize import effect_ranges, sample_effects
 from hds.algo.regress import regress
 from hds.algo.rollout import perturbed_rollout, policy_rollout
 from hds.networks import make_policy
@@ -103,15 +104,24 @@ def make_train(cfg, env, model=None) -> Trainer:
         params = policy.init(init_key, jnp.zeros(sim.n_obs))
         return TrainState(params, optimizer.init(params), jnp.array(0, jnp.int32), key)
 
+    randomized = cfg.simulator == "randomized"
+
     def collect_and_improve(engine, params_key, count, state, hparams, key):
         params = hparams[params_key] if params_key else None
         k_reset, k_roll, k_improve = jax.random.split(key, 3)
+        # domain randomization: each rollout its own draw (params batched on axis 0); the key
+        # is folded in, so a range of no width trains exactly as that value alone
+        drawn = randomized and params_key == "effects"
+        if drawn:
+            draw_key = jax.random.fold_in(key, 1)
+            params = sample_effects(draw_key, *hparams["effect_ranges"], count)
+        p_axis = 0 if drawn else None
         starts = jax.vmap(engine.reset)(jax.random.split(k_reset, count))
         act = lambda o: policy.apply(state.policy, o)  # noqa: E731
         obs, actions, rewards = jax.vmap(
-            lambda s, k: policy_rollout(
+            lambda p, s, k: policy_rollout(
                 engine,
-                params,
+                p,
                 task,
                 act,
                 s,
@@ -120,15 +130,16 @@ def make_train(cfg, env, model=None) -> Trainer:
                 task.horizon,
                 low,
                 high,
-            )
-        )(starts, jax.random.split(k_roll, count))
+            ),
+            in_axes=(p_axis, 0, 0),
+        )(params, starts, jax.random.split(k_roll, count))
         alpha = anneal.step_size(hparams["step_size"], cfg.anneal.step_decay, state.epoch)
         temp = anneal.temperature(cfg.anneal.temperature, cfg.anneal.cooling, state.epoch)
         closed = algo.improve_in == "closed_loop"
         step = jax.vmap(
-            lambda s, a, k: improve(
+            lambda p, s, a, k: improve(
                 engine,
-                params,
+                p,
                 task,
                 s,
                 a,
@@ -139,15 +150,16 @@ def make_train(cfg, env, model=None) -> Trainer:
                 low=low,
                 high=high,
                 act=act if closed else None,
-            )
+            ),
+            in_axes=(p_axis, 0, 0, 0),
         )
         if closed:  # the perturbations that reproduce the rollout: u = act(o) + delta
             actions = actions - jax.vmap(jax.vmap(act))(obs)
-        result = step(starts, actions, jax.random.split(k_improve, count))
+        result = step(params, starts, actions, jax.random.split(k_improve, count))
         if algo.improve_steps > 1:  # further steps from the improved actions
 
             def again(result, k):
-                nxt = step(starts, result.actions, jax.random.split(k, count))
+                nxt = step(params, starts, result.actions, jax.random.split(k, count))
                 return nxt._replace(
                     value=result.value,
                     accepted=result.accepted | nxt.accepted,
@@ -158,8 +170,9 @@ def make_train(cfg, env, model=None) -> Trainer:
             result, _ = jax.lax.scan(again, result, keys)
         if closed:  # regress onto the improved trajectory: its states and its controls
             obs, controls, _ = jax.vmap(
-                lambda s, d: perturbed_rollout(engine, params, task, act, s, d, low, high)
-            )(starts, result.actions)
+                lambda p, s, d: perturbed_rollout(engine, p, task, act, s, d, low, high),
+                in_axes=(p_axis, 0, 0),
+            )(params, starts, result.actions)
             result = result._replace(actions=controls)
         return obs, result, rewards.sum(-1), alpha
 
@@ -222,4 +235,6 @@ def make_train(cfg, env, model=None) -> Trainer:
         "beta": jnp.asarray(cfg.dynamics.beta, jnp.float32),
         "effects": env.params,
     }
+    if randomized:
+        hparams["effect_ranges"] = effect_ranges(cfg, env)
     return Trainer(init, run_chunk, train, chunk, algo.epochs // chunk, policy, hparams)
