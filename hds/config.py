@@ -76,6 +76,9 @@ class EnvConfig:
     timestep: float = 0.02  # MJCF physics timestep, s
     frames_per_step: int = 2  # env dt = timestep * frames_per_step
     sharpness: float = 50.0  # smoothing of Coulomb friction and dead zones in the simulator
+    # Coulomb friction's gradient taken from tanh(k v) at this sharpness while its value stays
+    # at env.sharpness (a surrogate gradient, hds.effects.apply.friction_direction); null: off
+    gradient_sharpness: float | None = None
     task: TaskConfig = field(default_factory=TaskConfig)
     effects: list[EffectConfig] = _effects_field()  # effects the simulator already models
 
@@ -84,6 +87,8 @@ class EnvConfig:
         _in_range("env.timestep", self.timestep, 1e-6, 1.0)
         _in_range("env.frames_per_step", self.frames_per_step, 1)
         _in_range("env.sharpness", self.sharpness, 1e-6)
+        if self.gradient_sharpness is not None:
+            _in_range("env.gradient_sharpness", self.gradient_sharpness, 1e-6)
 
 
 @dataclass
@@ -163,9 +168,12 @@ class AnnealConfig:
     temperature: float = 1.0  # simulated annealing: initial temperature (relative return)
     cooling: float = 0.9  # simulated annealing: temperature <- temperature * cooling per epoch
     step_decay: float = 1.0  # step size <- step size * step_decay per epoch
+    # share of the epochs over which the simulator's effects grow from nominal to their values
+    effect_ramp: float = 0.0
 
     def check(self):
         _one_of("anneal.kind", self.kind, ("line_search", "simulated", "fixed"))
+        _in_range("anneal.effect_ramp", self.effect_ramp, 0.0, 1.0)
         _in_range("anneal.temperature", self.temperature, 0.0)
         _in_range("anneal.cooling", self.cooling, 0.0, 1.0)
         _in_range("anneal.step_decay", self.step_decay, 0.0, 1.0)
