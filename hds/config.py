@@ -168,12 +168,17 @@ class AnnealConfig:
     temperature: float = 1.0  # simulated annealing: initial temperature (relative return)
     cooling: float = 0.9  # simulated annealing: temperature <- temperature * cooling per epoch
     step_decay: float = 1.0  # step size <- step size * step_decay per epoch
-    # share of the epochs over which the simulator's effects grow from nominal to their values
-    effect_ramp: float = 0.0
+    # [begin, end] shares of the epochs: the simulator's effects are nominal (off) before
+    # begin and grow linearly to their values at end (a continuation); [0, 0]: off
+    effect_ramp: list[float] = field(default_factory=lambda: [0.0, 0.0])
 
     def check(self):
         _one_of("anneal.kind", self.kind, ("line_search", "simulated", "fixed"))
-        _in_range("anneal.effect_ramp", self.effect_ramp, 0.0, 1.0)
+        if len(self.effect_ramp) != 2 or not 0 <= self.effect_ramp[0] <= self.effect_ramp[1] <= 1:
+            raise ValueError(
+                f"anneal.effect_ramp = {list(self.effect_ramp)} must be [begin, end] shares "
+                "of the epochs with 0 <= begin <= end <= 1"
+            )
         _in_range("anneal.temperature", self.temperature, 0.0)
         _in_range("anneal.cooling", self.cooling, 0.0, 1.0)
         _in_range("anneal.step_decay", self.step_decay, 0.0, 1.0)

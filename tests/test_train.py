@@ -271,10 +271,12 @@ def test_the_effect_ramp_grows_effects_from_nominal_to_their_values(cartpole_cfg
     ]
     env = make_env(cartpole_cfg, effects=effects)
     sites = env.sim.effects.sites
-    at = lambda epoch, ramp: effect_ramp(env.params, sites, epoch, ramp)  # noqa: E731
-    first, half, done = at(0, 4.0), at(1, 4.0), at(3, 4.0)
+    at = lambda epoch, *ramp: effect_ramp(env.params, sites, epoch, *ramp)  # noqa: E731
+    first, half, done = at(0, 0, 4), at(1, 0, 4), at(3, 0, 4)
     assert float(first[0]["force"]) == pytest.approx(5.0)  # a quarter of the way from 0
     assert float(first[1]["gain"]) == pytest.approx(0.875)  # ... and from 1 (nominal gain)
     assert float(half[0]["force"]) == pytest.approx(10.0)
     assert float(done[0]["force"]) == 20.0 and float(done[1]["gain"]) == 0.5
-    assert at(0, 0.0) is env.params  # no ramp: the values from the start
+    late = [float(at(epoch, 10, 14)[0]["force"]) for epoch in (0, 9, 10, 13, 20)]
+    assert late == pytest.approx([0.0, 0.0, 5.0, 20.0, 20.0])  # off until epoch 10
+    assert at(0, 0, 0) is env.params  # no ramp: the values from the start

@@ -105,7 +105,7 @@ def make_train(cfg, env, model=None) -> Trainer:
         return TrainState(params, optimizer.init(params), jnp.array(0, jnp.int32), key)
 
     randomized = cfg.simulator == "randomized"
-    ramp_epochs = cfg.anneal.effect_ramp * algo.epochs
+    ramp = [share * algo.epochs for share in cfg.anneal.effect_ramp]  # [begin, end] epochs
 
     def collect_and_improve(engine, params_key, count, state, hparams, key):
         params = hparams[params_key] if params_key else None
@@ -118,7 +118,7 @@ def make_train(cfg, env, model=None) -> Trainer:
             params = sample_effects(draw_key, *hparams["effect_ranges"], count)
         p_axis = 0 if drawn else None
         if params_key == "effects":
-            params = anneal.effect_ramp(params, sim.effects.sites, state.epoch, ramp_epochs)
+            params = anneal.effect_ramp(params, sim.effects.sites, state.epoch, *ramp)
         starts = jax.vmap(engine.reset)(jax.random.split(k_reset, count))
         act = lambda o: policy.apply(state.policy, o)  # noqa: E731
         obs, actions, rewards = jax.vmap(
