@@ -4,13 +4,16 @@
   simulated    the best candidate; a worse one is still taken with probability
                exp(relative change / temperature), the temperature cooling every epoch
   fixed        always the step alpha (unless it is not finite)
-The base step size decays by `step_decay` every epoch in all three.
+The base step size decays by `step_decay` every epoch in all three. `effect_ramp` grows the
+simulator's effects from nothing to their values over a span of epochs (a continuation).
 """
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+
+from hds.effects.library import effect_type
 
 
 def accept(kind: str, new, old, temperature, key):
@@ -36,3 +39,22 @@ def temperature(initial: float, cooling: float, epoch):
 def candidates(kind: str, line_search: int) -> int:
     """How many step sizes alpha / 2^k are tried together."""
     return 1 if kind == "fixed" else line_search
+
+
+def effect_ramp(params, sites, epoch, begin: float, end: float):
+    """A continuation: the effects' parameters stay at their nominal values (the effect does
+    nothing) until epoch `begin`, then move linearly to their own, reached at epoch `end`
+    (begin = end = 0: their own from the start). A policy first learned without the effect
+    is a starting point from which the gradient still flows, where dry friction at full
+    strength from the start holds the cart still and leaves the policy little to learn from."""
+    if not end:
+        return params
+    share = jnp.clip((epoch + 1 - begin) / max(end - begin, 1.0), 0.0, 1.0)
+    nominal = [
+        {k: effect_type(site.name).param(k).nominal for k in values}
+        for site, values in zip(sites, params)
+    ]
+    return tuple(
+        {k: n[k] + share * (v - n[k]) for k, v in values.items()}
+        for n, values in zip(nominal, params)
+    )

@@ -86,6 +86,9 @@ class EnvConfig:
     timestep: float = 0.02  # MJCF physics timestep, s
     frames_per_step: int = 2  # env dt = timestep * frames_per_step
     sharpness: float = 50.0  # smoothing of Coulomb friction and dead zones in the simulator
+    # Coulomb friction's gradient taken from tanh(k v) at this sharpness while its value stays
+    # at env.sharpness (a surrogate gradient, hds.effects.apply.friction_direction); null: off
+    gradient_sharpness: float | None = None
     task: TaskConfig = field(default_factory=TaskConfig)
     effects: list[EffectConfig] = _effects_field()  # effects the simulator already models
 
@@ -94,6 +97,8 @@ class EnvConfig:
         _in_range("env.timestep", self.timestep, 1e-6, 1.0)
         _in_range("env.frames_per_step", self.frames_per_step, 1)
         _in_range("env.sharpness", self.sharpness, 1e-6)
+        if self.gradient_sharpness is not None:
+            _in_range("env.gradient_sharpness", self.gradient_sharpness, 1e-6)
 
 
 @dataclass
@@ -174,9 +179,17 @@ class AnnealConfig:
     temperature: float = 1.0  # simulated annealing: initial temperature (relative return)
     cooling: float = 0.9  # simulated annealing: temperature <- temperature * cooling per epoch
     step_decay: float = 1.0  # step size <- step size * step_decay per epoch
+    # [begin, end] shares of the epochs: the simulator's effects are nominal (off) before
+    # begin and grow linearly to their values at end (a continuation); [0, 0]: off
+    effect_ramp: list[float] = field(default_factory=lambda: [0.0, 0.0])
 
     def check(self):
         _one_of("anneal.kind", self.kind, ("line_search", "simulated", "fixed"))
+        if len(self.effect_ramp) != 2 or not 0 <= self.effect_ramp[0] <= self.effect_ramp[1] <= 1:
+            raise ValueError(
+                f"anneal.effect_ramp = {list(self.effect_ramp)} must be [begin, end] shares "
+                "of the epochs with 0 <= begin <= end <= 1"
+            )
         _in_range("anneal.temperature", self.temperature, 0.0)
         _in_range("anneal.cooling", self.cooling, 0.0, 1.0)
         _in_range("anneal.step_decay", self.step_decay, 0.0, 1.0)
@@ -299,6 +312,39 @@ class DiscoverConfig:
 
 
 @dataclass
+class RangedEffectConfig:
+    name: str = MISSING
+    target: str = MISSING
+    ranges: dict[str, list[Any]] = field(default_factory=dict)  # param: [low, high]
+
+    def check(self):
+        where = f"dr.effects {self.name}@{self.target}"
+        etype = effect_type(self.name)
+        if not self.ranges:
+            raise ValueError(f"{where}.ranges is empty; give each parameter a [low, high] range")
+        for param, bounds in self.ranges.items():
+            numbers = all(isinstance(b, (int, float)) for b in bounds)
+            if len(bounds) != 2 or not numbers or bounds[0] > bounds[1]:
+                raise ValueError(f"{where}.ranges.{param} = {list(bounds)} must be [low, high]")
+            if param in [p.name for p in etype.params if p.discrete]:
+                raise ValueError(
+                    f"{where}.ranges.{param}: a discrete parameter sets the simulator's shape "
+                    "and cannot be drawn per rollout; remove its range"
+                )
+        for end in (0, 1):  # both ends must be valid values (names, bounds)
+            check_params(self.name, {k: v[end] for k, v in self.ranges.items()}, where=where)
+
+
+@dataclass
+class DRConfig:
+    """Domain randomization (simulator = randomized, method=dr): every rollout draws the
+    parameters of these effects uniformly from their ranges; the simulator's own effects
+    (env.effects) keep their values. Its sim return is taken at the ranges' midpoints."""
+
+    effects: list[RangedEffectConfig] = field(default_factory=list)
+
+
+@dataclass
 class LoggerConfig:
     wandb: bool = True
     mode: str = "offline"
@@ -384,7 +430,8 @@ class Config:
     name: str = "default"
     # what the policy trains on: nominal (env as configured); corrected (env plus the effects
     # gap discovery names on data measured on the plant: the `discover` node); real (env plus
-    # the plant's own effects, friction smoothed: the oracle, the best achievable real return)
+    # the plant's own effects, friction smoothed: the oracle, the best achievable real return);
+    # randomized (env plus the effects of `dr`, drawn per rollout: domain randomization)
     simulator: str = "nominal"
     oracle: bool = True  # with real=brax, also train an oracle beside the run's own policy
     eval_episodes: int = 32  # initial states shared by the simulator and plant evaluations
@@ -397,6 +444,7 @@ class Config:
     resume_changed: bool = False
     sweep: SweepConfig = field(default_factory=lambda: SweepConfig())
     discover: DiscoverConfig = field(default_factory=DiscoverConfig)
+    dr: DRConfig = field(default_factory=DRConfig)
     paths: PathsConfig = field(default_factory=PathsConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
 
@@ -412,7 +460,13 @@ class Config:
         return self.dynamics.model != "none" and max([self.dynamics.beta, *self.sweep.beta]) > 0
 
     def check(self):
-        _one_of("simulator", self.simulator, ("nominal", "corrected", "real"))
+        _one_of("simulator", self.simulator, ("nominal", "corrected", "real", "randomized"))
+        if self.simulator == "randomized" and not self.dr.effects:
+            raise ValueError(
+                "simulator = randomized (method=dr) draws effect parameters from dr.effects, "
+                "which is empty; give one, e.g. dr.effects=[{name: coulomb_friction, target: "
+                "slider, ranges: {force: [0, 80]}}]"
+            )
         if self.sweep.friction_gap and (self.simulator == "corrected" or self.uses_model()):
             raise ValueError(
                 "sweep.friction_gap trains every gap in one program, but a learned model "
@@ -481,6 +535,10 @@ def _check_effect_targets(config) -> None:
     groups = [("env.effects", env.effects)]
     if isinstance(real, RealConfig):
         groups.append(("real.effects", real.effects))
+    dr = getattr(config, "dr", None)
+    if isinstance(dr, DRConfig):
+        ranged = [_effects.EffectSpec(e.name, e.target) for e in dr.effects]
+        groups.append(("dr.effects", [*env.effects, *ranged]))  # none given twice
     try:
         xml = str(resolve_xml(env.xml))
     except FileNotFoundError as err:

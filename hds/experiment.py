@@ -31,6 +31,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from hds import plots
 from hds.algo.pods import Trainer, make_train
+from hds.algo.randomize import randomized_env
 from hds.checkpoint import Checkpoints
 from hds.config import Config, env_config
 from hds.effects.apply import place
@@ -127,6 +128,8 @@ def method_name(cfg: Config) -> str:
         parts.append(cfg.dynamics.model)
     if cfg.simulator == "corrected":
         parts.append("corrected")
+    if cfg.simulator == "randomized":
+        parts.append("dr")
     return "+".join(parts)
 
 
@@ -207,6 +210,8 @@ def simulator_of(cfg: Config, run_dir: Path, method: str | None = None) -> tuple
                 "finish its gap discovery; train it again on the same directory"
             )
         return make_env(env_config(OmegaConf.to_container(OmegaConf.load(found[0])))), None
+    if cfg.simulator == "randomized":
+        return randomized_env(cfg), None
     return make_env(cfg.env), None
 
 
@@ -220,6 +225,8 @@ def methods_of(cfg: Config, out_dir: Path, plant):
         train_env, effects = real_dynamics(cfg)
     elif cfg.simulator == "corrected":
         train_env, discovery = corrected_simulator(cfg, env, plant, out_dir)
+    elif cfg.simulator == "randomized":
+        train_env = randomized_env(cfg)
     methods = [(method_name(cfg), train_env, effects, model)]
     if cfg.oracle and cfg.real.plant == "brax" and cfg.simulator != "real":
         methods.append(("oracle", *real_dynamics(cfg), None))

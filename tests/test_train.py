@@ -246,3 +246,34 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
             assert [(e.name, e.target) for e in sites] == [("coulomb_friction", "slider")]
     assert gaps["corrected"] < 0.25 * gaps["nominal"], gaps
     assert gaps["real"] < 0.25 * gaps["nominal"], gaps
+
+
+def test_a_surrogate_friction_gradient_keeps_the_sharp_value():
+    from hds.effects.apply import friction_direction
+
+    v = jnp.linspace(-0.2, 0.2, 41)
+    sharp = jax.vmap(jax.value_and_grad(lambda x: friction_direction(x, 50.0)))(v)
+    surrogate = jax.vmap(jax.value_and_grad(lambda x: friction_direction(x, 50.0, 5.0)))(v)
+    np.testing.assert_allclose(surrogate[0], sharp[0], atol=1e-6)  # the same law forward
+    np.testing.assert_allclose(surrogate[1], 5.0 / jnp.cosh(5.0 * v) ** 2, rtol=1e-5)
+    assert sharp[1][20] == pytest.approx(50.0) and surrogate[1][20] == pytest.approx(5.0)
+
+
+def test_the_effect_ramp_grows_effects_from_nominal_to_their_values(cartpole_cfg):
+    from hds.anneal import effect_ramp
+
+    effects = [
+        {"name": "coulomb_friction", "target": "slider", "params": {"force": 20.0}},
+        {"name": "actuator_gain", "target": "slide", "params": {"gain": 0.5}},
+    ]
+    env = make_env(cartpole_cfg, effects=effects)
+    sites = env.sim.effects.sites
+    at = lambda epoch, *ramp: effect_ramp(env.params, sites, epoch, *ramp)  # noqa: E731
+    first, half, done = at(0, 0, 4), at(1, 0, 4), at(3, 0, 4)
+    assert float(first[0]["force"]) == pytest.approx(5.0)  # a quarter of the way from 0
+    assert float(first[1]["gain"]) == pytest.approx(0.875)  # ... and from 1 (nominal gain)
+    assert float(half[0]["force"]) == pytest.approx(10.0)
+    assert float(done[0]["force"]) == 20.0 and float(done[1]["gain"]) == 0.5
+    late = [float(at(epoch, 10, 14)[0]["force"]) for epoch in (0, 9, 10, 13, 20)]
+    assert late == pytest.approx([0.0, 0.0, 5.0, 20.0, 20.0])  # off until epoch 10
+    assert at(0, 0, 0) is env.params  # no ramp: the values from the start

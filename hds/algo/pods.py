@@ -29,6 +29,7 @@ from flax import struct
 
 from hds import anneal, noise
 from hds.algo.improve import ImproveSettings, improve
+from hds.algo.randomize import effect_ranges, sample_effects
 from hds.algo.regress import regress
 from hds.algo.rollout import perturbed_rollout, policy_rollout
 from hds.networks import make_policy
@@ -120,32 +121,40 @@ def make_train(cfg, env, model=None) -> Trainer:
         params = policy.init(init_key, jnp.zeros(sim.n_obs))
         return TrainState(params, optimizer.init(params), jnp.array(0, jnp.int32), key)
 
-    def collect(engine, params, count, policy_params, hparams, epoch, key):
-        """Stage 1: roll the (noisy) policy out from `count` initial states. Returns the
-        starts, observations, controls, rewards and the keys left for stage 2."""
+    randomized = cfg.simulator == "randomized"
+    ramp = [share * algo.epochs for share in cfg.anneal.effect_ramp]  # [begin, end] epochs
+
+    def collect(engine, params, count, policy_params, hparams, epoch, key, per_rollout=False):
+        """Stage 1: roll the (noisy) policy out from `count` initial states (`per_rollout`:
+        params holds each rollout's own effect parameters, batched on axis 0). Returns the
+        starts, observations, controls, rewards and the key left for stage 2."""
         k_reset, k_roll, k_improve = jax.random.split(key, 3)
         starts = jax.vmap(engine.reset)(jax.random.split(k_reset, count))
         act = lambda o: policy.apply(policy_params, o)  # noqa: E731
         obs, actions, rewards = jax.vmap(
-            lambda s, k: policy_rollout(
-                engine, params, task, act, s, k, sigma(hparams, epoch), task.horizon, low, high
-            )
-        )(starts, jax.random.split(k_roll, count))
+            lambda p, s, k: policy_rollout(
+                engine, p, task, act, s, k, sigma(hparams, epoch), task.horizon, low, high
+            ),
+            in_axes=(0 if per_rollout else None, 0, 0),
+        )(params, starts, jax.random.split(k_roll, count))
         return starts, obs, actions, rewards, k_improve
 
-    def improve_batch(engine, params, policy_params, hparams, epoch, starts, obs, actions, key):
+    def improve_batch(
+        engine, params, policy_params, hparams, epoch, starts, obs, actions, key, per_rollout=False
+    ):
         """Stage 2: improve every rollout's actions (open loop) or perturbations of the
         policy's controls (closed loop); the result's actions are the regression targets, and
         (closed loop) its observations the improved trajectory's. Returns (obs, result, alpha)."""
         count = jax.tree.leaves(starts)[0].shape[0]
+        p_axis = 0 if per_rollout else None
         act = lambda o: policy.apply(policy_params, o)  # noqa: E731
         alpha = anneal.step_size(hparams["step_size"], cfg.anneal.step_decay, epoch)
         temp = anneal.temperature(cfg.anneal.temperature, cfg.anneal.cooling, epoch)
         closed = algo.improve_in == "closed_loop"
         step = jax.vmap(
-            lambda s, a, k: improve(
+            lambda p, s, a, k: improve(
                 engine,
-                params,
+                p,
                 task,
                 s,
                 a,
@@ -156,15 +165,16 @@ def make_train(cfg, env, model=None) -> Trainer:
                 low=low,
                 high=high,
                 act=act if closed else None,
-            )
+            ),
+            in_axes=(p_axis, 0, 0, 0),
         )
         if closed:  # the perturbations that reproduce the rollout: u = act(o) + delta
             actions = actions - jax.vmap(jax.vmap(act))(obs)
-        result = step(starts, actions, jax.random.split(key, count))
+        result = step(params, starts, actions, jax.random.split(key, count))
         if algo.improve_steps > 1:  # further steps from the improved actions
 
             def again(result, k):
-                nxt = step(starts, result.actions, jax.random.split(k, count))
+                nxt = step(params, starts, result.actions, jax.random.split(k, count))
                 return nxt._replace(
                     value=result.value,
                     accepted=result.accepted | nxt.accepted,
@@ -175,8 +185,9 @@ def make_train(cfg, env, model=None) -> Trainer:
             result, _ = jax.lax.scan(again, result, keys)
         if closed:  # regress onto the improved trajectory: its states and its controls
             obs, controls, _ = jax.vmap(
-                lambda s, d: perturbed_rollout(engine, params, task, act, s, d, low, high)
-            )(starts, result.actions)
+                lambda p, s, d: perturbed_rollout(engine, p, task, act, s, d, low, high),
+                in_axes=(p_axis, 0, 0),
+            )(params, starts, result.actions)
             result = result._replace(actions=controls)
         return obs, result, alpha
 
@@ -199,11 +210,27 @@ def make_train(cfg, env, model=None) -> Trainer:
 
     def collect_and_improve(engine, params_key, count, state, hparams, key):
         params = hparams[params_key] if params_key else None
+        # domain randomization: each rollout its own draw (params batched on axis 0); the key
+        # is folded in, so a range of no width trains exactly as that value alone
+        drawn = randomized and params_key == "effects"
+        if drawn:
+            params = sample_effects(jax.random.fold_in(key, 1), *hparams["effect_ranges"], count)
+        if params_key == "effects":
+            params = anneal.effect_ramp(params, sim.effects.sites, state.epoch, *ramp)
         starts, obs, actions, rewards, k_improve = collect(
-            engine, params, count, state.policy, hparams, state.epoch, key
+            engine, params, count, state.policy, hparams, state.epoch, key, drawn
         )
         obs, result, alpha = improve_batch(
-            engine, params, state.policy, hparams, state.epoch, starts, obs, actions, k_improve
+            engine,
+            params,
+            state.policy,
+            hparams,
+            state.epoch,
+            starts,
+            obs,
+            actions,
+            k_improve,
+            drawn,
         )
         return obs, result, rewards.sum(-1), alpha
 
@@ -256,6 +283,8 @@ def make_train(cfg, env, model=None) -> Trainer:
         "beta": jnp.asarray(cfg.dynamics.beta, jnp.float32),
         "effects": env.params,
     }
+    if randomized:
+        hparams["effect_ranges"] = effect_ranges(cfg, env)
     stages = Stages(
         functools.partial(collect, env), functools.partial(improve_batch, env), regress_batch
     )

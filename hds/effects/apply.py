@@ -101,8 +101,9 @@ class EffectSet:
             u = u.at[s.index].add(params[i]["offset"])
         return u, state
 
-    def substep(self, params, state: dict, u: jax.Array, qd: jax.Array, h: float, sharpness):
-        """One physics substep: (applied control, joint forces [nqd], next state)."""
+    def substep(self, params, state: dict, u, qd, h: float, sharpness, gradient_sharpness=None):
+        """One physics substep: (applied control, joint forces [nqd], next state).
+        `gradient_sharpness`: see `friction_direction`."""
         state = dict(state)
         for i, s in self.of("actuator_lag"):
             y = state[f"lag{i}"]
@@ -114,8 +115,7 @@ class EffectSet:
             u = u.at[s.index].set(y)
         force = jnp.zeros_like(qd)
         for i, s in self.of("coulomb_friction"):
-            v = qd[s.index]
-            direction = jnp.sign(v) if sharpness is None else jnp.tanh(sharpness * v)
+            direction = friction_direction(qd[s.index], sharpness, gradient_sharpness)
             force = force.at[s.index].add(-params[i]["force"] * direction)
         for i, s in self.of("viscous_damping"):
             force = force.at[s.index].add(-params[i]["coefficient"] * qd[s.index])
@@ -125,6 +125,22 @@ class EffectSet:
         for i, s in self.of("sensor_bias"):
             obs = obs.at[s.index].add(params[i]["bias"])
         return obs
+
+
+def friction_direction(v, sharpness, gradient_sharpness=None):
+    """The direction of dry friction: sign(v) when `sharpness` is None, else tanh(k v). With
+    `gradient_sharpness` k_g, the value of tanh(k v) and the gradient of tanh(k_g v) (a
+    surrogate gradient): a sharp law sticks like the plant's, but its gradient at rest is
+    nearly zero (a small push does not move a stuck cart), which leaves a policy that starts
+    inside the friction nothing to learn from; a softer law's gradient says how a larger
+    push moves it."""
+    if sharpness is None:
+        return jnp.sign(v)
+    direction = jnp.tanh(sharpness * v)
+    if gradient_sharpness is None:
+        return direction
+    surrogate = jnp.tanh(gradient_sharpness * v)
+    return surrogate + jax.lax.stop_gradient(direction - surrogate)
 
 
 def _clip(u, half, sharpness):

@@ -48,6 +48,7 @@ def make_env(cfg, effects=None, sharpness="config", friction_gap: float = 1.0) -
         effects=list(cfg.effects if effects is None else effects),
         sharpness=cfg.sharpness if sharpness == "config" else sharpness,
         friction_gap=friction_gap,
+        gradient_sharpness=None if sharpness is None else cfg.gradient_sharpness,
     )
     task = make_task(cfg.task, sim.angular, sim.nq, sim.n_obs - sim.nq)
     return Env(sim, params, task)

@@ -112,6 +112,7 @@ class Simulator:
     angular: np.ndarray  # hinge mask over q
     xml: str
     backend: str
+    gradient_sharpness: float | None = None  # Coulomb friction's surrogate gradient, if any
 
     @property
     def dt(self) -> float:
@@ -144,7 +145,7 @@ class Simulator:
         def substep(carry, _):
             ps, est = carry
             applied, force, est = self.effects.substep(
-                params, est, u, ps.qd, self.timestep, self.sharpness
+                params, est, u, ps.qd, self.timestep, self.sharpness, self.gradient_sharpness
             )
             act = jnp.concatenate([applied, force[self.force_dofs]])
             return (self.pipeline.step(sys, ps, act), est), None
@@ -164,6 +165,7 @@ def make_simulator(
     effects=(),
     sharpness: float | None = 50.0,
     friction_gap: float = 1.0,
+    gradient_sharpness: float | None = None,
 ) -> tuple[Simulator, EffectParams]:
     """Build a simulator and the parameters of its effects from an MJCF."""
     if backend not in BACKENDS:
@@ -208,5 +210,6 @@ def make_simulator(
         angular=hinge_mask(model),
         xml=str(resolve_xml(xml)),
         backend=backend,
+        gradient_sharpness=gradient_sharpness,
     )
     return sim, params
