@@ -3,7 +3,7 @@ signals for identification, and recording datasets from plants."""
 
 from hds.data.collect import collect, initial_states
 from hds.data.excitation import SIGNALS, chirp, excitation, make_rng, prbs, random_steps
-from hds.data.format import Dataset, check, load, save, validate
+from hds.data.format import Dataset, check, load, save, split_episodes, validate
 
 __all__ = [
     "SIGNALS",
@@ -18,5 +18,6 @@ __all__ = [
     "prbs",
     "random_steps",
     "save",
+    "split_episodes",
     "validate",
 ]

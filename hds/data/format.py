@@ -240,6 +240,19 @@ def _outside_control_range(dataset: Dataset, ctrl_range, where: str):
     )
 
 
+def split_episodes(n_episodes: int, fraction: float, seed: int, what: str = "splitting"):
+    """(kept, held-out) episode indices: a seeded shuffle, `fraction` of the episodes held out
+    and at least one on each side (models are validated, and discovery judged, by episode)."""
+    if n_episodes < 2:
+        raise ValueError(
+            f"{what} needs at least 2 episodes (one is held out by episode); got {n_episodes}: "
+            "record more episodes, or split a long record into episodes"
+        )
+    order = np.random.default_rng(seed).permutation(n_episodes)
+    n_held = min(n_episodes - 1, max(1, round(fraction * n_episodes)))
+    return np.sort(order[n_held:]), np.sort(order[:n_held])
+
+
 def validate(dataset: Dataset, sim, where: str = "dataset") -> Dataset:
     """Check a dataset against a system: `sim` is an hds.envs.system.Simulator or anything with
     obs_names, action_names and timestep (physics step, s). Returns the dataset; raises a

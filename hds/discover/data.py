@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
-from hds.data.format import Dataset, validate
+from hds.data.format import Dataset, split_episodes, validate
 
 SETS = ("identification", "heldout", "validation")
 MIN_WINDOWS = 8  # fewer identification windows than this cannot identify anything
@@ -67,13 +67,6 @@ def noise_level(obs: np.ndarray, order: int = 4) -> np.ndarray:
     return mad / np.sqrt(math.comb(2 * order, order))
 
 
-def split_episodes(n_episodes: int, heldout_fraction: float, seed: int):
-    """(identification, held-out) episode indices: a seeded shuffle, at least one in each."""
-    order = np.random.default_rng(seed).permutation(n_episodes)
-    n_held = min(n_episodes - 1, max(1, round(heldout_fraction * n_episodes)))
-    return np.sort(order[n_held:]), np.sort(order[:n_held])
-
-
 def check_size(dataset: Dataset, horizon: int, where: str = "dataset") -> None:
     if dataset.n_episodes < 2 or dataset.horizon < horizon:
         raise ValueError(
@@ -114,7 +107,7 @@ def prepare(
                 f"the validation dataset's episodes have {validation.horizon} "
                 f"steps, fewer than k = {horizon} (discover.horizon)"
             )
-    ident, held = split_episodes(dataset.n_episodes, heldout_fraction, seed)
+    ident, held = split_episodes(dataset.n_episodes, heldout_fraction, seed, "discovery")
     parts = [dataset] + ([validation] if validation is not None else [])
     t_max = max(d.horizon for d in parts)
     obs, acts, lengths = [], [], []

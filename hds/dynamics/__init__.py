@@ -29,7 +29,7 @@ from hds.dynamics.model import (
     zero_residual,
 )
 from hds.dynamics.store import load, read_meta, save
-from hds.dynamics.training import as_arrays, evaluate, fit, split_episodes
+from hds.dynamics.training import as_arrays, evaluate, fit
 
 log = logging.getLogger(__name__)
 
@@ -139,6 +139,5 @@ __all__ = [
     "read_meta",
     "save",
     "skeleton",
-    "split_episodes",
     "zero_residual",
 ]

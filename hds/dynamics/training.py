@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from hds.data.format import split_episodes
 from hds.dynamics.metrics import multistep_errors
 from hds.dynamics.model import (
     DynamicsModel,
@@ -44,26 +45,17 @@ def as_arrays(data, actions=None, sim=None) -> tuple[np.ndarray, np.ndarray]:
     if actions is None:
         if not (hasattr(data, "obs") and hasattr(data, "actions")):
             raise TypeError("give obs and actions arrays, or a Dataset (with .obs and .actions)")
-        if sim is not None and getattr(data, "obs_names", None) is not None:
-            from hds.data import check  # names and order must be the system's
+        if sim is not None and hasattr(data, "dt"):
+            from hds.data import validate
 
-            check(data)
-            for kind, got, want in (
-                ("obs_names", data.obs_names, sim.obs_names),
-                ("action_names", data.action_names, sim.action_names),
-            ):
-                if got is not None and tuple(got) != tuple(want):
-                    raise ValueError(
-                        f"the dataset's {kind} {list(got)} are not this system's "
-                        f"{list(want)}: record data of this system, in this order"
-                    )
-        dt = getattr(data, "dt", None)
-        if sim is not None and dt is not None and not np.isclose(float(dt), sim.dt, rtol=1e-6):
-            raise ValueError(
-                f"the dataset is sampled every {dt} s and this system steps every "
-                f"{sim.dt} s (env.timestep * env.frames_per_step): resample the "
-                "data or change the env's step so they match"
-            )
+            validate(data, sim)  # names and their order, finite values, control range, dt
+            if not np.isclose(float(data.dt), sim.dt, rtol=1e-6):
+                raise ValueError(
+                    f"the dataset is sampled every {data.dt} s and this system steps every "
+                    f"{sim.dt} s: a learned model predicts one step of the system, so set "
+                    f"env.frames_per_step to {data.dt / sim.timestep:g} (dt / env.timestep), "
+                    "or resample the data"
+                )
         data, actions = data.obs, data.actions
     obs, actions = np.asarray(data, np.float32), np.asarray(actions, np.float32)
     if (
@@ -84,18 +76,6 @@ def as_arrays(data, actions=None, sim=None) -> tuple[np.ndarray, np.ndarray]:
             f"{sim.n_act} actions {list(sim.action_names)}"
         )
     return obs, actions
-
-
-def split_episodes(n_episodes: int, val_fraction: float, key) -> tuple[np.ndarray, np.ndarray]:
-    """(train, validation) episode indices; at least one episode in each."""
-    if n_episodes < 2:
-        raise ValueError(
-            f"fitting needs at least 2 episodes (training and validation are split "
-            f"by episode); got {n_episodes}"
-        )
-    n_val = min(max(1, int(round(val_fraction * n_episodes))), n_episodes - 1)
-    order = np.asarray(jax.random.permutation(key, n_episodes))
-    return np.sort(order[n_val:]), np.sort(order[:n_val])
 
 
 def _transitions(obs, actions):
@@ -217,7 +197,8 @@ def fit(
         )
         obs, actions = obs[good], actions[good]
     k_split, k_init, k_order = jax.random.split(key, 3)
-    train_ep, val_ep = split_episodes(len(obs), cfg.val_fraction, k_split)
+    seed = int(jax.random.randint(k_split, (), 0, 2**31 - 1))
+    train_ep, val_ep = split_episodes(len(obs), cfg.val_fraction, seed, "fitting a model")
 
     members = int(cfg.ensemble_size) if cfg.model == "ensemble" else 1
     model = skeleton(cfg.model, env, cfg.hidden, members)
