@@ -8,6 +8,7 @@ other processes compete for the cores):
   scaling    seeds vmapped, horizon, rollouts per epoch: wall time and peak memory
   compile    cold and warm (persistent cache) compile, each in its own process
   discovery  time to a gap-discovery report (skipped where hds.discover does not exist)
+  coverage   how often discovery's 95% intervals hold hidden effects (C MuJoCo plant, noise)
   gpu        skipped on CPU
 
 Budgets are each section's DEFAULT_BUDGET; override a key with --set, e.g.
@@ -42,6 +43,7 @@ SECTIONS = {
     "scaling": "bench.scaling",
     "compile": "bench.compilation",
     "discovery": "bench.discovery",
+    "coverage": "bench.coverage",
     "gpu": "bench.gpu",
 }
 
