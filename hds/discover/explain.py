@@ -217,6 +217,9 @@ class _Fitter:
         self.estimate, self.sizes, self.sw, self.floor = estimate, sizes, sw, floor
         obs, _, _, _, mask, _ = ident
         self.count = float(np.sum(np.asarray(mask))) * engine.horizon * obs.shape[-1]
+        # the squared residual per entry that noise alone leaves: estimated initial states
+        # (n_obs unknowns per window of k * n_obs residuals) absorb 1/k of it
+        self.noise_mse = floor**2 * ((1.0 - 1.0 / engine.horizon) if estimate else 1.0)
 
     def width(self, n_slots: int) -> int:
         return next(w for w in self.sizes if w >= n_slots)
@@ -237,7 +240,7 @@ class _Fitter:
     def state(self, selected, batch: Batch, i: int) -> State:
         slots = [int(s) for s in batch.slots[i] if s >= 0]
         m = len(slots)
-        misfit = max(float(batch.loss[i]) - self.floor**2, 0.0) * self.count
+        misfit = max(float(batch.loss[i]) - self.noise_mse, 0.0) * self.count
         return State(
             list(selected),
             np.asarray(batch.theta[i]),
