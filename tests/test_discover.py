@@ -304,6 +304,12 @@ def test_an_effect_outside_the_library_stays_unexplained(spring_cfg, task, env_c
     assert result.structured_unexplained > 0.3  # the remainder has a structure
     assert "position slider" in result.remainder.top["feature"]
     assert any("outside the library" in w for w in result.warnings)
+    # sparse force terms on what the library leaves: the spring, with its stiffness
+    (spring,) = [t for t in result.terms if t.joint == "slider"]
+    assert spring.term == "q" and spring.unit == "N/m" and "spring" in spring.reading
+    assert -spring.coefficient == pytest.approx(30.0, rel=0.05)
+    assert spring.share > 0.9
+    assert any("-29" in w or "-30" in w for w in result.warnings)  # named in the warning
 
 
 NOISY = {k: HIDDEN[k] for k in ("coulomb_slider", "viscous_hinge", "lag")}

@@ -50,6 +50,8 @@ class Selection:
     rounds: list[list[dict]]  # every candidate's fit, per round
     stopped: str  # why selection ended
     dropped: list[Candidate] = field(default_factory=list)  # proxies replaced by a later effect
+    # a candidate refused as law mismatch: the state it would have made (its last effect)
+    mismatch: list[State] = field(default_factory=list)
 
     @property
     def final(self) -> State:
@@ -103,7 +105,7 @@ def forward_selection(
         float(engine.errors(base_theta[None], base_delay[None], heldout)[0]),
         float(engine.errors(base_theta[None], base_delay[None], ident)[0]),
     )
-    states, rounds, dropped = [state], [], []
+    states, rounds, dropped, mismatch = [state], [], [], []
     stopped = f"reached discover.max_effects = {cfg.max_effects}"
     banned = set(banned)
     if not any(c.key not in banned for c in model.candidates):
@@ -163,14 +165,43 @@ def forward_selection(
                 f"{needed:.3g}"
             )
             break
-        state = fit.state(state.selected + [model.candidates[best]], batch, best)
+        grown = fit.state(state.selected + [model.candidates[best]], batch, best)
+        if _within_mismatch(model, grown, model.candidates[best], cfg.min_scale_change):
+            mismatch.append(grown)
+            stopped = (
+                f"the best remaining candidate, {label}, moves its parameters by less than "
+                "their 95% interval (noise and the named laws' mismatch): law mismatch, not "
+                "an effect"
+            )
+            break
+        state = grown
         states.append(state)
         states, gone = _drop_proxies(fit, states, cfg)
         if gone is not None:
             dropped.append(gone)
             banned.add(gone.key)
             state = states[-1]
-    return Selection(states, rounds, stopped, dropped)
+    return Selection(states, rounds, stopped, dropped, mismatch)
+
+
+def _within_mismatch(model, state: State, cand: Candidate, min_scale_change: float) -> bool:
+    """Whether the newly added continuous candidate's 95% interval (noise and law mismatch)
+    holds its no-op value: the named laws' own misfit could have moved it that far, so the
+    data do not show it as an effect. A multiplicative one (gain, mass scale: no-op 1) must
+    also move by min_scale_change: MuJoCo integrates damping implicitly, which acts exactly
+    as h b / M more mass (1.9% for 10 N s/m on the cart-pole), a law, not a heavier body."""
+    if not cand.slots or not state.slots:
+        return False
+    if all(
+        model.nominal[s] == 1.0 and abs(state.theta[s] - 1.0) < min_scale_change for s in cand.slots
+    ):
+        return True
+    ci = confidence_intervals(state.theta[state.slots], state.h, state.g, state.misfit)
+    where = {s: i for i, s in enumerate(state.slots)}
+    return all(
+        abs(float(state.theta[s]) - float(model.nominal[s])) <= ci.half[where[s]]
+        for s in cand.slots
+    )
 
 
 def _drop_proxies(fit, states: list[State], cfg):
@@ -214,7 +245,7 @@ class _Fitter:
 
     def __init__(self, engine, ident, heldout, cfg, estimate, sizes, sw, floor):
         self.engine, self.ident, self.heldout, self.cfg = engine, ident, heldout, cfg
-        self.estimate, self.sizes, self.sw, self.floor = estimate, sizes, sw, floor
+        self.estimate, self.sizes, self.sw = estimate, sizes, sw
         obs, _, _, _, mask, _ = ident
         self.count = float(np.sum(np.asarray(mask))) * engine.horizon * obs.shape[-1]
         # the squared residual per entry that noise alone leaves: estimated initial states

@@ -128,9 +128,17 @@ class _Facts:
         joint = self.model.joint(int(self.model.actuator_trnid[a, 0])).name
         return a, joint
 
+    def limits(self, a: int) -> tuple[float, float]:
+        """Actuator a's control range; an unlimited one's is what the data used."""
+        if self.model.actuator_ctrllimited[a]:
+            return tuple(float(x) for x in self.model.actuator_ctrlrange[a])
+        u = self.actions[..., a]
+        lo, hi = float(u.min()), float(u.max())
+        return (lo, hi) if hi > lo else (lo - 1.0, lo + 1.0)
+
     def drive(self, a: int, why: str, frequencies: list[float] | None = None) -> dict:
         """The excitation of actuator a that would show an effect: its whole control range."""
-        lo, hi = (float(x) for x in self.model.actuator_ctrlrange[a])
+        lo, hi = self.limits(a)
         gear = float(self.model.actuator_gear[a, 0])
         used = float(np.max(np.abs(self.actions[..., a] - 0.5 * (lo + hi))))
         nyquist = 0.5 / self.dt
@@ -180,7 +188,7 @@ def _joint(facts: _Facts, name: str, target: str):
 
 def _actuator(facts: _Facts, name: str, target: str):
     a, joint = facts.actuator(target)
-    lo, hi = (float(x) for x in facts.model.actuator_ctrlrange[a])
+    lo, hi = facts.limits(a)
     u = facts.actions[..., a]
     why = facts.still(joint)
     if why:

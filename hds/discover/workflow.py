@@ -25,6 +25,7 @@ from hds.discover.explain import (
 from hds.discover.fit import Engine, get_engine
 from hds.discover.identify import Identifiability, identifiability
 from hds.discover.locate import Location, locate
+from hds.discover.terms import Term, fit_terms
 from hds.effects.library import LIBRARY
 
 log = logging.getLogger("hds")
@@ -100,6 +101,7 @@ class Result:
     identifiability: list[Identifiability] = field(default_factory=list)  # before fitting
     correlations: list[dict] = field(default_factory=list)  # between the named effects' params
     law_mismatch: list[NamedEffect] = field(default_factory=list)  # see `discover`
+    terms: list[Term] = field(default_factory=list)  # sparse force terms beyond the library
 
     def errors_on(self, dataset: Dataset, set_name: str = "heldout") -> tuple[Errors, Errors]:
         """Errors before and after on another dataset with this one's layout and split, e.g.
@@ -134,6 +136,7 @@ class Result:
             "law_mismatch": [e.to_json() for e in self.law_mismatch],
             "dropped_proxies": [c.key for c in self.selection.dropped],
             "correlations": self.correlations,
+            "terms_beyond_the_library": [t.to_json() for t in self.terms],
             "identifiability": [r.to_json() for r in self.identifiability],
             "noise_std": [float(x) for x in self.data.noise],
             "noise_floor_nrmse": float(
@@ -263,8 +266,15 @@ def discover(
         [_effect_dict(e) for e in model.env_effects],
         timing,
     )
-    result.tentative, result.law_mismatch = tentative, law_mismatch
+    refused = [name_effects(model, [m], [0.0] * len(m.selected))[-1] for m in selection.mismatch]
+    result.tentative, result.law_mismatch = tentative, law_mismatch + refused
     result.identifiability = checks
+    if unexplained > cfg.unexplained_warning:  # the library leaves much: look beyond it
+        t0 = time.perf_counter()
+        result.terms = fit_terms(
+            env_cfg, data, after["identification"][0], after["heldout"][0], cfg.stop_margin
+        )
+        timing["terms"] = time.perf_counter() - t0
     result.correlations = correlations(final) if final.selected else []
     result.remainder = remainder
     result.structured_unexplained = float(unexplained * structure(remainder))
@@ -392,6 +402,7 @@ def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
                 f"structure: the residual of {top['variable']} depends on "
                 f"{top['feature']} (eta^2 = {top['eta2']:.2f}); the simulator probably "
                 "misses an effect outside the library"
+                + (": " + "; ".join(t.describe() for t in result.terms) if result.terms else "")
             )
         else:
             out.append(
