@@ -155,27 +155,21 @@ def forward_selection(
             )
             break
         needed = max(cfg.stop_margin * state.heldout_error, cfg.min_improvement)
-        grown = None
-        stopped = "every candidate that lowers the held-out error enough is law mismatch"
-        # best first; one whose change the named laws' mismatch explains is refused, and
-        # the next one judged
-        for best in sorted(fresh, key=lambda j: held[j]):
-            drop = state.heldout_error - held[best]
-            label = model.candidates[best].label
-            if not drop >= needed:
-                stopped = (
-                    f"the best remaining candidate, {label}, lowers held-out error by "
-                    f"{max(drop, 0.0):.3g} (normalized RMSE), less than the margin "
-                    f"{needed:.3g}"
-                )
-                break
-            trial = fit.state(state.selected + [model.candidates[best]], batch, best)
-            if not _within_mismatch(model, trial, model.candidates[best], cfg.min_scale_change):
-                grown = trial
-                break
-            mismatch.append(trial)
-            banned.add(model.candidates[best].key)
-        if grown is None:
+        best = min(fresh, key=lambda j: held[j])
+        drop = state.heldout_error - held[best]
+        label = model.candidates[best].label
+        if not drop >= needed:
+            stopped = (
+                f"the best remaining candidate, {label}, lowers held-out error by "
+                f"{max(drop, 0.0):.3g} (normalized RMSE), less than the margin {needed:.3g}"
+            )
+            break
+        grown = fit.state(state.selected + [model.candidates[best]], batch, best)
+        # what is left once the best candidate is no effect is the named laws' mismatch,
+        # which further candidates would only compensate
+        if _within_mismatch(model, grown, model.candidates[best], cfg.min_scale_change):
+            mismatch.append(grown)
+            stopped = f"the best remaining candidate, {label}, is law mismatch, not an effect"
             break
         state = grown
         states.append(state)
