@@ -9,6 +9,7 @@ other processes compete for the cores):
   compile    cold and warm (persistent cache) compile, each in its own process
   engine     the tree engine vs brax generalized and MJX per system: compile, env-steps/s
   discovery  time to a gap-discovery report (skipped where hds.discover does not exist)
+  coverage   how often discovery's 95% intervals hold hidden effects (C MuJoCo plant, noise)
   gpu        skipped on CPU
 
 Budgets are each section's DEFAULT_BUDGET; override a key with --set, e.g.
@@ -44,6 +45,7 @@ SECTIONS = {
     "compile": "bench.compilation",
     "engine": "bench.engine",
     "discovery": "bench.discovery",
+    "coverage": "bench.coverage",
     "gpu": "bench.gpu",
 }
 

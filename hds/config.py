@@ -257,7 +257,7 @@ class DiscoverConfig:
     slot_buckets: list[int] = field(default_factory=lambda: [3])
     stop_margin: float = 0.05  # an effect must lower held-out error by this share to be added
     min_improvement: float = 1e-3  # ... and by this much (normalized RMSE, signal stds)
-    min_share: float = 0.005  # ... and explain at least this share of the original error (MSE)
+    min_scale_change: float = 0.03  # ... and a gain or mass scale change its quantity this much
     iterations: int = 30  # most Levenberg-Marquardt iterations per fit
     # initial state of each fitted window: measured (as recorded), estimated along with the
     # effects (multiple shooting: unbiased under measurement noise, slower), or auto:
@@ -291,7 +291,7 @@ class DiscoverConfig:
             )
         _in_range("discover.stop_margin", self.stop_margin, 0.0, 1.0)
         _in_range("discover.min_improvement", self.min_improvement, 0.0)
-        _in_range("discover.min_share", self.min_share, 0.0, 1.0)
+        _in_range("discover.min_scale_change", self.min_scale_change, 0.0, 1.0)
         _in_range("discover.iterations", self.iterations, 1)
         if self.initial_state not in ("auto", "measured", "estimated"):
             raise ValueError(

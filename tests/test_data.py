@@ -21,7 +21,6 @@ from hds.data import (
     save,
     validate,
 )
-from hds.data.excitation import LFSR_TAPS, lfsr_bits
 from hds.utils.io import file_mode
 
 OBS = ("q_slider", "q_hinge", "qd_slider", "qd_hinge")
@@ -413,14 +412,13 @@ def test_prbs_is_a_maximum_length_binary_sequence():
     period = 2**6 - 1
     np.testing.assert_array_equal(bits[:, :period], bits[:, period : 2 * period])
     assert (bits[:, :period].sum(1) == 2**5).all()  # m-sequence balance
-    for order in (3, 5, 8, 11):
-        start = np.zeros((1, order), dtype=np.uint8)
-        start[0, 0] = 1
-        seq = lfsr_bits(order, start, 2 * (2**order - 1))[0]
+    for order in (4, 5, 8, 11):  # every register length gives its maximum period
+        u = prbs(0, 1, 2 * (2**order - 1), 0.01, [[-1.0, 1.0]], order=order)[0, :, 0]
         p = 2**order - 1
-        np.testing.assert_array_equal(seq[:p], seq[p:])
-        assert all(not np.array_equal(seq[: p - k], seq[k:p]) for k in (1, 2, 3, p // 2))
-    assert len(LFSR_TAPS) >= 10
+        np.testing.assert_array_equal(u[:p], u[p:])
+        assert all(not np.array_equal(u[: p - k], u[k:p]) for k in (1, 2, 3, p // 2))
+    with pytest.raises(ValueError, match="PRBS order 3 is not supported"):
+        prbs(0, 1, 10, 0.01, [[-1.0, 1.0]], order=3)
 
 
 def test_random_steps_hold_times():

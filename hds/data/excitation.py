@@ -12,10 +12,12 @@ middle of the range. Each (episode, actuator) pair gets its own random draw.
   random_steps  piecewise constant: levels uniform in the range, each held for a random time
                 uniform in [min_hold, max_hold] seconds
   chirp         a sine whose frequency sweeps linearly from f0 to f1 Hz over the episode
-                (f1 defaults to 1 / (8 dt), a quarter of the Nyquist frequency), random phase
-  prbs          pseudo-random binary sequence: a maximum-length LFSR sequence between the two
-                levels (middle +- scale * half range), one bit every bit_time seconds; each
-                pair starts the register at a random non-zero state
+                (scipy.signal.chirp; f1 defaults to 1 / (8 dt), a quarter of the Nyquist
+                frequency), random phase
+  prbs          pseudo-random binary sequence: a maximum-length sequence
+                (scipy.signal.max_len_seq) between the two levels (middle +- scale * half
+                range), one bit every bit_time seconds; each pair starts the register at a
+                random non-zero state
 
 Pass an array of them as the controller of `hds.data.collect` (or `hds.real.rollout`).
 """
@@ -25,28 +27,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy import signal
 
-# Feedback taps of maximum-length Fibonacci LFSRs (bit positions, 1-based), by register length.
-LFSR_TAPS = {
-    3: (3, 2),
-    4: (4, 3),
-    5: (5, 3),
-    6: (6, 5),
-    7: (7, 6),
-    8: (8, 6, 5, 4),
-    9: (9, 5),
-    10: (10, 7),
-    11: (11, 9),
-    12: (12, 6, 4, 1),
-    13: (13, 4, 3, 1),
-    14: (14, 5, 3, 1),
-    15: (15, 14),
-    16: (16, 15, 13, 4),
-    17: (17, 14),
-    18: (18, 11),
-    19: (19, 6, 2, 1),
-    20: (20, 17),
-}
+# Register lengths scipy.signal.max_len_seq has feedback taps for without being given any.
+PRBS_ORDERS = range(4, 33)
 
 
 def make_rng(seed) -> np.random.Generator:
@@ -147,36 +131,19 @@ def chirp(
         )
     rng = make_rng(seed)
     n_act = len(ctrl_range)
-    phase0 = rng.uniform(0.0, 2 * np.pi, size=(n_episodes, 1, n_act))
+    phase0 = rng.uniform(0.0, 360.0, size=(n_episodes, 1, n_act))  # degrees, as scipy takes
     t = (np.arange(horizon) * dt)[None, :, None]
-    duration = horizon * dt
-    phase = 2 * np.pi * (f0 * t + 0.5 * (f1 - f0) * t**2 / duration)
-    return _clip(middle + half * np.sin(phase0 + phase), ctrl_range)
-
-
-def lfsr_bits(order: int, state: np.ndarray, n_bits: int) -> np.ndarray:
-    """n_bits output bits of a maximum-length LFSR of `order` from each initial register
-    state [N, order] (0/1, not all zero) -> [N, n_bits]; the sequence repeats every 2^order - 1."""
-    if order not in LFSR_TAPS:
-        raise ValueError(f"PRBS order {order} is not supported; choose one of {list(LFSR_TAPS)}")
-    reg = np.array(state, dtype=np.uint8)
-    if reg.ndim != 2 or reg.shape[1] != order or (reg.sum(1) == 0).any():
-        raise ValueError(f"LFSR states must be [N, {order}] of 0/1, none all zero")
-    taps = [t - 1 for t in LFSR_TAPS[order]]
-    out = np.empty((reg.shape[0], n_bits), dtype=np.uint8)
-    for k in range(n_bits):
-        out[:, k] = reg[:, -1]
-        feedback = np.bitwise_xor.reduce(reg[:, taps], axis=1)
-        reg = np.concatenate([feedback[:, None], reg[:, :-1]], axis=1)
-    return out
+    # scipy's chirp is a cosine; a phase of -90 degrees makes it the sine from phase0
+    wave = signal.chirp(t, f0=f0, t1=horizon * dt, f1=f1, method="linear", phi=phase0 - 90.0)
+    return _clip(middle + half * wave, ctrl_range)
 
 
 def prbs(
     seed, n_episodes: int, horizon: int, dt: float, ctrl_range, bit_time=None, order=None, scale=1.0
 ) -> np.ndarray:
-    """Maximum-length pseudo-random binary sequence between middle +- scale * half range, one bit
-    per bit_time seconds (default dt); order (register length) defaults to the shortest whose
-    period covers the horizon, at least 3."""
+    """Maximum-length pseudo-random binary sequence (scipy.signal.max_len_seq) between
+    middle +- scale * half range, one bit per bit_time seconds (default dt); order (register
+    length) defaults to the shortest whose period covers the horizon, at least 4."""
     ctrl_range, middle, half = _setup(n_episodes, horizon, dt, ctrl_range, scale)
     bit_time = dt if bit_time is None else bit_time
     if not bit_time > 0:
@@ -184,15 +151,18 @@ def prbs(
     bit_steps = max(1, round(bit_time / dt))
     n_bits = math.ceil(horizon / bit_steps)
     if order is None:
-        order = next((n for n in sorted(LFSR_TAPS) if 2**n - 1 >= n_bits), max(LFSR_TAPS))
-    if order not in LFSR_TAPS:
-        raise ValueError(f"PRBS order {order} is not supported; choose one of {list(LFSR_TAPS)}")
+        order = next((n for n in PRBS_ORDERS if 2**n - 1 >= n_bits), max(PRBS_ORDERS))
+    if order not in PRBS_ORDERS:
+        raise ValueError(
+            f"PRBS order {order} is not supported; choose one of {PRBS_ORDERS.start} to "
+            f"{PRBS_ORDERS.stop - 1}"
+        )
     rng = make_rng(seed)
     n_act = len(ctrl_range)
     # a random non-zero register per (episode, actuator): a random shift of the sequence
     start = rng.integers(1, 2**order, size=n_episodes * n_act)
-    state = (start[:, None] >> np.arange(order)) & 1
-    bits = lfsr_bits(order, state, n_bits)
+    states = (start[:, None] >> np.arange(order)) & 1
+    bits = np.stack([signal.max_len_seq(order, state=s, length=n_bits)[0] for s in states])
     bits = np.repeat(bits, bit_steps, axis=1)[:, :horizon].reshape(n_episodes, n_act, horizon)
     u = middle[:, None] + half[:, None] * (2.0 * bits - 1.0)
     return _clip(np.moveaxis(u, 1, 2), ctrl_range)

@@ -20,6 +20,7 @@ Command line: python -m hds.discover data=PATH [env=...] [retrain=true] (conf/di
 """
 
 from hds.discover.config import DiscoverAppConfig, DiscoverConfig
+from hds.discover.identify import Identifiability, identifiability
 from hds.discover.io import load_dataset
 from hds.discover.report import corrected_env, write_report
 from hds.discover.workflow import NamedEffect, Result, discover
@@ -27,10 +28,12 @@ from hds.discover.workflow import NamedEffect, Result, discover
 __all__ = [
     "DiscoverAppConfig",
     "DiscoverConfig",
+    "Identifiability",
     "NamedEffect",
     "Result",
     "corrected_env",
     "discover",
+    "identifiability",
     "load_dataset",
     "write_report",
 ]

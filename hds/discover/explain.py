@@ -14,8 +14,10 @@ named.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
+from scipy import stats
 
 from hds.discover.fit import Engine, confidence_intervals
 from hds.discover.model import Candidate
@@ -33,6 +35,9 @@ class State:
     h: np.ndarray | None = None  # Gauss-Newton matrix over `slots`
     g: np.ndarray | None = None  # per-episode gradients over `slots`
     slots: list[int] = field(default_factory=list)
+    # identification sum of squared normalized residuals above the measurement noise: what
+    # the laws of the selected effects fail to fit (the size of the model's own error)
+    misfit: float = 0.0
 
     @property
     def keys(self) -> set[str]:
@@ -44,6 +49,9 @@ class Selection:
     states: list[State]  # the base model, then one state per effect added (refitted)
     rounds: list[list[dict]]  # every candidate's fit, per round
     stopped: str  # why selection ended
+    dropped: list[Candidate] = field(default_factory=list)  # proxies replaced by a later effect
+    # a candidate refused as law mismatch: the state it would have made (its last effect)
+    mismatch: list[State] = field(default_factory=list)
 
     @property
     def final(self) -> State:
@@ -76,9 +84,13 @@ def candidate_params(model, cand: Candidate, theta, delay) -> dict[str, float]:
     return {p: float(theta[s]) for p, s in zip(cand.params, cand.slots, strict=True)}
 
 
-def forward_selection(engine: Engine, ident, heldout, cfg, estimate: bool = False) -> Selection:
+def forward_selection(
+    engine: Engine, ident, heldout, cfg, estimate: bool = False, floor: float = 0.0, banned=()
+) -> Selection:
     """Select effects; `ident` and `heldout` are `Data.arrays(...)` of the two episode sets;
-    `estimate`: fit each window's initial state too (noisy data)."""
+    `estimate`: fit each window's initial state too (noisy data); `floor`: the held-out
+    normalized RMSE measurement noise alone leaves; `banned`: keys of candidates the data
+    cannot identify (never fitted)."""
     model = engine.model
     sw = _slot_width(model)
     sizes = sorted(
@@ -93,16 +105,18 @@ def forward_selection(engine: Engine, ident, heldout, cfg, estimate: bool = Fals
         float(engine.errors(base_theta[None], base_delay[None], heldout)[0]),
         float(engine.errors(base_theta[None], base_delay[None], ident)[0]),
     )
-    states, rounds = [state], []
+    states, rounds, dropped, mismatch = [state], [], [], []
     stopped = f"reached discover.max_effects = {cfg.max_effects}"
-    if not model.candidates:
-        return Selection(states, rounds, "the library has no candidate for this model")
-    for round_index in range(1, cfg.max_effects + 1):
-        # a few sizes of the fitted set (each a compile; each slot a tangent per iteration)
-        width = next(w for w in sizes if w >= len(state.slots) + sw)
-        theta0, slots, delay = _batch(model, state, width)
-        theta, loss, h, g, its = engine.fit(theta0, slots, delay, ident, cfg.iterations, estimate)
-        held = engine.errors(theta, delay, heldout)
+    banned = set(banned)
+    if not any(c.key not in banned for c in model.candidates):
+        return Selection(states, rounds, "the library has no candidate the data can identify")
+    fit = _Fitter(engine, ident, heldout, cfg, estimate, sizes, sw, floor)
+    # each round adds one effect, and may drop one: at most twice max_effects rounds
+    for round_index in range(1, 2 * cfg.max_effects + 1):
+        if len(state.selected) >= cfg.max_effects:
+            break
+        batch = fit(state)
+        theta, delay, held, loss = batch.theta, batch.delay, batch.held, batch.loss
         rows = []
         for i, cand in enumerate(model.candidates):
             rows.append(
@@ -114,7 +128,7 @@ def forward_selection(engine: Engine, ident, heldout, cfg, estimate: bool = Fals
                     "heldout_error": float(held[i]),
                     "identification_error": float(np.sqrt(loss[i])),
                     "new": cand.key not in state.keys,
-                    "iterations": int(its[i]),
+                    "iterations": int(batch.iterations[i]),
                 }
             )
         rounds.append(rows)
@@ -124,86 +138,240 @@ def forward_selection(engine: Engine, ident, heldout, cfg, estimate: bool = Fals
         if refits:
             i = min(refits, key=lambda j: held[j])
             if held[i] < state.heldout_error:
-                state = _state(
-                    model,
-                    state.selected,
-                    theta[i],
-                    delay[i],
-                    held[i],
-                    loss[i],
-                    h[i],
-                    g[i],
-                    slots[i],
-                )
+                state = fit.state(state.selected, batch, i)
                 states[-1] = state
-        fresh = [i for i, c in enumerate(model.candidates) if c.key not in state.keys]
+        fresh = [
+            i
+            for i, c in enumerate(model.candidates)
+            if c.key not in state.keys and c.key not in banned
+        ]
         if not fresh:
-            stopped = "every candidate is selected"
+            stopped = "every candidate the data can identify is selected"
             break
+        if state.heldout_error <= floor * (1 + cfg.stop_margin):
+            stopped = (
+                f"the held-out error, {state.heldout_error:.3g} (normalized RMSE), is at the "
+                f"noise floor {floor:.3g}: nothing above the measurement noise is left"
+            )
+            break
+        needed = max(cfg.stop_margin * state.heldout_error, cfg.min_improvement)
         best = min(fresh, key=lambda j: held[j])
         drop = state.heldout_error - held[best]
-        needed = max(cfg.stop_margin * state.heldout_error, cfg.min_improvement)
-        share = (state.heldout_error**2 - held[best] ** 2) / max(
-            states[0].heldout_error ** 2, 1e-30
-        )
         label = model.candidates[best].label
         if not drop >= needed:
             stopped = (
                 f"the best remaining candidate, {label}, lowers held-out error by "
-                f"{max(drop, 0.0):.3g} (normalized RMSE), less than the margin "
-                f"{needed:.3g}"
+                f"{max(drop, 0.0):.3g} (normalized RMSE), less than the margin {needed:.3g}"
             )
             break
-        if not share >= cfg.min_share:
-            stopped = (
-                f"the best remaining candidate, {label}, explains {share:.2%} of the "
-                f"original held-out error, less than discover.min_share = "
-                f"{cfg.min_share:.2%}"
-            )
+        grown = fit.state(state.selected + [model.candidates[best]], batch, best)
+        # what is left once the best candidate is no effect is the named laws' mismatch,
+        # which further candidates would only compensate
+        if _within_mismatch(model, grown, model.candidates[best], cfg.min_scale_change):
+            mismatch.append(grown)
+            stopped = f"the best remaining candidate, {label}, is law mismatch, not an effect"
             break
-        state = _state(
-            model,
-            state.selected + [model.candidates[best]],
-            theta[best],
-            delay[best],
-            held[best],
-            loss[best],
-            h[best],
-            g[best],
-            slots[best],
-        )
+        state = grown
         states.append(state)
-    return Selection(states, rounds, stopped)
+        states, gone = _drop_proxies(fit, states, cfg)
+        if gone is not None:
+            dropped.append(gone)
+            banned.add(gone.key)
+            state = states[-1]
+    return Selection(states, rounds, stopped, dropped, mismatch)
 
 
-def _state(model, selected, theta, delay, held, loss, h, g, slots) -> State:
-    slots = [int(s) for s in slots if s >= 0]
-    m = len(slots)
-    return State(
-        list(selected),
-        np.asarray(theta),
-        np.asarray(delay),
-        float(held),
-        float(np.sqrt(loss)),
-        h[:m, :m],
-        g[:, :m],
-        slots,
+def _within_mismatch(model, state: State, cand: Candidate, min_scale_change: float) -> bool:
+    """Whether the newly added continuous candidate is no effect the data show: its noise
+    interval holds its no-op value, or, multiplicative (gain, mass scale: no-op 1), it
+    changes its quantity by less than min_scale_change. MuJoCo integrates damping
+    implicitly, which acts exactly as h b / M more mass (1.9% for 10 N s/m on the cart-pole):
+    a law, not a heavier body. (The law-mismatch part of the intervals is left out here:
+    while an effect is still missing, the misfit holds it, and would refuse real effects.)"""
+    if not cand.slots or not state.slots:
+        return False
+    if all(
+        model.nominal[s] == 1.0 and abs(state.theta[s] - 1.0) < min_scale_change for s in cand.slots
+    ):
+        return True
+    ci = confidence_intervals(state.theta[state.slots], state.h, state.g)
+    where = {s: i for i, s in enumerate(state.slots)}
+    return all(
+        abs(float(state.theta[s]) - float(model.nominal[s])) <= ci.half[where[s]]
+        for s in cand.slots
     )
 
 
-def intervals(model, state: State) -> dict[str, dict[str, list[float]]]:
-    """95% confidence intervals of each selected effect's parameters, by effect key."""
-    half, _ = confidence_intervals(state.theta[state.slots], state.h, state.g)
+def _drop_proxies(fit, states: list[State], cfg):
+    """Try dropping each selected effect but the newest, the others refitted: an effect
+    chosen early as a proxy (a lag for a delay) no longer earns its place once the real one
+    is in, i.e. dropping it raises the held-out error by less than the margin an effect
+    must bring to be added. Returns the states (the chain rebuilt without it) and the
+    dropped candidate, or (states, None)."""
+    state = states[-1]
+    if len(state.selected) < 2:
+        return states, None
+    sets = [[c for c in state.selected if c is not out] for out in state.selected[:-1]]
+    reduced = fit.sets(state, sets)
+    j = int(np.argmin([s.heldout_error for s in reduced]))
+    rise = reduced[j].heldout_error - state.heldout_error
+    if rise >= max(cfg.stop_margin * reduced[j].heldout_error, cfg.min_improvement):
+        return states, None
+    # the chain after the dropped effect: prefixes of the remaining order, refitted
+    kept = sets[j]
+    prefixes = [kept[:n] for n in range(j + 1, len(kept))]
+    return states[: j + 1] + fit.sets(state, prefixes) + [reduced[j]], state.selected[j]
+
+
+class Batch(NamedTuple):
+    """One batched fit: per row theta [C, N], delay [C, n_act], held-out error [C],
+    identification MSE [C], H [C, M, M], G [C, E, M], slots [C, M], iterations [C]."""
+
+    theta: np.ndarray
+    delay: np.ndarray
+    held: np.ndarray
+    loss: np.ndarray
+    h: np.ndarray
+    g: np.ndarray
+    slots: np.ndarray
+    iterations: np.ndarray
+
+
+class _Fitter:
+    """Batched fits of the engine for selection: every candidate added to a state, or given
+    sets of effects; always C rows (one compile per slot width)."""
+
+    def __init__(self, engine, ident, heldout, cfg, estimate, sizes, sw, floor):
+        self.engine, self.ident, self.heldout, self.cfg = engine, ident, heldout, cfg
+        self.estimate, self.sizes, self.sw = estimate, sizes, sw
+        obs, _, _, _, mask, _ = ident
+        self.count = float(np.sum(np.asarray(mask))) * engine.horizon * obs.shape[-1]
+        # the squared residual per entry that noise alone leaves: estimated initial states
+        # (n_obs unknowns per window of k * n_obs residuals) absorb 1/k of it
+        self.noise_mse = floor**2 * ((1.0 - 1.0 / engine.horizon) if estimate else 1.0)
+
+    def width(self, n_slots: int) -> int:
+        return next(w for w in self.sizes if w >= n_slots)
+
+    def run(self, theta0, slots, delay) -> Batch:
+        engine = self.engine
+        theta, loss, h, g, its = engine.fit(
+            theta0, slots, delay, self.ident, self.cfg.iterations, self.estimate
+        )
+        held = engine.errors(theta, delay, self.heldout)
+        return Batch(theta, delay, held, loss, h, g, slots, its)
+
+    def __call__(self, state: State) -> Batch:
+        model = self.engine.model
+        width = self.width(len(state.slots) + self.sw)
+        return self.run(*_batch(model, state, width))
+
+    def state(self, selected, batch: Batch, i: int) -> State:
+        slots = [int(s) for s in batch.slots[i] if s >= 0]
+        m = len(slots)
+        misfit = max(float(batch.loss[i]) - self.noise_mse, 0.0) * self.count
+        return State(
+            list(selected),
+            np.asarray(batch.theta[i]),
+            np.asarray(batch.delay[i]),
+            float(batch.held[i]),
+            float(np.sqrt(batch.loss[i])),
+            batch.h[i][:m, :m],
+            batch.g[i][:, :m],
+            slots,
+            misfit,
+        )
+
+    def sets(self, state: State, sets: list[list[Candidate]]) -> list[State]:
+        """Each set of effects (already in `state`) refitted jointly from state's values."""
+        if not sets:
+            return []
+        model = self.engine.model
+        n_c = len(model.candidates)
+        width = self.width(max(sum(len(c.slots) for c in s) for s in sets))
+        theta0 = np.tile(model.nominal, (n_c, 1))
+        delay = np.zeros((n_c, len(state.delay)), np.int32)
+        slots = -np.ones((n_c, width), np.int32)
+        for i, chosen in enumerate(sets):
+            own = [s for c in chosen for s in c.slots]
+            theta0[i, own] = state.theta[own]
+            slots[i, : len(own)] = own
+            for c in chosen:
+                if c.name == "action_delay":
+                    delay[i, c.actuator] = state.delay[c.actuator]
+        batch = self.run(theta0, slots, delay)
+        return [self.state(chosen, batch, i) for i, chosen in enumerate(sets)]
+
+
+INSEPARABLE = 0.95  # |correlation| above which the data do not separate two parameters
+
+
+def intervals(model, state: State, delay_steps: dict | None = None) -> dict:
+    """95% intervals of each selected effect's parameters, by effect key (noise and law
+    mismatch, see `confidence_intervals`); a delay's are the steps the data cannot rule out
+    (`delay_steps`: key -> [lowest, highest], from `delay_range`)."""
+    ci = confidence_intervals(state.theta[state.slots], state.h, state.g, state.misfit)
     where = {s: i for i, s in enumerate(state.slots)}
     out = {}
     for cand in state.selected:
         if cand.name == "action_delay":
             steps = int(state.delay[cand.actuator])
-            out[cand.key] = {"steps": [steps, steps]}  # enumerated: the best length
+            out[cand.key] = {"steps": (delay_steps or {}).get(cand.key, [steps, steps])}
             continue
         out[cand.key] = {}
         for p, s in zip(cand.params, cand.slots, strict=True):
-            value, w = float(state.theta[s]), float(half[where[s]])
+            value, w = float(state.theta[s]), float(ci.half[where[s]])
             lo, hi = float(model.lower[s]), float(model.upper[s])
             out[cand.key][p] = [max(value - w, lo), min(value + w, hi)]
+    return out
+
+
+def correlations(state: State) -> list[dict]:
+    """Correlations between the fitted parameters of different effects, strongest first;
+    `inseparable` where the data cannot tell them apart (|rho| > INSEPARABLE)."""
+    if not state.slots:
+        return []
+    ci = confidence_intervals(state.theta[state.slots], state.h, state.g, state.misfit)
+    names = {s: f"{c.key}.{p}" for c in state.selected for p, s in zip(c.params, c.slots)}
+    owner = {s: c.key for c in state.selected for s in c.slots}
+    rows = []
+    for i, a in enumerate(state.slots):
+        for j in range(i + 1, len(state.slots)):
+            b = state.slots[j]
+            if owner[a] == owner[b]:
+                continue
+            rho = float(ci.corr[i, j])
+            rows.append(
+                {
+                    "a": names[a],
+                    "b": names[b],
+                    "rho": rho,
+                    "inseparable": bool(not np.isfinite(rho) or abs(rho) > INSEPARABLE),
+                }
+            )
+    rows.sort(key=lambda r: -abs(r["rho"]) if np.isfinite(r["rho"]) else -2.0)
+    return rows
+
+
+def delay_range(engine: Engine, state: State, ident, floor: float) -> dict[str, list[int]]:
+    """Per selected delay, [lowest, highest] steps the identification data cannot rule out:
+    the other effects held at their values, a length whose squared error exceeds the best
+    one's by no more than the model's misfit plus a 95% chi-square margin of the noise (an
+    episode counted as one independent unit) stays in."""
+    model = engine.model
+    obs, _, _, _, mask, _ = ident
+    episodes = len(np.unique(np.asarray(ident[2])[np.asarray(mask) > 0]))
+    count = float(np.sum(np.asarray(mask))) * engine.horizon * obs.shape[-1]
+    tolerance = state.misfit + stats.chi2.ppf(0.95, 1) * floor**2 * count / max(episodes, 1)
+    out = {}
+    n_c = len(model.candidates)
+    for cand in state.selected:
+        if cand.name != "action_delay":
+            continue
+        delays = np.tile(state.delay, (n_c, 1))
+        lengths = np.arange(min(model.max_delay + 1, n_c))
+        delays[lengths, cand.actuator] = lengths
+        sse = engine.errors(np.tile(state.theta, (n_c, 1)), delays, ident)[lengths] ** 2 * count
+        inside = lengths[sse - sse.min() <= tolerance]
+        out[cand.key] = [int(inside.min()), int(inside.max())]
     return out

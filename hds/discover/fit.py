@@ -22,7 +22,7 @@ correlate, so episodes, not residuals, are the independent units.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, is_dataclass
+from dataclasses import asdict, dataclass, is_dataclass
 
 import jax
 import jax.numpy as jnp
@@ -190,19 +190,41 @@ class Engine:
         )
 
 
+@dataclass
+class Intervals:
+    """Uncertainty of the fitted entries: `half` = t * se + bias, the half-widths of `level`
+    intervals; `se` the cluster-robust standard errors; `bias` the largest shift the model's
+    own misfit can cause; `corr` [M, M] correlations (NaN where undetermined)."""
+
+    half: np.ndarray
+    se: np.ndarray
+    bias: np.ndarray
+    corr: np.ndarray
+
+
 def confidence_intervals(
-    theta: np.ndarray, h: np.ndarray, g: np.ndarray, level: float = 0.95
-) -> tuple[np.ndarray, np.ndarray]:
-    """Half-widths of `level` intervals of the fitted entries (H [M, M], G [E, M] of `fit`)
-    and their standard errors; inf where the data do not determine a parameter."""
+    theta: np.ndarray, h: np.ndarray, g: np.ndarray, misfit: float = 0.0, level: float = 0.95
+) -> Intervals:
+    """Intervals of the fitted entries (H [M, M], G [E, M] of `fit`); inf where the data do
+    not determine a parameter.
+
+    Two parts. Noise: a sandwich covariance with episodes as clusters (windows of one
+    episode overlap, so episodes are the independent units), with Student-t quantiles over
+    the episodes. Law mismatch: the plant's laws are not the library's (MuJoCo's friction is
+    a soft constraint, its filter is Euler-integrated), which shifts the fit systematically
+    and no amount of data averages away. A misfit r_m shifts the linearized optimum by
+    H^-1 J^T r_m, and if its share along the model's directions is no larger than the part
+    the model leaves (`misfit`, the sum of squared residuals above measurement noise), the
+    shift of entry j is at most sqrt(misfit (H^-1)_jj): added to the noise part."""
     g = g[np.any(g != 0, axis=1)]  # the episodes that took part
     n = len(g)
     m = len(theta)
+    inf = np.full(m, np.inf)
     if n < 2 or m == 0:
-        return np.full(m, np.inf), np.full(m, np.inf)
+        return Intervals(inf, inf, inf, np.full((m, m), np.nan))
     d = np.sqrt(np.maximum(np.diag(h), 0.0))
     ok = d > 1e-12 * max(d.max(), 1e-30)
-    se = np.full(m, np.inf)
+    se, bias, corr = inf.copy(), inf.copy(), np.full((m, m), np.nan)
     if ok.any():
         hs = h[np.ix_(ok, ok)] / np.outer(d[ok], d[ok])  # scaled to unit diagonal
         w, v = np.linalg.eigh(hs)
@@ -213,9 +235,14 @@ def confidence_intervals(
         cov = bread @ meat @ bread
         weak = np.abs(v[:, ~keep]).max(axis=1) > 1e-3 if (~keep).any() else np.zeros(ok.sum(), bool)
         se_ok = np.sqrt(np.maximum(np.diag(cov), 0.0))
-        se_ok[weak] = np.inf
-        se[ok] = se_ok
-    return stats.t.ppf(0.5 + level / 2, n - 1) * se, se
+        bias_ok = np.sqrt(max(misfit, 0.0) * np.maximum(np.diag(bread), 0.0))
+        se_ok[weak] = bias_ok[weak] = np.inf
+        se[ok], bias[ok] = se_ok, bias_ok
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c = cov / np.outer(se_ok, se_ok)
+        c[weak, :] = c[:, weak] = np.nan
+        corr[np.ix_(ok, ok)] = c
+    return Intervals(stats.t.ppf(0.5 + level / 2, n - 1) * se + bias, se, bias, corr)
 
 
 _ENGINES: dict = {}

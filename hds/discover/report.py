@@ -117,6 +117,42 @@ def write_plots(result: Result, out_dir: Path, plot_episodes: int, bins: int) ->
     return out
 
 
+def _selection_notes(result: Result) -> list[str]:
+    """Law mismatch, dropped proxies, correlations and what the data cannot identify."""
+    lines = []
+    if result.law_mismatch:
+        lines += ["", "Law mismatch (not added: the named laws are not exactly the plant's):"]
+        for e in result.law_mismatch:
+            lines.append(f"- `{e.name}` on {e.target} ({e.explained_fraction:.2%})")
+    if result.selection.dropped:
+        keys = ", ".join(f"`{c.key}`" for c in result.selection.dropped)
+        lines += ["", f"Dropped once a later effect made them redundant (proxies): {keys}."]
+    if result.correlations:
+        lines += [
+            "",
+            "| parameter | parameter | correlation | separable |",
+            "| --- | --- | --- | --- |",
+        ]
+        for r in result.correlations:
+            sep = "no" if r["inseparable"] else "yes"
+            lines.append(f"| {r['a']} | {r['b']} | {_fmt(r['rho'])} | {sep} |")
+    blind = [r for r in result.identifiability if not r.identifiable]
+    if blind:
+        lines += ["", "Not identifiable from these data (not fitted, never named):"]
+        for r in blind:
+            what = r.excitation.get("why", "")
+            if "amplitude" in r.excitation:
+                what += (
+                    f": drive {r.excitation['actuator']} up to +-{_fmt(r.excitation['amplitude'])}"
+                    f" (+-{_fmt(r.excitation['amplitude_at_joint'])} N or N m; these data: "
+                    f"+-{_fmt(r.excitation['used_amplitude'])}), frequencies "
+                    f"{_fmt(r.excitation['frequencies_hz'][0])} to "
+                    f"{_fmt(r.excitation['frequencies_hz'][1])} Hz"
+                )
+            lines.append(f"- `{r.key}`: {r.reason}. To identify it: {what}.")
+    return lines
+
+
 def _fmt(x: float) -> str:
     return f"{x:.4g}" if np.isfinite(x) else "inf"
 
@@ -186,6 +222,7 @@ def markdown(
                 f"- {e.physical_name} (`{e.name}`) on {e.target}: {params} "
                 f"({e.explained_fraction:.1%})"
             )
+    lines += _selection_notes(result)
     noise = np.sqrt(np.mean((data.noise / np.asarray(data.scale, dtype=float)) ** 2))
     lines += [
         "",

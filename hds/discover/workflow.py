@@ -14,9 +14,18 @@ from hds.data.format import Dataset
 from hds.discover.compare import Errors, Residuals, compare
 from hds.discover.config import DiscoverConfig
 from hds.discover.data import Data, prepare
-from hds.discover.explain import Selection, State, forward_selection, intervals
+from hds.discover.explain import (
+    Selection,
+    State,
+    correlations,
+    delay_range,
+    forward_selection,
+    intervals,
+)
 from hds.discover.fit import Engine, get_engine
+from hds.discover.identify import Identifiability, identifiability
 from hds.discover.locate import Location, locate
+from hds.discover.terms import Term, fit_terms
 from hds.effects.library import LIBRARY
 
 log = logging.getLogger("hds")
@@ -89,6 +98,10 @@ class Result:
     backend: str = ""  # the physics backend the fits ran on
     no_gap: bool = False  # the simulator already predicted the data (to min_improvement)
     cfg: DiscoverConfig | None = None
+    identifiability: list[Identifiability] = field(default_factory=list)  # before fitting
+    correlations: list[dict] = field(default_factory=list)  # between the named effects' params
+    law_mismatch: list[NamedEffect] = field(default_factory=list)  # see `discover`
+    terms: list[Term] = field(default_factory=list)  # sparse force terms beyond the library
 
     def errors_on(self, dataset: Dataset, set_name: str = "heldout") -> tuple[Errors, Errors]:
         """Errors before and after on another dataset with this one's layout and split, e.g.
@@ -120,6 +133,11 @@ class Result:
             "gap_found": not self.no_gap,
             "structured_unexplained_fraction": self.structured_unexplained,
             "tentative_effects": [e.to_json() for e in self.tentative],
+            "law_mismatch": [e.to_json() for e in self.law_mismatch],
+            "dropped_proxies": [c.key for c in self.selection.dropped],
+            "correlations": self.correlations,
+            "terms_beyond_the_library": [t.to_json() for t in self.terms],
+            "identifiability": [r.to_json() for r in self.identifiability],
             "noise_std": [float(x) for x in self.data.noise],
             "noise_floor_nrmse": float(
                 np.sqrt(
@@ -178,6 +196,11 @@ def discover(
     timing["compare"] = time.perf_counter() - start
 
     t0 = time.perf_counter()
+    checks = identifiability(dataset, env_cfg, cfg.min_motion, cfg.effects)
+    banned = {r.key for r in checks if not r.identifiable}
+    timing["identifiability"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
     location = locate(data, model.sim, before["identification"][0], cfg.bins)
     timing["locate"] = time.perf_counter() - t0
 
@@ -191,8 +214,10 @@ def discover(
         "estimated" if estimate else "measured",
         np.round(relative_noise, 4).tolist(),
     )
+    floor = float(np.sqrt(np.mean(relative_noise**2)))
+    ident = data.arrays("identification")
     selection = forward_selection(
-        engine, data.arrays("identification"), data.arrays("heldout"), cfg, estimate
+        engine, ident, data.arrays("heldout"), cfg, estimate, floor, banned
     )
     # What the selected effects leave: if a feature still explains much of it, the gap has a
     # structure no effect of the library has, and an effect that explains less than that
@@ -201,7 +226,8 @@ def discover(
     remainder = locate(data, model.sim, full["identification"][0], cfg.bins)
     shares = explained_shares(selection)
     structured = shares[-1] * structure(remainder)
-    named_count = next((i for i, s in enumerate(shares[:-1]) if s < structured), len(shares) - 1)
+    mismatch = next((i for i, s in enumerate(shares[:-1]) if s < structured), len(shares) - 1)
+    named_count = min(mismatch, _separable_count(selection.final))
     final = selection.states[named_count]
     after = (
         full if named_count == len(shares) - 1 else compare(engine, data, final.theta, final.delay)
@@ -210,8 +236,16 @@ def discover(
         remainder = locate(data, model.sim, after["identification"][0], cfg.bins)
     timing["explain"] = time.perf_counter() - t0
 
-    effects = name_effects(model, selection.states[: named_count + 1], shares)
-    tentative = name_effects(model, selection.states, shares)[named_count:]
+    steps = delay_range(engine, final, ident, floor)
+    effects = name_effects(model, selection.states[: named_count + 1], shares, steps)
+    rest = name_effects(model, selection.states, shares)
+    # below the structured remainder: the named laws' own mismatch (MuJoCo's friction and
+    # filter are not the library's laws), not a finding; otherwise a compensation for an
+    # effect the data cannot separate from a named one
+    if mismatch > 0:
+        tentative, law_mismatch = rest[named_count:mismatch], rest[max(named_count, mismatch) :]
+    else:  # no law named: what it leaves is structure outside the library
+        tentative, law_mismatch = rest[named_count:], []
     # no gap at all (the simulator already predicts the held-out data to min_improvement):
     # nothing is left to explain
     no_gap = selection.states[0].heldout_error < cfg.min_improvement
@@ -232,7 +266,16 @@ def discover(
         [_effect_dict(e) for e in model.env_effects],
         timing,
     )
-    result.tentative = tentative
+    refused = [name_effects(model, [m], [0.0] * len(m.selected))[-1] for m in selection.mismatch]
+    result.tentative, result.law_mismatch = tentative, law_mismatch + refused
+    result.identifiability = checks
+    if unexplained > cfg.unexplained_warning:  # the library leaves much: look beyond it
+        t0 = time.perf_counter()
+        result.terms = fit_terms(
+            env_cfg, data, after["identification"][0], after["heldout"][0], cfg.stop_margin
+        )
+        timing["terms"] = time.perf_counter() - t0
+    result.correlations = correlations(final) if final.selected else []
     result.remainder = remainder
     result.structured_unexplained = float(unexplained * structure(remainder))
     result.initial_state = "estimated" if estimate else "measured"
@@ -295,11 +338,11 @@ def explained_shares(selection: Selection) -> list[float]:
     return [(mse[i] - mse[i + 1]) / base for i in range(len(mse) - 1)] + [mse[-1] / base]
 
 
-def name_effects(model, states, shares) -> list[NamedEffect]:
+def name_effects(model, states, shares, delay_steps=None) -> list[NamedEffect]:
     """The effects of the last of `states` (a prefix of the selection) with values, units,
     95% CIs and their shares of the held-out error."""
     final = states[-1]
-    cis = intervals(model, final) if final.selected else {}
+    cis = intervals(model, final, delay_steps) if final.selected else {}
     named = []
     for i, cand in enumerate(final.selected):
         if cand.name == "action_delay":
@@ -328,20 +371,17 @@ def _round(x: float) -> float:
     return x if not np.isfinite(x) or x == 0 else float(f"{x:.6g}")
 
 
-FRICTION = ("coulomb_friction", "viscous_damping")
-
-
-def _moving_share(data: Data, joint: str) -> float | None:
-    """Share of the measured samples in which `joint` moves: |velocity| above a tenth of its
-    99th percentile (a stuck joint still creeps, e.g. under MuJoCo's soft friction) and above
-    its measurement noise; None for a target without a measured velocity."""
-    name = f"qd_{joint}"
-    if name not in data.obs_names:
-        return None
-    i = data.obs_names.index(name)
-    speed = np.abs(np.asarray(data.obs)[..., i])
-    threshold = max(0.1 * float(np.percentile(speed, 99)), 3.0 * float(data.noise[i]), 1e-9)
-    return float(np.mean(speed > threshold))
+def _separable_count(state: State) -> int:
+    """How many effects, in the order of selection, come before the first whose parameters
+    the data cannot separate from an earlier effect's (|correlation| > INSEPARABLE): that
+    one is a compensation the data cannot tell apart, not named."""
+    order = {c.key: i for i, c in enumerate(state.selected)}
+    clashes = [
+        max(order[r["a"].split(".")[0]], order[r["b"].split(".")[0]])
+        for r in correlations(state)
+        if r["inseparable"]
+    ]
+    return min(clashes, default=len(state.selected))
 
 
 def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
@@ -349,8 +389,9 @@ def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
     for e in result.tentative:
         out.append(
             f"{e.name}@{e.target} lowered the held-out error ({e.explained_fraction:.0%}"
-            " of it) but less than the structured remainder no effect explains: it is "
-            "reported as tentative (a likely compensation), not as a missing effect"
+            " of it), but it is a likely compensation: for structure outside the library, "
+            "or for a named effect the data cannot separate it from; reported as tentative, "
+            "not as a missing effect"
         )
     if result.unexplained_fraction > cfg.unexplained_warning:
         top = result.remainder.top
@@ -361,21 +402,33 @@ def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
                 f"structure: the residual of {top['variable']} depends on "
                 f"{top['feature']} (eta^2 = {top['eta2']:.2f}); the simulator probably "
                 "misses an effect outside the library"
+                + (": " + "; ".join(t.describe() for t in result.terms) if result.terms else "")
             )
         else:
             out.append(
                 f"{share} stays unexplained, with no structure any feature reveals: "
                 "measurement noise, or an effect the features do not show"
             )
-    for e in result.missing_effects:
-        moving = _moving_share(result.data, e.target)
-        if e.name in FRICTION and moving is not None and moving < cfg.min_motion:
+    for e in result.law_mismatch:
+        out.append(
+            f"{e.name}@{e.target} lowered the held-out error ({e.explained_fraction:.1%} of "
+            "it) by less than the structure the named effects' residual still has: law "
+            "mismatch (the plant's laws are not exactly the library's), not added"
+        )
+    for r in result.correlations:
+        if r["inseparable"]:
             out.append(
-                f"{e.name}@{e.target}: the data move {e.target} in only {moving:.1%} of the "
-                "samples, and a joint held still fits any friction law (Coulomb friction, "
-                "viscous damping) alike: its law and value are not identified. Record data "
-                f"that move {e.target} (a larger excitation, or a force beyond its friction)"
+                f"{r['a']} and {r['b']} correlate at {r['rho']:.3f}: the data cannot "
+                "separate them, and the later one is not named; record data that excite "
+                "them differently"
             )
+    by_reason: dict[str, list[str]] = {}
+    for r in result.identifiability:
+        if not (r.identifiable or r.structural):
+            by_reason.setdefault(r.reason, []).append(r.key)
+    for reason, keys in by_reason.items():
+        out.append(f"not identifiable from these data, so not fitted: {', '.join(keys)}: {reason}")
+    for e in result.missing_effects:
         for p, (lo, hi) in e.ci95.items():
             if not (np.isfinite(lo) and np.isfinite(hi)):
                 out.append(

@@ -1,0 +1,271 @@
+"""Identifiability before fitting: which candidate effects the data can identify at all, why
+not, and what excitation would.
+
+Pure numpy on the measured data and the MJCF (nothing compiles), so a data-collection loop
+can call it after every recording to decide whether to record more:
+
+    from hds.discover import identifiability
+    for row in identifiability(dataset, env_cfg):
+        if not row.identifiable:
+            print(row.key, row.reason, row.excitation)
+
+The checks are physical: an effect shows in the data only through motion it changes. A joint
+that never moves (held by friction larger than any force applied) fits every friction law
+alike; an actuator whose joint never moves, or whose control never varies, shows neither
+its gain nor its lag; a sensor bias on a position nothing in the dynamics depends on (a
+free cart on a rail) is indistinguishable from where the cart started. `discover` fits only
+the candidates that pass, and reports the others with the excitation that would identify
+them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from hds.data.format import Dataset
+from hds.discover.data import noise_level
+from hds.effects.library import ACTUATOR, BODY, JOINT, LIBRARY, OBSERVATION
+from hds.envs.system import load_spec, one_dof_joints, state_names
+
+MIN_SPAN = 0.05  # share of the actuator's range the control must span to show a gain
+MIN_CHANGES = 0.01  # share of steps in which the control must change to show a lag or delay
+
+
+@dataclass
+class Identifiability:
+    """Whether the data can identify one candidate effect at one place."""
+
+    name: str
+    target: str
+    identifiable: bool
+    reason: str  # why not (empty when identifiable)
+    excitation: dict = field(default_factory=dict)  # what would: signal, amplitude, frequencies
+    # not identifiable from any data of this model (e.g. a free cart's position bias), as
+    # opposed to from these data (a joint the excitation never moved)
+    structural: bool = False
+
+    @property
+    def key(self) -> str:
+        return f"{self.name}@{self.target}"
+
+    def to_json(self) -> dict:
+        return {
+            "name": self.name,
+            "target": self.target,
+            "identifiable": self.identifiable,
+            "reason": self.reason,
+            "excitation": self.excitation,
+            "structural": self.structural,
+        }
+
+
+def moving_share(obs: np.ndarray, noise: np.ndarray, names, joint: str) -> float | None:
+    """Share of the samples in which `joint` moves: |velocity| above a tenth of its 99th
+    percentile (a stuck joint still creeps, e.g. under MuJoCo's soft friction) and above
+    three times its measurement noise; None without a measured velocity."""
+    name = f"qd_{joint}"
+    if name not in names:
+        return None
+    i = list(names).index(name)
+    speed = np.abs(np.asarray(obs)[..., i])
+    threshold = max(0.1 * float(np.percentile(speed, 99)), 3.0 * float(noise[i]), 1e-9)
+    return float(np.mean(speed > threshold))
+
+
+def identifiability(
+    dataset: Dataset, env_cfg, min_motion: float = 0.05, effects=None
+) -> list[Identifiability]:
+    """Per candidate (effect of `effects`, default the whole library, x place of its kind on
+    the model of `env_cfg`): whether `dataset` can identify it, why not, and the excitation
+    that would (within the actuators' control ranges). `min_motion`: the share of samples a
+    joint must move in (discover.min_motion)."""
+    model = load_spec(env_cfg.xml, env_cfg.timestep).compile()
+    facts = _Facts(dataset, model, min_motion)
+    rows = []
+    for name in effects or list(LIBRARY):
+        kind = LIBRARY[name].target_kind
+        for target in facts.targets[kind]:
+            reason, excitation = CHECKS[kind](facts, name, target)
+            structural = bool(reason) and not excitation.get("actuator")
+            rows.append(Identifiability(name, target, not reason, reason, excitation, structural))
+    return rows
+
+
+class _Facts:
+    """What the checks read: each joint's motion, each actuator's joint and control use."""
+
+    def __init__(self, dataset: Dataset, model: mujoco.MjModel, min_motion: float):
+        self.model, self.min_motion, self.dt = model, min_motion, dataset.dt
+        obs = np.asarray(dataset.obs, dtype=np.float64)
+        self.names = list(state_names(model))
+        noise = noise_level(obs)
+        self.joints = one_dof_joints(model)
+        self.moving = {j: moving_share(obs, noise, self.names, j) for j in self.joints}
+        self.actions = np.asarray(dataset.actions, dtype=np.float64)
+        self.obs = obs
+        self.targets = {
+            JOINT: list(self.joints),
+            ACTUATOR: [model.actuator(a).name for a in range(model.nu)],
+            BODY: [model.body(b).name for b in range(1, model.nbody)],
+            OBSERVATION: self.names,
+        }
+
+    def still(self, joint: str) -> str:
+        """Why `joint` shows nothing (it does not move), or ''."""
+        share = self.moving[joint]
+        if share is None or share >= self.min_motion:
+            return ""
+        return (
+            f"{joint} moves in only {share:.1%} of the samples (at least "
+            f"{self.min_motion:.0%} needed, discover.min_motion)"
+        )
+
+    def actuator(self, name: str) -> tuple[int, str]:
+        a = self.model.actuator(name).id
+        joint = self.model.joint(int(self.model.actuator_trnid[a, 0])).name
+        return a, joint
+
+    def limits(self, a: int) -> tuple[float, float]:
+        """Actuator a's control range; an unlimited one's is what the data used."""
+        if self.model.actuator_ctrllimited[a]:
+            return tuple(float(x) for x in self.model.actuator_ctrlrange[a])
+        u = self.actions[..., a]
+        lo, hi = float(u.min()), float(u.max())
+        return (lo, hi) if hi > lo else (lo - 1.0, lo + 1.0)
+
+    def drive(self, a: int, why: str, frequencies: list[float] | None = None) -> dict:
+        """The excitation of actuator a that would show an effect: its whole control range."""
+        lo, hi = self.limits(a)
+        gear = float(self.model.actuator_gear[a, 0])
+        used = float(np.max(np.abs(self.actions[..., a] - 0.5 * (lo + hi))))
+        nyquist = 0.5 / self.dt
+        return {
+            "actuator": self.model.actuator(a).name,
+            "signal": "random steps or PRBS (hds.data.excitation)",
+            "amplitude": 0.5 * (hi - lo),  # control units, around the middle of the range
+            "amplitude_at_joint": 0.5 * (hi - lo) * gear,
+            "used_amplitude": used,
+            "frequencies_hz": frequencies or [0.0, 0.25 * nyquist],
+            "why": why,
+        }
+
+    def drive_joint(self, joint: str, why: str, frequencies=None) -> dict:
+        """Drive the actuator of `joint`, or (unactuated) of the joint that moves it."""
+        mine = [a for a in range(self.model.nu) if self._joint_of(a) == joint]
+        return self.drive(mine[0] if mine else 0, why, frequencies)
+
+    def _joint_of(self, a: int) -> str:
+        return self.model.joint(int(self.model.actuator_trnid[a, 0])).name
+
+
+def _joint(facts: _Facts, name: str, target: str):
+    why = facts.still(target)
+    if not why:
+        return "", {}
+    max_force = [
+        abs(float(facts.model.actuator_gear[a, 0]))
+        * float(np.abs(facts.model.actuator_ctrlrange[a]).max())
+        for a in range(facts.model.nu)
+        if facts._joint_of(a) == target
+    ]
+    reason = (
+        f"{why}: a joint held still fits every friction law (Coulomb friction, viscous "
+        "damping) alike"
+    )
+    if max_force:
+        reason += (
+            f"; if the actuator's whole range ({max_force[0]:g} N or N m) does not move it "
+            "either, the friction exceeds what the actuator can give"
+        )
+    slow = [0.0, 0.5 / max(10 * facts.dt, 1e-9)]  # holds of 10 steps or longer
+    return reason, facts.drive_joint(
+        target, f"force {target} past its friction, in both directions", slow
+    )
+
+
+def _actuator(facts: _Facts, name: str, target: str):
+    a, joint = facts.actuator(target)
+    lo, hi = facts.limits(a)
+    u = facts.actions[..., a]
+    why = facts.still(joint)
+    if why:
+        return (
+            f"{why}, so the actuator {target}'s force shows in no motion",
+            facts.drive(a, f"move {joint} in both directions"),
+        )
+    span = float(np.ptp(u)) / (hi - lo)
+    if name in ("actuator_gain", "actuator_deadzone") and span < MIN_SPAN:
+        return (
+            f"the control of {target} spans {span:.1%} of its range (at least {MIN_SPAN:.0%} "
+            "needed to tell a force's size from its law)",
+            facts.drive(a, "controls across the range"),
+        )
+    changes = float(np.mean(np.abs(np.diff(u, axis=1)) > MIN_SPAN * (hi - lo)))
+    if name in ("actuator_lag", "action_delay") and changes < MIN_CHANGES:
+        return (
+            f"the control of {target} changes in {changes:.1%} of the steps (at least "
+            f"{MIN_CHANGES:.0%} needed to show how fast the actuator follows)",
+            facts.drive(a, "frequent control changes"),
+        )
+    return "", {}
+
+
+def _body(facts: _Facts, name: str, target: str):
+    body = facts.model.body(target).id
+    joints = [
+        facts.model.joint(j).name
+        for j in range(facts.model.njnt)
+        if facts.model.jnt_bodyid[j] == body and facts.model.joint(j).name in facts.joints
+    ]
+    still = [facts.still(j) for j in joints]
+    if joints and all(still):
+        return (
+            f"{still[0]}, so the body {target}'s inertia shows in no acceleration",
+            facts.drive_joint(joints[0], f"accelerate {target}"),
+        )
+    return "", {}
+
+
+def _observation(facts: _Facts, name: str, target: str):
+    kind, joint = target.split("_", 1)
+    if joint not in facts.joints:
+        return "", {}
+    j = facts.model.joint(joint).id
+    if kind == "q" and facts.model.jnt_type[j] == mujoco.mjtJoint.mjJNT_SLIDE:
+        depends = float(facts.model.jnt_stiffness[j]) > 0 or _axis_gravity(facts.model, j)
+        if not depends and not _reaches_limit(facts, j, target):
+            return (
+                f"nothing in the dynamics depends on where {joint} is (no spring, no gravity "
+                "along it, its limits never reached): a bias of its position sensor is "
+                "indistinguishable from where it started",
+                {"why": f"drive {joint} into its limits, or add a reference measurement"},
+            )
+    why = facts.still(joint)
+    if why:
+        return (
+            f"{why}: without an excursion of the state a bias is a constant offset no "
+            "dynamics reveals",
+            facts.drive_joint(joint, f"move {joint}"),
+        )
+    return "", {}
+
+
+def _axis_gravity(model: mujoco.MjModel, j: int) -> bool:
+    axis = np.asarray(model.jnt_axis[j], dtype=np.float64)
+    gravity = np.asarray(model.opt.gravity, dtype=np.float64)
+    return bool(abs(axis @ gravity) > 1e-6 * max(np.linalg.norm(gravity), 1e-12))
+
+
+def _reaches_limit(facts: _Facts, j: int, target: str) -> bool:
+    if not facts.model.jnt_limited[j]:
+        return False
+    lo, hi = facts.model.jnt_range[j]
+    q = facts.obs[..., facts.names.index(target)]
+    margin = 0.01 * (hi - lo)
+    return bool(np.any(q <= lo + margin) or np.any(q >= hi - margin))
+
+
+CHECKS = {JOINT: _joint, ACTUATOR: _actuator, BODY: _body, OBSERVATION: _observation}
