@@ -392,18 +392,12 @@ class LoopConfig:
     deploy_episodes: int = 16  # episodes of the current policy recorded on the plant a round
     excitation_episodes: int = 16  # open-loop excitation episodes a round (dynamics.excitation)
     epochs: int = 0  # epochs of each round after the first, warm-started; 0: algo.epochs
-    # active excitation: while a joint's speed exceeds motion_threshold (its units per s) in
-    # fewer than min_motion of the samples, the excitation's amplitude doubles (to the range)
-    min_motion: float = 0.25
-    motion_threshold: float = 0.05
 
     def check(self):
         _in_range("loop.rounds", self.rounds, 0)
         _in_range("loop.deploy_episodes", self.deploy_episodes, 1)
         _in_range("loop.excitation_episodes", self.excitation_episodes, 1)
         _in_range("loop.epochs", self.epochs, 0)
-        _in_range("loop.min_motion", self.min_motion, 0.0, 1.0)
-        _in_range("loop.motion_threshold", self.motion_threshold, 0.0)
 
 
 @dataclass

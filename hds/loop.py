@@ -2,10 +2,10 @@
 
   round 0   train on the simulator (cfg.env), evaluate on the plant;
   round r   deploy the current policy on the plant (`loop.deploy_episodes`) and excite it
-            open loop (`loop.excitation_episodes`, stronger while the data do not move every
-            joint: active excitation); gap discovery on all data so far; a learned model
-            (HDS) refitted on it; train warm-started on the corrected simulator
-            (`loop.epochs`); evaluate on the plant.
+            open loop (`loop.excitation_episodes`, stronger while the data cannot identify
+            what they could: active excitation, hds.discover.identifiability); gap
+            discovery on all data so far; a learned model (HDS) refitted on it; train
+            warm-started on the corrected simulator (`loop.epochs`); evaluate on the plant.
 Each round reports the named effects with intervals, the real return (mean and 95% interval
 over the runs), the sim2real gap and the data used, in <out>/rounds/<r>/round.json and a
 final table; the loop stops when the real return no longer rises above the previous round's
@@ -43,16 +43,6 @@ from hds.utils.io import atomic_write_json, read_json  # noqa: E402
 log = logging.getLogger("hds")
 
 
-def joint_motion(data: Dataset, threshold: float) -> dict[str, float]:
-    """Per joint velocity channel: the share of samples moving faster than `threshold`."""
-    names = data.obs_names or ()
-    return {
-        n: float(np.mean(np.abs(data.obs[..., i]) > threshold))
-        for i, n in enumerate(names)
-        if n.startswith("qd_")
-    }
-
-
 def record(cfg: Config, env, plant, params, key, scale: float) -> Dataset:
     """One round's data: the policy (the batch's first run) deployed from the task's initial
     states, and open-loop excitation whose amplitudes rise to `scale` of the half range."""
@@ -86,25 +76,32 @@ def concatenate(datasets: list[Dataset]) -> Dataset:
     )
 
 
+def unidentifiable(cfg: Config, data: Dataset) -> list[str]:
+    """Why the data cannot identify a candidate of discover.effects that more excitation
+    would (hds.discover.identifiability: e.g. a joint never moved past its friction); a
+    structural limit (a free cart's position bias) is no reason to record more."""
+    from hds.discover import identifiability
+
+    rows = identifiability(data, cfg.env, cfg.discover.min_motion, cfg.discover.effects)
+    return sorted({r.reason for r in rows if not r.identifiable and not r.structural})
+
+
 def excite_until_identifiable(cfg: Config, env, plant, params, key, data_so_far):
-    """Record a round's data; while some joint moves in fewer than `loop.min_motion` of the
-    samples (all data so far: friction it never overcomes cannot be identified), double the
-    excitation's amplitude, up to the actuator's whole range, and record again."""
+    """Record a round's data; while the data so far cannot identify what they could (a joint
+    that friction holds still, an actuator never driven across its range), double the
+    excitation's amplitude, up to the actuator's whole range, and record again. Returns
+    (every dataset so far, the last amplitude, notes saying what was done and why)."""
     scale, notes = cfg.dynamics.excitation_scale, []
     while True:
         key, sub = jax.random.split(key)
-        new = record(cfg, env, plant, params, sub, scale)
-        data = concatenate([*data_so_far, new])
-        motion = joint_motion(data, cfg.loop.motion_threshold)
-        still = {n: m for n, m in motion.items() if m < cfg.loop.min_motion}
-        data_so_far = [*data_so_far, new]
-        if not still or scale >= 1.0:
-            if still:
-                notes.append(f"joints {sorted(still)} still barely move at full excitation")
+        data_so_far = [*data_so_far, record(cfg, env, plant, params, sub, scale)]
+        reasons = unidentifiable(cfg, concatenate(data_so_far))
+        if not reasons or scale >= 1.0:
+            notes += [f"still not identifiable at full excitation: {r}" for r in reasons]
             return data_so_far, scale, notes
         notes.append(
-            f"{', '.join(f'{n} moves in {m:.1%} of samples' for n, m in still.items())} at "
-            f"excitation {scale:g}: recorded more at {min(1.0, 2 * scale):g}"
+            f"{'; '.join(reasons)} (excitation {scale:g} of the half range): recorded more at "
+            f"{min(1.0, 2 * scale):g}"
         )
         scale = min(1.0, 2 * scale)
 
