@@ -28,9 +28,8 @@ import hydra  # noqa: E402
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
 
-from hds import experiment  # noqa: E402
+from hds import experiment, rundir  # noqa: E402
 from hds.algo.pods import make_train  # noqa: E402
 from hds.config import Config, env_config, validate  # noqa: E402
 from hds.data import collect, initial_states  # noqa: E402
@@ -38,6 +37,7 @@ from hds.data.format import Dataset, load, save  # noqa: E402
 from hds.envs import make_env  # noqa: E402
 from hds.evaluation import mean_ci  # noqa: E402
 from hds.logger import print_table  # noqa: E402
+from hds.utils.cli import check_command_line  # noqa: E402
 from hds.utils.io import atomic_write_json, read_json  # noqa: E402
 
 log = logging.getLogger("hds")
@@ -215,14 +215,17 @@ def _round_row(report: dict) -> dict:
 @hydra.main(config_path="../conf", config_name="config", version_base="1.3")
 def main(dcfg) -> float:
     out_dir = Path(HydraConfig.get().runtime.output_dir)
-    OmegaConf.save(dcfg, out_dir / "config.yaml", resolve=True)
-    cfg = validate(dcfg)
-    rounds = run_loop(cfg, out_dir)
+    hydra_dir = out_dir / HydraConfig.get().output_subdir
+    try:
+        with rundir.claim(out_dir, dcfg, hydra_dir):  # locked; its config.yaml is dcfg's
+            cfg = validate(dcfg)  # every range check, before anything compiles
+            rounds = run_loop(cfg, out_dir)
+    except Exception as err:
+        rundir.print_one_line(err)
+        raise
     return float(rounds[-1]["real_return"][0])
 
 
 if __name__ == "__main__":
-    from hds.run import check_command_line
-
     check_command_line(sys.argv[1:])
     main()

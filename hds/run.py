@@ -24,9 +24,10 @@ from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from hydra.types import RunMode  # noqa: E402
 
 from hds import rundir  # noqa: E402
-from hds.config import Config, check_override_keys, cli_overrides, config_groups, validate  # noqa: E402
+from hds.config import validate  # noqa: E402
 from hds.evaluation import no_finite_result  # noqa: E402
 from hds.experiment import run  # noqa: E402
+from hds.utils.cli import check_command_line  # noqa: E402
 from hds.utils.io import atomic_write_bytes  # noqa: E402
 from hds.utils.runtime import enable_compilation_cache  # noqa: E402
 
@@ -69,14 +70,6 @@ def main(dcfg) -> float:
     (out_dir / "failed.txt").unlink(missing_ok=True)
     log.info("wrote %s", out_dir / "summary.json")
     return float(np.mean([r["real_return"] for r in result.rows]))
-
-
-def check_command_line(argv: list[str], schema: type = Config) -> None:
-    """Unknown keys on the command line: one line naming the keys allowed there, before Hydra."""
-    try:
-        check_override_keys(cli_overrides(argv), schema, config_groups())
-    except ValueError as err:
-        sys.exit(f"error: {err}")
 
 
 if __name__ == "__main__":

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 from pathlib import Path
 
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
@@ -21,6 +22,8 @@ from hds.discover import config as _schema  # noqa: E402,F401  (registers discov
 from hds.discover.io import load_dataset  # noqa: E402
 from hds.discover.report import corrected_env, write_report  # noqa: E402
 from hds.discover.workflow import discover  # noqa: E402
+from hds.rundir import print_one_line  # noqa: E402
+from hds.utils.cli import check_command_line  # noqa: E402
 from hds.utils.runtime import enable_compilation_cache  # noqa: E402
 
 log = logging.getLogger("hds")
@@ -28,7 +31,11 @@ log = logging.getLogger("hds")
 
 @hydra.main(config_path="../../conf", config_name="discover", version_base="1.3")
 def main(dcfg) -> float:
-    cfg = validate(dcfg)  # every range check, before anything compiles
+    try:
+        cfg = validate(dcfg)  # every range check, before anything compiles
+    except ValueError as err:
+        print_one_line(err)
+        raise
     enable_compilation_cache()
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     OmegaConf.save(dcfg, out_dir / "config.yaml", resolve=True)
@@ -56,4 +63,5 @@ def main(dcfg) -> float:
 
 
 if __name__ == "__main__":
+    check_command_line(sys.argv[1:], "discover")
     main()

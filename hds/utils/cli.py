@@ -44,3 +44,19 @@ def one_line_errors(main, argv: list[str]):
         return main(argv)
     except (ValueError, FileNotFoundError) as err:
         sys.exit(f"error: {err}")
+
+
+def check_command_line(argv: list[str], config_name: str = "config") -> None:
+    """Unknown keys in a Hydra command line's overrides (hds.run, hds.loop, hds.discover): one
+    line naming the keys allowed there, before Hydra composes anything."""
+    from hds.config import Config, check_override_keys, cli_overrides, config_groups
+
+    schema = Config
+    if config_name == "discover":
+        from hds.discover.config import DiscoverAppConfig
+
+        schema = DiscoverAppConfig
+    try:
+        check_override_keys(cli_overrides(argv), schema, config_groups())
+    except ValueError as err:
+        sys.exit(f"error: {err}")
