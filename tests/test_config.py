@@ -162,7 +162,7 @@ def test_method_presets_choose_the_groups_and_the_row_label():
         "pods_cl_effects": ("pods_cl", "none", "none", "nominal", "pods_cl"),
         "pods_corrected": ("pods_cl", "none", "none", "corrected", "pods_cl+corrected"),
         "dr": ("pods_cl", "none", "none", "randomized", "pods_cl+dr"),
-        "oracle": ("pods_cl", "none", "none", "real", "pods_cl+oracle"),
+        "oracle": ("pods_cl", "none", "none", "real", "oracle"),
     }
     assert set(expected) == set(options("method"))
     ranges = "dr.effects=[{name: coulomb_friction, target: slider, ranges: {force: [0, 40]}}]"
