@@ -122,7 +122,7 @@ def method_name(cfg: Config) -> str:
     """The label of the run's rows: its algorithm, learned model and simulator (pods, hds+mlp,
     pods+corrected, oracle)."""
     if cfg.simulator == "real":
-        return "oracle" if cfg.algo.name == "pods" else f"{cfg.algo.name}+oracle"
+        return "oracle" if cfg.algo.name == "pods_cl" else f"{cfg.algo.name}+oracle"
     parts = [cfg.algo.name]
     if cfg.uses_model():
         parts.append(cfg.dynamics.model)

@@ -181,12 +181,15 @@ def test_method_presets_choose_the_groups_and_the_row_label():
         "hds": ("hds", "exponential", "mlp", "nominal", "hds+mlp"),
         "hds_ensemble": ("hds", "exponential", "ensemble", "nominal", "hds+ensemble"),
         "hds_residual": ("hds", "exponential", "residual", "nominal", "hds+residual"),
-        "pods_corrected": ("pods", "none", "none", "corrected", "pods+corrected"),
-        "oracle": ("pods", "none", "none", "real", "oracle"),
+        "pods_cl_effects": ("pods_cl", "none", "none", "nominal", "pods_cl"),
+        "pods_corrected": ("pods_cl", "none", "none", "corrected", "pods_cl+corrected"),
+        "dr": ("pods_cl", "none", "none", "randomized", "pods_cl+dr"),
+        "oracle": ("pods_cl", "none", "none", "real", "oracle"),
     }
     assert set(expected) == set(options("method"))
+    ranges = "dr.effects=[{name: coulomb_friction, target: slider, ranges: {force: [0, 40]}}]"
     for method, want in expected.items():
-        cfg = make_config(f"method={method}")
+        cfg = make_config(f"method={method}", *([ranges] if method == "dr" else []))
         got = (cfg.algo.name, cfg.noise.schedule, cfg.dynamics.model, cfg.simulator)
         assert (*got, method_name(cfg)) == want
 

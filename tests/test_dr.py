@@ -71,7 +71,7 @@ def _trained(cfg, env):
 
 def test_a_range_of_no_width_trains_as_that_value_alone():
     plain = make_config(
-        *TINY, "method=pods_cl", f"env.effects=[{FRICTION % 'params: {force: 20.0}'}]"
+        *TINY, "method=pods_cl_effects", f"env.effects=[{FRICTION % 'params: {force: 20.0}'}]"
     )
     plain_policy, plain_return = _trained(plain, make_env(plain.env))()
     cfg = make_config(*TINY, "method=dr", f"dr.effects=[{FRICTION % 'ranges: {force: [20, 20]}'}]")
