@@ -195,16 +195,19 @@ def test_train_calls_its_hooks_and_returns_a_typed_result(tmp_path):
     )
 
 
-def test_a_failing_run_closes_its_w_and_b_run_and_a_resume_continues_it(tmp_path):
+@pytest.mark.parametrize("killed_at", [3, 6])  # after the first chunk; after the last one
+def test_a_failing_run_closes_its_w_and_b_run_and_a_resume_continues_it(tmp_path, killed_at):
     cfg = hds.compose(["debug=fast", "real=none", "logger.group=test"])
 
-    def die_after_first_chunk(epoch, params):
-        raise KeyboardInterrupt("killed after the first checkpoint")
+    def die(epoch, params):
+        if epoch == killed_at:
+            raise KeyboardInterrupt(f"killed after the checkpoint of epoch {epoch}")
 
     with pytest.raises(KeyboardInterrupt):
-        hds.train(cfg, tmp_path, Hooks(policy_params_fn=die_after_first_chunk, console=False))
+        hds.train(cfg, tmp_path, Hooks(policy_params_fn=die, console=False))
     (first,) = wandb_records(tmp_path).values()
     assert [r.exit.exit_code for r in first if r.HasField("exit")] == [1]
+    assert not (tmp_path / "summary.json").exists()
     hds.train(cfg, tmp_path, Hooks(console=False))
     runs = wandb_records(tmp_path)
     assert len(runs) == 2 and len({name.rsplit("-", 1)[1] for name in runs}) == 1  # one run id
@@ -217,7 +220,8 @@ def test_a_failing_run_closes_its_w_and_b_run_and_a_resume_continues_it(tmp_path
         for i in r.history.item
         if (i.key or "/".join(i.nested_key)) == "epoch"
     ]
-    assert sorted(set(epochs)) == [4, 5, 6]  # the resumed run logs the epochs after the checkpoint
+    # the resumed run logs the epochs after the checkpoint, and its summary in any case
+    assert sorted(set(epochs)) == list(range(killed_at + 1, 7))
 
 
 # Each layer calls downward only: the jitted core never imports the experiment layer, the

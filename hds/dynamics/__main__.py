@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -34,18 +35,18 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
 
     import jax
-    from hydra import compose, initialize_config_dir
 
     from hds import dynamics
-    from hds.config import validate
+    from hds.config import compose
     from hds.envs import make_env
     from hds.real import make_plant
     from hds.utils.runtime import enable_compilation_cache
 
+    try:
+        cfg = compose(args.overrides)  # unknown keys and range errors: one line
+    except ValueError as err:
+        sys.exit(f"error: {err}")
     enable_compilation_cache()
-    conf = Path(__file__).resolve().parents[2] / "conf"
-    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = validate(compose("config", overrides=args.overrides))
     dcfg = cfg.dynamics if cfg.dynamics.model != "none" else replace(cfg.dynamics, model="mlp")
     env = make_env(cfg.env)
     plant = make_plant(cfg.real, cfg.env)
