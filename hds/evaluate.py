@@ -83,5 +83,13 @@ def write_evaluation(policy, real_eval, out: Path, episodes, seed, gif: bool = T
     return out
 
 
+def _evaluate():
+    from hds.policy import evaluate
+
+    return evaluate
+
+
+cli.callable_module(__name__, _evaluate)
+
 if __name__ == "__main__":
     print(f"wrote {cli.one_line_errors(main, sys.argv[1:])}")

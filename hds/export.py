@@ -30,5 +30,13 @@ def main(argv: list[str]) -> Path:
     return export(policy, out)
 
 
+def _export():
+    from hds.policy import export
+
+    return export
+
+
+cli.callable_module(__name__, _export)
+
 if __name__ == "__main__":
     print(f"wrote {cli.one_line_errors(main, sys.argv[1:])}")

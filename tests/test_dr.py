@@ -69,6 +69,7 @@ def _trained(cfg, env):
     return run
 
 
+@pytest.mark.slow
 def test_a_range_of_no_width_trains_as_that_value_alone():
     plain = make_config(
         *TINY, "method=pods_cl_effects", f"env.effects=[{FRICTION % 'params: {force: 20.0}'}]"

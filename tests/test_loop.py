@@ -36,6 +36,7 @@ def uninterrupted(tmp_path_factory):
     return loop.run_loop(make_config(*LOOP), out, Hooks(console=False)), out
 
 
+@pytest.mark.slow
 def test_the_loop_names_the_friction_and_shrinks_the_gap(uninterrupted):
     rounds, out = uninterrupted
     first, second = rounds
@@ -49,6 +50,7 @@ def test_the_loop_names_the_friction_and_shrinks_the_gap(uninterrupted):
     assert (out / "rounds" / "1" / "discovery" / "report.md").is_file()
 
 
+@pytest.mark.slow
 def test_a_killed_loop_resumes_to_the_same_numbers(uninterrupted, tmp_path):
     rounds, _ = uninterrupted
 

@@ -299,6 +299,7 @@ TINY = (
 )
 
 
+@pytest.mark.slow
 def test_a_short_training_improves_the_return():
     """PODS, 6 epochs of 16 rollouts of 30 steps, 2 seeds, on the tree engine, on the double
     cart-pole (one system: a trainer's compile is the cost; at this budget the Furuta balance
@@ -306,7 +307,7 @@ def test_a_short_training_improves_the_return():
     task = "double_cartpole_balance"
     from hds.algo.pods import make_train
     from hds.envs import make_env
-    from hds.evaluate import Evaluator
+    from hds.evaluation import Evaluator
 
     cfg = make_config(f"env={task}", *TINY)
     env = make_env(cfg.env)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import types
 
 
 def boolean(text: str) -> bool:
@@ -60,3 +61,15 @@ def check_command_line(argv: list[str], config_name: str = "config") -> None:
         check_override_keys(cli_overrides(argv), schema, config_groups())
     except ValueError as err:
         sys.exit(f"error: {err}")
+
+
+def callable_module(name: str, function) -> None:
+    """Make the command's module `name` callable as `function`: `hds.evaluate(...)` and
+    `hds.export(...)` are the API's functions, and importing the command's module of the same
+    name (which makes it the package's attribute) must not turn them into a module."""
+
+    class CommandModule(types.ModuleType):
+        def __call__(self, *args, **kwargs):
+            return function()(*args, **kwargs)
+
+    sys.modules[name].__class__ = CommandModule
