@@ -221,7 +221,7 @@ def test_a_failing_run_closes_its_w_and_b_run_and_a_resume_continues_it(tmp_path
         if (i.key or "/".join(i.nested_key)) == "epoch"
     ]
     # the resumed run logs the epochs after the checkpoint, and its summary in any case
-    assert sorted(set(epochs)) == list(range(killed_at + 1, 7))
+    assert sorted(set(epochs) - {0}) == list(range(killed_at + 1, 7))  # 0: W&B's default
 
 
 # Each layer calls downward only: the jitted core never imports the experiment layer, the
