@@ -109,12 +109,11 @@ def animate_run(
     """One episode of a finished run's policy (`method`, default the run's own; the
     seed_index-th run of its batch) on the simulator it trained on beside the run's plant,
     animated into out_dir (default: the run's plots/)."""
-    from hds.policy import evaluate, load_policy
+    from hds.policy import evaluate, load_policy, run_config
 
     run_dir = Path(run_dir)
-    policy = load_policy(run_dir, method=method)
-    if seed_index:
-        policy = load_policy(run_dir, method=policy.method, **policy.config.runs()[seed_index])
+    run = run_config(run_dir).runs()[seed_index]
+    policy = load_policy(run_dir, method, **run)
     sim = evaluate(policy, episodes=1, plant=policy.training_plant())
     real = evaluate(policy, episodes=1)
     return animate(

@@ -118,7 +118,8 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
     out_dir = Path(out_dir)
     hooks = hooks or experiment.Hooks()
     experiment.enable_compilation_cache()
-    plant = experiment.run_plants(cfg)[0]
+    plants = experiment.run_plants(cfg)
+    plant = plants[0]
     env_cfg, params, data, rounds = cfg.env, None, [], []
     key = jax.random.PRNGKey(cfg.seed + 7919)  # the loop's data, apart from training's keys
     for r in range(cfg.loop.rounds + 1):
@@ -139,7 +140,7 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
                 atomic_write_json(rdir / "excitation.json", {"scale": scale, "notes": notes})
             data = [*data, *new]
             env_cfg, found = discover_round(cfg, concatenate(data), rdir)
-        report = train_round(cfg, r, env_cfg, params, data, rdir, hooks)
+        report = train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants)
         params = report.pop("params")
         report |= {"round": r, "effects": found, "excitation_scale": scale, "notes": notes}
         report["data_episodes"] = int(sum(d.n_episodes for d in data))
@@ -162,9 +163,10 @@ def discover_round(cfg: Config, data: Dataset, rdir: Path):
     return env_config(corrected_env(cfg.env, result)), [e.to_json() for e in result.missing_effects]
 
 
-def train_round(cfg, r, env_cfg, params, data, rdir, hooks) -> dict:
+def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
     """Train (warm-started from `params` after round 0) on the round's simulator and, for HDS,
-    a model refitted on the loop's data; evaluate on the plant. Cached in round.json."""
+    a model refitted on the loop's data; evaluate on `plants` (the runs' plants). A round
+    trained before is restored from its checkpoints; its report is written to round.json."""
     round_cfg = round_budget(cfg, r)
     env = make_env(env_cfg)
     model = None
@@ -179,7 +181,7 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks) -> dict:
         training = experiment.train(
             round_cfg, env, rdir, method, model, hooks=hooks, logger=logger, init_params=params
         )
-        rows = experiment.evaluate_training(round_cfg, training, experiment.run_plants(cfg))
+        rows = experiment.evaluate_training(round_cfg, training, plants)
         logger.finish(rows, {})
     real, gap = (mean_ci([row[k] for row in rows]) for k in ("real_return", "gap"))
     report = {"rows": rows, "real_return": real, "gap": gap}

@@ -9,7 +9,6 @@ observations (NumPy or JAX), evaluate it on any plant, export it to run without 
 from __future__ import annotations
 
 import functools
-import json
 import logging
 import shutil
 from dataclasses import dataclass, field
@@ -125,18 +124,23 @@ def _pick_run(cfg: Config, seed: int | None, setting: dict) -> int:
     )
 
 
+def run_config(run_dir: Path) -> Config:
+    """The validated config of a finished run directory (its config.yaml)."""
+    if not (Path(run_dir) / "config.yaml").is_file():
+        raise FileNotFoundError(
+            f"{run_dir}/config.yaml not found: give the directory of one run (a sweep's job "
+            "directory), which holds config.yaml and checkpoints/"
+        )
+    return load_config(Path(run_dir) / "config.yaml")
+
+
 def load_policy(run_dir: str | Path, method: str | None = None, seed: int | None = None, **setting):
     """The trained policy of one run of a run directory (`python -m hds.run`, `hds.train`),
     from its config.yaml and latest checkpoint. `method`: whose policy (default: the run's own
     method, e.g. pods or hds+mlp; an oracle trained beside it is `oracle`); `seed` and swept
     settings (e.g. step_size=0.04) pick the run of a batch (default: the first)."""
     run_dir = Path(run_dir)
-    if not (run_dir / "config.yaml").is_file():
-        raise FileNotFoundError(
-            f"{run_dir}/config.yaml not found: give the directory of one run (a sweep's job "
-            "directory), which holds config.yaml and checkpoints/"
-        )
-    cfg = load_config(run_dir / "config.yaml")
+    cfg = run_config(run_dir)
     root = run_dir / "checkpoints"
     trained = sorted(p.name for p in root.iterdir() if p.is_dir()) if root.is_dir() else []
     method = method or method_name(cfg)
@@ -262,7 +266,3 @@ def _npz(arrays: dict) -> bytes:
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     return buf.getvalue()
-
-
-def read_contract(directory: str | Path) -> dict:
-    return json.loads((Path(directory) / "policy.json").read_text())
