@@ -15,7 +15,6 @@ in-memory caches emptied, so each row pays its own compiles.
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import tempfile
 
 import numpy as np
@@ -55,12 +54,6 @@ def record(plant, task, episodes: int, steps: int, seed: int):
 
 def run(budget: dict) -> dict:
     title = "time to a gap-discovery report"
-    if importlib.util.find_spec("hds.discover") is None:
-        return {
-            "title": title,
-            "skipped": "the module hds.discover does not exist yet; this section measures "
-            "it once it does (python -m bench.run discovery).",
-        }
     runs = [measure(backend, budget) for backend in budget["backends"]]
     stages = sorted({k for r in runs for k in r["timing"]})
     return {

@@ -5,7 +5,8 @@
                exp(relative change / temperature), the temperature cooling every epoch
   fixed        always the step alpha (unless it is not finite)
 The base step size decays by `step_decay` every epoch in all three. `effect_ramp` grows the
-simulator's effects from nothing to their values over a span of epochs (a continuation).
+simulator's effects from nothing to their values over a span of epochs (a continuation), and
+with them the share of rollouts through a learned model of the plant (HDS).
 """
 
 from __future__ import annotations
@@ -41,6 +42,14 @@ def candidates(kind: str, line_search: int) -> int:
     return 1 if kind == "fixed" else line_search
 
 
+def ramp_share(epoch, begin: float, end: float):
+    """How far the continuation has gone at `epoch`: 0 until epoch `begin`, then linearly to 1
+    at epoch `end` (begin = end = 0: 1 from the start)."""
+    if not end:
+        return jnp.float32(1.0)
+    return jnp.clip((epoch + 1 - begin) / max(end - begin, 1.0), 0.0, 1.0)
+
+
 def effect_ramp(params, sites, epoch, begin: float, end: float):
     """A continuation: the effects' parameters stay at their nominal values (the effect does
     nothing) until epoch `begin`, then move linearly to their own, reached at epoch `end`
@@ -49,7 +58,7 @@ def effect_ramp(params, sites, epoch, begin: float, end: float):
     strength from the start holds the cart still and leaves the policy little to learn from."""
     if not end:
         return params
-    share = jnp.clip((epoch + 1 - begin) / max(end - begin, 1.0), 0.0, 1.0)
+    share = ramp_share(epoch, begin, end)
     nominal = [
         {k: effect_type(site.name).param(k).nominal for k in values}
         for site, values in zip(sites, params)

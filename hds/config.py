@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import itertools
+import logging
 import math
 import os
 import typing
@@ -24,6 +25,8 @@ from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from hds.effects import apply as _effects
 from hds.effects.library import LIBRARY, check_params, effect_type
 from hds.envs.system import BACKENDS, load_spec, resolve_xml, target_names
+
+log = logging.getLogger(__name__)
 
 
 def _one_of(key: str, value: Any, allowed) -> None:
@@ -68,6 +71,9 @@ class TaskConfig:
     q_weight: list[float] = MISSING
     qd_weight: list[float] = MISSING
     effort: float = 0.0
+    # the mean return from which a policy counts as solving the task (brax's PPO reaches -26
+    # on balance, -485 on swing-up: bench/RESULTS.md); null: no such line
+    solved_at: float | None = None
 
     def check(self):
         _one_of("env.task.kind", self.kind, ("target", "reference"))
@@ -179,8 +185,9 @@ class AnnealConfig:
     temperature: float = 1.0  # simulated annealing: initial temperature (relative return)
     cooling: float = 0.9  # simulated annealing: temperature <- temperature * cooling per epoch
     step_decay: float = 1.0  # step size <- step size * step_decay per epoch
-    # [begin, end] shares of the epochs: the simulator's effects are nominal (off) before
-    # begin and grow linearly to their values at end (a continuation); [0, 0]: off
+    # [begin, end] shares of the epochs: the simulator's effects are nominal (off) and no
+    # rollout runs through a learned model before begin; both grow linearly to their values
+    # (effects, dynamics.beta) at end (a continuation); [0, 0]: off
     effect_ramp: list[float] = field(default_factory=lambda: [0.0, 0.0])
 
     def check(self):
@@ -721,9 +728,36 @@ def env_config(env: dict) -> EnvConfig:
 
 
 def load_config(path) -> Config:
-    """The validated config of a run from its saved config.yaml."""
+    """The validated config of a run from its saved config.yaml. Settings this version of
+    hds no longer has (a run directory written by an older one) are dropped with a warning
+    naming them, so that its policies stay loadable."""
     schema = OmegaConf.structured(Config)
-    return validate(OmegaConf.merge(schema, OmegaConf.load(path)))
+    saved = OmegaConf.load(path)
+    removed = _drop_unknown_keys(saved, schema)
+    if removed:
+        log.warning(
+            "%s: ignored settings this version of hds no longer has: %s", path, ", ".join(removed)
+        )
+    return validate(OmegaConf.merge(schema, saved))
+
+
+def _drop_unknown_keys(node, schema, where: str = "") -> list[str]:
+    """Remove from `node` (in place) the keys of structured nodes that `schema` lacks;
+    returns their dotted paths."""
+    if not isinstance(node, DictConfig) or not isinstance(schema, DictConfig):
+        return []
+    if not dataclasses.is_dataclass(OmegaConf.get_type(schema)):
+        return []
+    allowed = {f.name for f in dataclasses.fields(OmegaConf.get_type(schema))}
+    removed = []
+    for key in [str(k) for k in node.keys()]:
+        path = f"{where}.{key}" if where else key
+        if key not in allowed:
+            removed.append(path)
+            del node[key]
+        elif not OmegaConf.is_missing(schema, key) and not OmegaConf.is_interpolation(node, key):
+            removed += _drop_unknown_keys(node[key], schema[key], path)
+    return removed
 
 
 register()

@@ -85,21 +85,26 @@ class Evaluator:
         return np.stack(out)
 
 
-def gap_rows(method: str, runs: list[dict], sim: np.ndarray, real: np.ndarray) -> list[dict]:
-    """One row per run of the batch (`runs`: its seed and swept settings), mean over episodes."""
+def gap_rows(
+    method: str, runs: list[dict], sim: np.ndarray, real: np.ndarray, solved_at=None
+) -> list[dict]:
+    """One row per run of the batch (`runs`: its seed and swept settings), mean over episodes;
+    with the task's `solved_at` (env.task), whether the policy solves it on the simulator
+    and on the plant."""
     rows = []
     for s, run in enumerate(runs):
         sim_r, real_r = float(np.mean(sim[s])), float(np.mean(real[s]))
-        rows.append(
-            {
-                "method": method,
-                **run,
-                "sim_return": sim_r,
-                "real_return": real_r,
-                "gap": sim_r - real_r,
-                "gap_relative": (sim_r - real_r) / max(abs(sim_r), 1e-9),
-            }
-        )
+        row = {
+            "method": method,
+            **run,
+            "sim_return": sim_r,
+            "real_return": real_r,
+            "gap": sim_r - real_r,
+            "gap_relative": (sim_r - real_r) / max(abs(sim_r), 1e-9),
+        }
+        if solved_at is not None:
+            row |= {"solved_sim": sim_r >= solved_at, "solved_real": real_r >= solved_at}
+        rows.append(row)
     return rows
 
 

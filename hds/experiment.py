@@ -370,7 +370,7 @@ def evaluate_training(cfg: Config, training: Training, plants) -> list[dict]:
     real = evaluator.real_returns(training.params)
     for line in diverged(training.method, cfg.runs(), sim, real, training.history.get("return")):
         log.warning(line)
-    return gap_rows(training.method, cfg.runs(), sim, real)
+    return gap_rows(training.method, cfg.runs(), sim, real, cfg.env.task.solved_at)
 
 
 # --- the whole experiment ------------------------------------------------------------------------

@@ -141,13 +141,16 @@ def print_table(rows: list[dict], title: str = "sim2real") -> None:
         table.add_column(k, justify="left" if k == "method" else "right")
     for r in rows:
         table.add_row(*[_cell(k, r.get(k, "")) for k in keys])
-    console.print(table)
+    # wide enough for every header whole, also where the console is not a terminal (80)
+    console.print(table, width=max(console.width, sum(len(k) + 3 for k in keys) + 1))
 
 
 def _cell(key: str, value) -> str:
     """Returns and gaps to one decimal; swept settings (step size 0.01 beside 0.04) as %g."""
     if value is None:
         return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
     if key == "gap_relative":
         return f"{value:.1%}"
     if key in ("sim_return", "real_return", "gap"):

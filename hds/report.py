@@ -24,7 +24,16 @@ from hds import plots
 from hds.evaluation import mean_ci
 from hds.utils.io import atomic_write_bytes, read_json
 
-ROW_COLUMNS = ("seed", "sim_return", "real_return", "gap", "gap_relative", "job")
+ROW_COLUMNS = (
+    "seed",
+    "sim_return",
+    "real_return",
+    "gap",
+    "gap_relative",
+    "solved_sim",
+    "solved_real",
+    "job",
+)
 
 
 def settings_of(rows: list[dict]) -> list[str]:
@@ -71,35 +80,65 @@ def aggregate(rows: list[dict]) -> list[dict]:
         entry |= {k: first[k] for k in keys if k in first}
         for key in ("sim_return", "real_return", "gap"):
             entry[key] = mean_ci([r[key] for r in group])
+        for key in ("solved_sim", "solved_real"):
+            if all(key in r for r in group):
+                entry[key] = sum(bool(r[key]) for r in group)
         out.append(entry)
     return out
 
 
+def number(x: float) -> str:
+    """Three significant digits, without an exponent for the returns of these tasks."""
+    return f"{x:.3g}" if abs(x) < 1000 else f"{x:.0f}"
+
+
 def markdown_table(summary: list[dict]) -> str:
+    solved = all("solved_sim" in e for e in summary)
     lines = [
-        "| method | friction gap | runs | sim return | real return | sim2real gap |",
-        "| --- | ---: | ---: | ---: | ---: | ---: |",
+        "| method | friction gap | runs | sim return | real return | sim2real gap |"
+        + (" solved (sim, real) |" if solved else ""),
+        "| --- | ---: | ---: | ---: | ---: | ---: |" + (" ---: |" if solved else ""),
     ]
-    fmt = lambda m, lo, hi: f"{m:.1f} [{lo:.1f}, {hi:.1f}]"  # noqa: E731
+    fmt = lambda m, lo, hi: f"{number(m)} [{number(lo)}, {number(hi)}]"  # noqa: E731
     for e in summary:
         lines.append(
             f"| {e['label']} | {e['friction_gap']} | {e['runs']} | {fmt(*e['sim_return'])} "
             f"| {fmt(*e['real_return'])} | {fmt(*e['gap'])} |"
+            + (f" {e['solved_sim']}, {e['solved_real']} |" if solved else "")
         )
     return "\n".join(lines)
 
 
 def pivot_table(summary: list[dict], key: str) -> str:
     """One row per method (and setting), one column per friction gap: the mean over seeds."""
+    means = {(e["label"], e["friction_gap"]): e[key][0] for e in summary}
+    return _pivot(summary, lambda label, gap: number(means[(label, gap)]))
+
+
+def relative_cost_table(summary: list[dict], reference: str = "oracle") -> str | None:
+    """Per method and friction gap, its real cost (minus the return) over the `reference`
+    method's at that gap: 1 is as good as the oracle, above 1 worse. None without it."""
+    cost = {(e["label"], e["friction_gap"]): -e["real_return"][0] for e in summary}
+    if not any(label == reference for label, _ in cost):
+        return None
+
+    def cell(label, gap):
+        ref = cost.get((reference, gap))
+        return f"{cost[(label, gap)] / ref:.2f}" if ref else "-"
+
+    return _pivot(summary, cell)
+
+
+def _pivot(summary: list[dict], cell) -> str:
     gaps = sorted({e["friction_gap"] for e in summary})
     labels = list(dict.fromkeys(e["label"] for e in summary))
-    means = {(e["label"], e["friction_gap"]): e[key][0] for e in summary}
+    present = {(e["label"], e["friction_gap"]) for e in summary}
     lines = [
         "| method | " + " | ".join(f"gap x{g:g}" for g in gaps) + " |",
         "| --- |" + " ---: |" * len(gaps),
     ]
     for m in labels:
-        cells = [f"{means[(m, g)]:.0f}" if (m, g) in means else "-" for g in gaps]
+        cells = [cell(m, g) if (m, g) in present else "-" for g in gaps]
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -225,6 +264,17 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
                 "",
                 pivot_table(summary, "gap"),
                 "",
+                *(
+                    [
+                        "Real cost (minus the mean real return) over the oracle's at the same "
+                        "plant (1: as good as the oracle; above: worse):",
+                        "",
+                        relative,
+                        "",
+                    ]
+                    if (relative := relative_cost_table(summary))
+                    else []
+                ),
             ]
             if len({r["friction_gap"] for r in rows}) > 1
             else []

@@ -225,6 +225,19 @@ def test_unknown_keys_of_discover_list_the_allowed_ones():
     assert "horizon, stride, warmup" in str(err.value)
 
 
+def test_a_run_directory_of_an_older_hds_loads_without_its_removed_settings(tmp_path, caplog):
+    from hds.config import load_config
+
+    cfg = make_config("method=pods_cl", "algo.epochs=7")
+    saved = OmegaConf.create(OmegaConf.to_container(OmegaConf.structured(cfg)))
+    saved.discover.min_share = 0.1  # settings an older hds had and this one does not
+    saved.retired = 1
+    OmegaConf.save(saved, tmp_path / "config.yaml")
+    loaded = load_config(tmp_path / "config.yaml")
+    assert loaded.algo.epochs == 7 and loaded.algo.improve_in == "closed_loop"
+    assert "no longer has: discover.min_share, retired" in caplog.text
+
+
 def test_wrong_type_fails():
     with pytest.raises(ConfigCompositionException) as err:
         make_config("algo.epochs=many")

@@ -331,6 +331,20 @@ def test_a_vmapped_beta_sweep_gives_the_numbers_of_separate_runs(setup, fitted, 
     assert not np.allclose(first[1], first[2])  # the share matters
 
 
+def test_the_model_share_grows_in_with_the_effect_ramp(setup, fitted, tmp_path):
+    """anneal.effect_ramp=[0.5, 0.75] of 4 epochs: no rollout through the model in epochs 0
+    and 1 (the run without a model, to the bit), then dynamics.beta of them."""
+    _, env, *_ = setup
+    model, _ = fitted("mlp")
+    ramp = ("algo.epochs=4", "anneal.effect_ramp=[0.5,0.75]")
+    _, ramped = trained(make_config(*SMALL, *ramp), env, tmp_path / "ramped", "hds", model)
+    _, alone = trained(
+        make_config(*SMALL, *ramp, "dynamics.beta=0"), env, tmp_path / "alone", "hds", None
+    )
+    np.testing.assert_array_equal(ramped["loss"][0][:2], alone["loss"][0][:2])
+    assert not np.allclose(ramped["loss"][0][2:], alone["loss"][0][2:])
+
+
 def test_a_beta_sweep_needs_a_model():
     with pytest.raises(ValueError, match="sweep.beta.*dynamics.model = none"):
         make_config("sweep.beta=[0.1,0.2]")

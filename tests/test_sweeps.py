@@ -329,3 +329,31 @@ def test_other_launchers_run_a_sweep_with_the_vmapped_numbers(tmp_path, launcher
     for row in summary["rows"]:  # one job per seed gives what one program for both gave
         for key in ("sim_return", "real_return"):
             assert row[key] == pytest.approx(vmapped_seeds[row["seed"]][key], rel=1e-5)
+
+
+def test_the_report_counts_solved_runs_and_costs_against_the_oracle():
+    from hds.report import aggregate, markdown_table, relative_cost_table
+
+    def row(method, gap, seed, real):
+        sim = -3.0
+        return {
+            "method": method,
+            "friction_gap": gap,
+            "seed": seed,
+            "sim_return": sim,
+            "real_return": real,
+            "gap": sim - real,
+            "solved_sim": True,
+            "solved_real": real >= -30,
+        }
+
+    rows = [row("oracle", g, s, -4.0 * (1 + g)) for g in (0.0, 1.0) for s in (0, 1)]
+    rows += [row("pods_cl", 0.0, s, -6.0) for s in (0, 1)]
+    rows += [row("pods_cl", 1.0, 0, -10.0), row("pods_cl", 1.0, 1, -50.0)]
+    summary = aggregate(rows)
+    assert "| pods_cl | 1.0 | 2 | -3 [-3, -3] | -30 [" in markdown_table(summary)
+    assert markdown_table(summary).splitlines()[-1].endswith("| 2, 1 |")  # sim, real
+    table = relative_cost_table(summary)
+    assert "| oracle | 1.00 | 1.00 |" in table
+    assert "| pods_cl | 1.50 | 3.75 |" in table  # 6 / 4 and 30 / 8
+    assert relative_cost_table([e for e in summary if e["method"] != "oracle"]) is None

@@ -95,21 +95,29 @@ def make_train(cfg, env, model=None) -> Trainer:
         algo.grad_window,
     )
 
+    ramp = [share * algo.epochs for share in cfg.anneal.effect_ramp]  # [begin, end] epochs
+
     # The split of the batch is static: a swept beta (sweep.beta) runs the widest split, and
     # each run uses its own share of it (`shares`), so every run sees the rollouts a run with
-    # that beta alone would (jax.random.split's keys are prefix-consistent).
+    # that beta alone would (jax.random.split's keys are prefix-consistent). The model's share
+    # grows in with the effects (anneal.effect_ramp): from none while the policy learns on the
+    # simulator alone, as dry friction does, whose gradient a model of the plant carries too.
     def model_count(beta):
         return jnp.round(jnp.float32(beta) * algo.rollouts).astype(jnp.int32)
 
     betas = (cfg.sweep.beta or [cfg.dynamics.beta]) if model is not None else [0.0]
+    if ramp[1]:
+        betas = [*betas, 0.0]
     n_model_max, n_model_min = int(model_count(max(betas))), int(model_count(min(betas)))
     parts = [(env, algo.rollouts - n_model_min, "effects")]
     if n_model_max:
         parts.append((model, n_model_max, None))
 
-    def shares(hparams):
-        """Per part, which of its rollouts this run uses, and the regression's row order."""
-        n_model = model_count(hparams["beta"]) if n_model_max else 0
+    def shares(hparams, epoch):
+        """Per part, which of its rollouts this run uses at `epoch`, and the regression's row
+        order."""
+        beta = hparams["beta"] * anneal.ramp_share(epoch, *ramp)
+        n_model = model_count(beta) if n_model_max else 0
         n_sim = algo.rollouts - n_model
         i = jnp.arange(algo.rollouts)
         rows = jnp.where(i < n_sim, i, parts[0][1] + i - n_sim)
@@ -122,7 +130,6 @@ def make_train(cfg, env, model=None) -> Trainer:
         return TrainState(params, optimizer.init(params), jnp.array(0, jnp.int32), key)
 
     randomized = cfg.simulator == "randomized"
-    ramp = [share * algo.epochs for share in cfg.anneal.effect_ramp]  # [begin, end] epochs
 
     def collect(engine, params, count, policy_params, hparams, epoch, key, per_rollout=False):
         """Stage 1: roll the (noisy) policy out from `count` initial states (`per_rollout`:
@@ -242,7 +249,7 @@ def make_train(cfg, env, model=None) -> Trainer:
             collect_and_improve(e, pk, n, state, hparams, k)
             for (e, n, pk), k in zip(parts, (sim_key, model_key))
         ]
-        masks, rows = shares(hparams)
+        masks, rows = shares(hparams, state.epoch)
         obs = jnp.concatenate([o[0] for o in outs])[rows].reshape(-1, sim.n_obs)
         targets = jnp.concatenate([o[1].actions for o in outs])[rows].reshape(-1, sim.n_act)
         params, opt_state, loss = regress_batch(
