@@ -142,7 +142,8 @@ def print_table(rows: list[dict], title: str = "sim2real") -> None:
     for r in rows:
         table.add_row(*[_cell(k, r.get(k, "")) for k in keys])
     # wide enough for every header whole, also where the console is not a terminal (80)
-    console.print(table, width=max(console.width, sum(len(k) + 3 for k in keys) + 1))
+    width = max(console.width, sum(len(k) + 4 for k in keys) + 2)
+    Console(file=console.file, width=width, force_terminal=console.is_terminal).print(table)
 
 
 def _cell(key: str, value) -> str:
