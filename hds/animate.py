@@ -116,15 +116,30 @@ def animate_run(
     policy = load_policy(run_dir, method, **run)
     sim = evaluate(policy, episodes=1, plant=policy.training_plant())
     real = evaluate(policy, episodes=1)
-    return animate(
-        sim.episodes.obs[0],
-        real.episodes.obs[0],
+    out = Path(out_dir or run_dir / "plots") / f"{policy.method}_sim_vs_real.gif"
+    return animate_episodes(
+        sim.episodes,
+        real.episodes,
         policy.obs_names,
+        policy.config.real.plant,
         policy.dt,
-        Path(out_dir or run_dir / "plots") / f"{policy.method}_sim_vs_real.gif",
+        out,
+        policy.env.xml,
+    )
+
+
+def animate_episodes(sim, real, names, plant: str, dt: float, path: Path, xml: str) -> Path:
+    """The first episode of `sim` and of `real` (hds.real.Episodes from the same initial
+    state; observations named `names`) side by side, titled with their returns."""
+    return animate(
+        sim.obs[0],
+        real.obs[0],
+        names,
+        dt,
+        path,
         titles=(
             f"simulator: return {sim.returns[0]:.0f}",
-            f"{policy.config.real.plant} plant: return {real.returns[0]:.0f}",
+            f"{plant} plant: return {real.returns[0]:.0f}",
         ),
-        xml=policy.env.xml,
+        xml=xml,
     )

@@ -439,6 +439,9 @@ class Config:
     # the key of those initial states: one set for every method, seed and job, so that rows
     # compare like for like and a multirun over seeds matches a run of them together
     eval_seed: int = 10_000
+    # draw each method's first policy on its simulator beside the plant (one evaluation
+    # episode) into plots/<method>_sim_vs_real.gif, and log it to W&B
+    gif: bool = False
     checkpoints_kept: int = 3
     # continue a run directory whose run had another configuration (hds/rundir.py refuses
     # that otherwise): the epochs before and after the change ran with different settings

@@ -32,13 +32,16 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from hds import plots
 from hds.algo.pods import Trainer, make_train
 from hds.algo.randomize import randomized_env
+from hds.animate import animate_episodes
 from hds.checkpoint import Checkpoints
 from hds.config import Config, env_config
+from hds.data import initial_states
 from hds.effects.apply import place
 from hds.envs import Env, make_env
 from hds.evaluation import Evaluator, diverged, gap_rows
 from hds.logger import RunLogger, print_table
-from hds.real import make_plant
+from hds.real import make_plant, rollout
+from hds.real.brax_plant import BraxPlant
 from hds.utils.io import atomic_write_json, read_json
 from hds.utils.runtime import enable_compilation_cache, over_runs, runs_vmapped
 
@@ -407,6 +410,9 @@ def run(cfg: Config, out_dir: str | Path | None = None, hooks: Hooks | None = No
             logger.finish(rows, _method_figures(method, training.history, rows))
             if discovery and method == methods[0][0]:
                 logger.log_files({"discovery_report": out_dir / "discovery" / "report.md"})
+            if cfg.gif:
+                gif = sim_vs_real_gif(cfg, training, plants[0], out_dir / "plots")
+                logger.log_files({"sim_vs_real_gif": gif})
         result.rows += rows
         result.histories[method], result.timing[method] = training.history, training.timing
     if hooks.console:
@@ -452,6 +458,25 @@ def retrain(cfg: Config, corrected_env: dict, out_dir: Path) -> dict:
         "effects": [OmegaConf.to_container(OmegaConf.structured(e)) for e in cfg.real.effects],
     }
     return {"plant": plant_desc, "rows": rows}
+
+
+def sim_vs_real_gif(cfg: Config, training: Training, plant, out_dir: Path) -> Path:
+    """The batch's first policy, one evaluation episode on the simulator it trained on beside
+    the same on `plant`, drawn into out_dir/<method>_sim_vs_real.gif (`gif=true`)."""
+    env = training.env
+    params = jax.tree.map(lambda x: x[0], training.params)
+    act = jax.jit(training.trainer.policy.apply)
+
+    def policy(obs):
+        return np.asarray(act(params, jnp.asarray(obs, jnp.float32)))
+
+    q0, qd0 = initial_states(env.task, cfg.eval_seed, 1)
+    sim, real = (
+        rollout(p, env.task, q0, qd0, policy, env.task.horizon) for p in (BraxPlant(env), plant)
+    )
+    path = out_dir / f"{training.method}_sim_vs_real.gif"
+    dt = cfg.env.timestep * cfg.env.frames_per_step
+    return animate_episodes(sim, real, env.sim.obs_names, cfg.real.plant, dt, path, cfg.env.xml)
 
 
 def _method_figures(method: str, history: dict, rows: list[dict]) -> dict:

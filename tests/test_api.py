@@ -21,7 +21,10 @@ from hds.experiment import Hooks
 from tests.conftest import ROOT, wandb_keys, wandb_records
 
 # Two step sizes x two seeds: four runs in one program.
-SWEEP = ("debug=fast", "algo.epochs=3", "algo.chunk=3", "seeds=2", "sweep.step_size=[0.01,0.04]")
+SWEEP = (
+    *("debug=fast", "algo.epochs=3", "algo.chunk=3", "seeds=2", "sweep.step_size=[0.01,0.04]"),
+    "gif=true",
+)
 ENV = {**os.environ, "WANDB_MODE": "offline"}
 
 
@@ -67,6 +70,10 @@ def test_a_sweep_of_two_step_sizes_is_labelled_everywhere(sweep_run, tmp_path):
     for label in ("seed0_step_size0.01", "seed1_step_size0.01", "seed1_step_size0.04"):
         assert f"return/{label}" in keys
     assert "epoch" in keys
+    # the GIF of the first run, drawn beside the plant, as a file and as a W&B video
+    assert (out / "plots" / "pods_sim_vs_real.gif").read_bytes()[:6] == b"GIF89a"
+    assert json.loads(keys["sim_vs_real_gif/_type"]) == "video-file"
+    assert json.loads(keys["sim_vs_real_gif/path"]).endswith(".gif")
     summary = wandb_keys(records, "summary")
     assert {"real_return/mean", "gap/seed1_step_size0.04", "sim_return/seed0_step_size0.01"} <= (
         set(summary)
