@@ -29,7 +29,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 
-from hds import experiment, rundir  # noqa: E402
+from hds import experiment, plots, rundir  # noqa: E402
 from hds.algo.pods import make_train  # noqa: E402
 from hds.config import Config, env_config, validate  # noqa: E402
 from hds.data import collect, initial_states  # noqa: E402
@@ -149,6 +149,7 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
             log.info("round %d: the real return no longer improves; the loop stops", r)
             break
     atomic_write_json(out_dir / "loop.json", {"rounds": rounds})
+    plots.save(plots.loop_rounds(rounds), out_dir / "plots" / "loop_rounds.png")
     if hooks.console:
         print_table([_round_row(x) for x in rounds], title=f"{cfg.name}: the sim2real loop")
     return rounds

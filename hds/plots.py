@@ -118,6 +118,25 @@ def gap_vs_friction(summary: list[dict]) -> plt.Figure:
     return fig
 
 
+def loop_rounds(rounds: list[dict]) -> plt.Figure:
+    """The sim2real loop's real-plant return and sim2real gap per round, with the 95% interval
+    over the runs (reports of hds.loop.run_loop)."""
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    x = [r["round"] for r in rounds]
+    for ax, key, title in (
+        (axes[0], "real_return", "return on the real plant"),
+        (axes[1], "gap", "sim2real gap (sim - real)"),
+    ):
+        mean, lo, hi = (np.array([r[key][i] for r in rounds]) for i in range(3))
+        ax.errorbar(x, mean, yerr=[mean - lo, hi - mean], fmt="o-", capsize=4)
+        ax.set_xticks(x)
+        ax.set_xlabel("loop round (0: the simulator as given)")
+        ax.set_ylabel("return" if key == "real_return" else "gap")
+        ax.set_title(title)
+    fig.tight_layout()
+    return fig
+
+
 def trajectories(sim_obs, real_obs, names, dt: float) -> plt.Figure:
     """One episode of a policy from the same initial state on the simulator and on the plant:
     each observed variable against time."""

@@ -48,6 +48,7 @@ def test_the_loop_names_the_friction_and_shrinks_the_gap(uninterrupted):
     report = json.loads((out / "loop.json").read_text())
     assert [r["round"] for r in report["rounds"]] == [0, 1]
     assert (out / "rounds" / "1" / "discovery" / "report.md").is_file()
+    assert (out / "plots" / "loop_rounds.png").read_bytes()[:4] == b"\x89PNG"
 
 
 @pytest.mark.slow
@@ -91,3 +92,15 @@ def test_active_excitation_pushes_harder_within_the_actuator_range():
     actions = np.concatenate([d.actions for d in data])
     low, high = env.sim.ctrl_range[0]
     assert actions.min() >= low and actions.max() <= high
+
+
+def test_the_loop_figure_shows_each_round_s_return_and_gap():
+    from hds import plots
+
+    rounds = [
+        {"round": 0, "real_return": (-5.0, -6.0, -4.0), "gap": (1.0, 0.5, 1.5)},
+        {"round": 1, "real_return": (-3.0, -3.5, -2.5), "gap": (0.1, 0.0, 0.2)},
+    ]
+    fig = plots.loop_rounds(rounds)
+    returns, gaps = (ax.lines[0].get_ydata() for ax in fig.axes)
+    assert list(returns) == [-5.0, -3.0] and list(gaps) == [1.0, 0.1]
