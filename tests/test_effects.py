@@ -137,9 +137,15 @@ def test_pods_trains_with_it_and_the_policy_holds_on_the_plant():
         assert np.all(r1 > r0 + 0.1 * np.abs(r0)), (returns.__name__, r0, r1)
 
 
-def test_a_name_is_registered_once_and_a_missing_plant_law_is_named(cfg):
+def test_registration_refuses_twice_and_incomplete_and_the_plant_names_a_missing_law(cfg):
     with pytest.raises(ValueError, match="'force_bias' is registered already"):
         register(ForceBias())
+
+    class Incomplete(Effect):
+        name = "incomplete"
+
+    with pytest.raises(ValueError, match=r"Incomplete lacks \['target_kind'"):
+        register(Incomplete())
 
     class Unplanted(ForceBias):
         name = "unplanted_force"

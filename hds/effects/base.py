@@ -14,12 +14,14 @@ import math
 from dataclasses import dataclass
 
 JOINT, ACTUATOR, BODY, OBSERVATION = "joint", "actuator", "body", "observation"
+TARGET_KINDS = (JOINT, ACTUATOR, BODY, OBSERVATION)
 
 # Where in a simulator step an effect acts, in this order:
 SYSTEM = "system"  # edits the brax System (its differentiable law: `modify_system`)
 COMMAND = "command"  # on the control, once per environment step (`command`)
 SUBSTEP = "substep"  # every physics substep: filter states, joint forces (`substep`)
 OBSERVE = "observe"  # on the observation (`observe`)
+STAGES = (SYSTEM, COMMAND, SUBSTEP, OBSERVE)
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from hds.effects.actuator import (
     ActuatorLag,
     ActuatorOffset,
 )
-from hds.effects.base import Effect
+from hds.effects.base import STAGES, TARGET_KINDS, Effect, Param
 from hds.effects.body import MassScale
 from hds.effects.friction import CoulombFriction, ViscousDamping
 from hds.effects.sensor import SensorBias
@@ -28,6 +28,18 @@ LIBRARY: dict[str, Effect] = {}
 def register(effect: Effect) -> Effect:
     """Add an effect to the library under its name (configs, simulators, plants and
     discovery then know it); returns it."""
+    what = type(effect).__name__
+    required = ("name", "target_kind", "description", "physical_name", "params", "stage")
+    missing = [a for a in required if not hasattr(effect, a)]
+    if missing:
+        raise ValueError(f"effect {what} lacks {missing}; set them as class attributes")
+    if effect.stage not in STAGES or effect.target_kind not in TARGET_KINDS:
+        raise ValueError(
+            f"effect {what}: stage {effect.stage!r} must be one of {list(STAGES)} and "
+            f"target_kind {effect.target_kind!r} one of {list(TARGET_KINDS)}"
+        )
+    if not effect.params or not all(isinstance(p, Param) for p in effect.params):
+        raise ValueError(f"effect {what}: params must be a tuple of hds.effects.Param")
     if effect.name in LIBRARY:
         raise ValueError(f"effect '{effect.name}' is registered already; give it another name")
     LIBRARY[effect.name] = effect
