@@ -23,6 +23,7 @@ from hds.envs import make_env
 from hds.evaluation import Evaluator
 from hds.real import make_plant
 from hds.real.mujoco_plant import MujocoPlant
+from tests.test_train import TINY  # the analytic backend, a tiny budget
 
 
 class ForceBias(Effect):
@@ -114,18 +115,7 @@ def test_the_mujoco_plant_applies_it_and_agrees_with_the_simulator(cfg):
 def test_pods_trains_with_it_and_the_policy_holds_on_the_plant():
     """Trained on the analytic simulator carrying the toy effect, evaluated on the C MuJoCo
     plant carrying it too (and nothing else): the policy improves on both."""
-    cfg = make_config(
-        "env.backend=analytic",
-        f"env.effects=[{TOY}]",
-        "real=mujoco",
-        f"real.effects=[{TOY}]",
-        "algo.epochs=6",
-        "algo.chunk=3",
-        "algo.rollouts=16",
-        "env.task.horizon=30",
-        "algo.inner_epochs=4",
-        "logger=none",
-    )
+    cfg = make_config(*TINY, f"env.effects=[{TOY}]", "real=mujoco", f"real.effects=[{TOY}]")
     env = make_env(cfg.env)
     trainer = make_train(cfg, env)
     keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(2))
