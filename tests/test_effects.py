@@ -20,6 +20,7 @@ from hds.algo.pods import make_train
 from hds.effects import LIBRARY, Effect, Param, register
 from hds.effects.base import JOINT, SUBSTEP
 from hds.envs import make_env
+from hds.envs.system import load_spec
 from hds.evaluation import Evaluator
 from hds.real import make_plant
 from hds.real.mujoco_plant import MujocoPlant
@@ -41,9 +42,8 @@ class ForceBias(Effect):
         return p["force"]
 
 
-FORCE = 20.0  # N on the cart; the actuator's gear is 100 N per control unit
+FORCE = 20.0  # N on the cart
 TOY = f"{{name: force_bias, target: slider, params: {{force: {FORCE}}}}}"
-SAME_FORCE = {"name": "actuator_offset", "target": "slide", "params": {"offset": FORCE / 100}}
 T = 15  # environment steps of 0.04 s
 
 
@@ -57,6 +57,12 @@ def toy_effect():
 @pytest.fixture(scope="module")
 def cfg():
     return make_config("env.backend=analytic", f"env.effects=[{TOY}]")
+
+
+def same_force(env_cfg) -> dict:
+    """The built-in effect that exerts FORCE on the cart: an offset of FORCE / gear."""
+    gear = float(load_spec(env_cfg.xml).compile().actuator("slide").gear[0])
+    return {"name": "actuator_offset", "target": "slide", "params": {"offset": FORCE / gear}}
 
 
 def hanging_start(episodes: int = 3):
@@ -98,7 +104,7 @@ def test_a_registered_effect_is_in_the_config_schema_and_validated(cfg):
 
 def test_the_simulator_applies_it_as_the_same_force_from_an_actuator(cfg):
     toy = sim_trajectory(make_env(cfg.env))
-    offset = sim_trajectory(make_env(cfg.env, effects=[SAME_FORCE]))
+    offset = sim_trajectory(make_env(cfg.env, effects=[same_force(cfg.env)]))
     nominal = sim_trajectory(make_env(cfg.env, effects=[]))
     np.testing.assert_allclose(toy, offset, atol=1e-5)
     assert np.all(toy[:, -1, 0] - nominal[:, -1, 0] > 0.01)  # it pushed the cart forward
@@ -106,7 +112,7 @@ def test_the_simulator_applies_it_as_the_same_force_from_an_actuator(cfg):
 
 def test_the_mujoco_plant_applies_it_and_agrees_with_the_simulator(cfg):
     toy = plant_trajectory(MujocoPlant(cfg.env, cfg.env.effects))
-    offset = plant_trajectory(MujocoPlant(cfg.env, [SAME_FORCE]))
+    offset = plant_trajectory(MujocoPlant(cfg.env, [same_force(cfg.env)]))
     np.testing.assert_allclose(toy, offset, atol=1e-9)
     np.testing.assert_allclose(toy, sim_trajectory(make_env(cfg.env)), atol=2e-3)
     assert np.all(toy[:, -1, 0] - plant_trajectory(MujocoPlant(cfg.env))[:, -1, 0] > 0.01)
