@@ -93,7 +93,7 @@ class EnvConfig:
     frames_per_step: int = 2  # env dt = timestep * frames_per_step
     sharpness: float = 50.0  # smoothing of Coulomb friction and dead zones in the simulator
     # Coulomb friction's gradient taken from tanh(k v) at this sharpness while its value stays
-    # at env.sharpness (a surrogate gradient, hds.effects.apply.friction_direction); null: off
+    # at env.sharpness (a surrogate gradient, hds.effects.friction.friction_direction); null: off
     gradient_sharpness: float | None = None
     task: TaskConfig = field(default_factory=TaskConfig)
     effects: list[EffectConfig] = _effects_field()  # effects the simulator already models

@@ -249,7 +249,7 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
 
 
 def test_a_surrogate_friction_gradient_keeps_the_sharp_value():
-    from hds.effects.apply import friction_direction
+    from hds.effects.friction import friction_direction
 
     v = jnp.linspace(-0.2, 0.2, 41)
     sharp = jax.vmap(jax.value_and_grad(lambda x: friction_direction(x, 50.0)))(v)

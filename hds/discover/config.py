@@ -15,7 +15,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
 from hds.config import Config, DiscoverConfig, _in_range
-from hds.effects.library import FRICTION_EFFECTS
+from hds.effects.library import effect_type
 
 __all__ = ["DiscoverAppConfig", "DiscoverConfig", "EmpsConfig"]
 
@@ -65,7 +65,7 @@ class DiscoverAppConfig(Config):
 def plant_has_effects(real) -> bool:
     """Whether a `real` config's plant differs from the nominal model: some effect that is not
     friction, or friction not scaled to zero by real.friction_gap."""
-    return any(e.name not in FRICTION_EFFECTS or real.friction_gap > 0 for e in real.effects)
+    return any(not effect_type(e.name).friction or real.friction_gap > 0 for e in real.effects)
 
 
 def register() -> None:

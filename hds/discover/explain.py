@@ -73,14 +73,14 @@ def _batch(model, state: State, width: int):
         theta0[i, own] = model.start[own]
         chosen = state.slots + own
         slots[i, : len(chosen)] = chosen
-        if cand.name == "action_delay":
+        if cand.shifts_actions:
             delay[i, cand.actuator] = cand.steps
     return theta0, slots, delay
 
 
 def candidate_params(model, cand: Candidate, theta, delay) -> dict[str, float]:
-    if cand.name == "action_delay":
-        return {"steps": int(delay[cand.actuator])}
+    if cand.shifts_actions:
+        return {cand.params[0]: int(delay[cand.actuator])}
     return {p: float(theta[s]) for p, s in zip(cand.params, cand.slots, strict=True)}
 
 
@@ -297,7 +297,7 @@ class _Fitter:
             theta0[i, own] = state.theta[own]
             slots[i, : len(own)] = own
             for c in chosen:
-                if c.name == "action_delay":
+                if c.shifts_actions:
                     delay[i, c.actuator] = state.delay[c.actuator]
         batch = self.run(theta0, slots, delay)
         return [self.state(chosen, batch, i) for i, chosen in enumerate(sets)]
@@ -314,9 +314,9 @@ def intervals(model, state: State, delay_steps: dict | None = None) -> dict:
     where = {s: i for i, s in enumerate(state.slots)}
     out = {}
     for cand in state.selected:
-        if cand.name == "action_delay":
+        if cand.shifts_actions:
             steps = int(state.delay[cand.actuator])
-            out[cand.key] = {"steps": (delay_steps or {}).get(cand.key, [steps, steps])}
+            out[cand.key] = {cand.params[0]: (delay_steps or {}).get(cand.key, [steps, steps])}
             continue
         out[cand.key] = {}
         for p, s in zip(cand.params, cand.slots, strict=True):
@@ -366,7 +366,7 @@ def delay_range(engine: Engine, state: State, ident, floor: float) -> dict[str, 
     out = {}
     n_c = len(model.candidates)
     for cand in state.selected:
-        if cand.name != "action_delay":
+        if not cand.shifts_actions:
             continue
         delays = np.tile(state.delay, (n_c, 1))
         lengths = np.arange(min(model.max_delay + 1, n_c))

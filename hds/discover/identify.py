@@ -27,7 +27,8 @@ import numpy as np
 
 from hds.data.format import Dataset
 from hds.discover.data import noise_level
-from hds.effects.library import ACTUATOR, BODY, JOINT, LIBRARY, OBSERVATION
+from hds.effects.base import ACTUATOR, BODY, JOINT, OBSERVATION
+from hds.effects.library import LIBRARY, effect_type
 from hds.envs.system import load_spec, one_dof_joints, state_names
 
 MIN_SPAN = 0.05  # share of the actuator's range the control must span to show a gain
@@ -86,7 +87,7 @@ def identifiability(
     facts = _Facts(dataset, model, min_motion)
     rows = []
     for name in effects or list(LIBRARY):
-        kind = LIBRARY[name].target_kind
+        kind = effect_type(name).target_kind
         for target in facts.targets[kind]:
             reason, excitation = CHECKS[kind](facts, name, target)
             structural = bool(reason) and not excitation.get("actuator")
@@ -197,14 +198,15 @@ def _actuator(facts: _Facts, name: str, target: str):
             facts.drive(a, f"move {joint} in both directions"),
         )
     span = float(np.ptp(u)) / (hi - lo)
-    if name in ("actuator_gain", "actuator_deadzone") and span < MIN_SPAN:
+    needs = effect_type(name).needs
+    if needs == "span" and span < MIN_SPAN:
         return (
             f"the control of {target} spans {span:.1%} of its range (at least {MIN_SPAN:.0%} "
             "needed to tell a force's size from its law)",
             facts.drive(a, "controls across the range"),
         )
     changes = float(np.mean(np.abs(np.diff(u, axis=1)) > MIN_SPAN * (hi - lo)))
-    if name in ("actuator_lag", "action_delay") and changes < MIN_CHANGES:
+    if needs == "changes" and changes < MIN_CHANGES:
         return (
             f"the control of {target} changes in {changes:.1%} of the steps (at least "
             f"{MIN_CHANGES:.0%} needed to show how fast the actuator follows)",

@@ -25,14 +25,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from hds.effects.apply import as_spec
-from hds.effects.library import ACTUATOR, JOINT, LIBRARY, OBSERVATION
+from hds.effects.base import ACTUATOR, JOINT, OBSERVATION
+from hds.effects.library import effect_type
 from hds.envs.system import make_simulator
-
-# Fitting bounds tighter than the library's where the physics degenerates (a massless body, an
-# actuator with no force), and start values where the nominal value has no gradient (a lag of
-# time constant 0 passes the command through; its derivative is exactly 0 there).
-FIT_BOUNDS = {("actuator_gain", "gain"): (0.05, 20.0), ("mass_scale", "scale"): (0.05, 20.0)}
-START_IN_TIMESTEPS = {("actuator_lag", "time_constant"): 0.5}
 
 
 @dataclass(frozen=True)
@@ -43,20 +38,24 @@ class Candidate:
     target: str
     slots: tuple[int, ...] = ()
     params: tuple[str, ...] = ()
-    actuator: int = -1  # action_delay: the actuator's index
-    steps: int = 0  # action_delay: the delay, environment steps
+    actuator: int = -1  # an effect that shifts actions (a delay): the actuator's index
+    steps: int = 0  # ... and the shift, environment steps
 
     @property
     def key(self) -> str:
         return f"{self.name}@{self.target}"
 
     @property
+    def shifts_actions(self) -> bool:
+        return effect_type(self.name).shifts_actions
+
+    @property
     def label(self) -> str:
-        return f"{self.key}={self.steps}" if self.name == "action_delay" else self.key
+        return f"{self.key}={self.steps}" if self.shifts_actions else self.key
 
 
 def _unit(name: str, param: str, kind: str, target: str, joint_type: dict, obs_unit: dict) -> str:
-    unit = LIBRARY[name].param(param).unit
+    unit = effect_type(name).param(param).unit
     if kind == JOINT and " or " in unit:  # "N or N m": slide joints take the first
         slide, hinge = unit.split(" or ")
         return slide if joint_type[target] == "slide" else hinge
@@ -165,7 +164,7 @@ def candidate_specs(sim, effects: list[str], existing: set[str]) -> list[tuple[s
     """(effect, target) of every candidate: each effect type on every place of its kind."""
     out = []
     for name in effects:
-        kind = LIBRARY[name].target_kind
+        kind = effect_type(name).target_kind
         for target in sim.targets[kind]:
             if f"{name}@{target}" not in existing:
                 out.append((name, target))
@@ -181,7 +180,9 @@ def build_model(env_cfg, dt: float, effects: list[str], max_delay: int, warmup: 
     frames = round(dt / probe.timestep)
     existing = {e.key for e in env_effects}
     continuous = [
-        (n, t) for n, t in candidate_specs(probe, effects, existing) if n != "action_delay"
+        (n, t)
+        for n, t in candidate_specs(probe, effects, existing)
+        if not effect_type(n).shifts_actions
     ]
     specs = env_effects + [{"name": n, "target": t, "params": {}} for n, t in continuous]
     sim, base = make_simulator(
@@ -208,14 +209,12 @@ def build_model(env_cfg, dt: float, effects: list[str], max_delay: int, warmup: 
             where.append({})
             continue
         slots = {}
-        etype = LIBRARY[site.name]
+        etype = effect_type(site.name)
         for p in etype.params:
             slots[p.name] = len(nominal)
-            lo, hi = FIT_BOUNDS.get((site.name, p.name), (p.lower, p.upper))
+            lo, hi = p.fit_bounds or (p.lower, p.upper)
             nominal.append(p.nominal)
-            start.append(
-                p.nominal + START_IN_TIMESTEPS.get((site.name, p.name), 0.0) * sim.timestep
-            )
+            start.append(p.nominal + p.fit_start_in_timesteps * sim.timestep)
             lower.append(lo)
             upper.append(hi)
             units.append(
@@ -223,12 +222,13 @@ def build_model(env_cfg, dt: float, effects: list[str], max_delay: int, warmup: 
             )
         where.append(slots)
         candidates.append(Candidate(site.name, site.target, tuple(slots.values()), tuple(slots)))
-    if "action_delay" in effects:
+    for name in (n for n in effects if effect_type(n).shifts_actions):
+        (param,) = (p.name for p in effect_type(name).params)
         for target, a in sim.targets[ACTUATOR].items():
-            if f"action_delay@{target}" in existing:
+            if f"{name}@{target}" in existing:
                 continue
             candidates += [
-                Candidate("action_delay", target, actuator=a, steps=s)
+                Candidate(name, target, params=(param,), actuator=a, steps=s)
                 for s in range(1, max_delay + 1)
             ]
     return Model(

@@ -10,6 +10,7 @@ import numpy as np  # noqa: E402
 
 from hds.discover.compare import Errors, Residuals  # noqa: E402
 from hds.discover.locate import Location  # noqa: E402
+from hds.effects.library import effect_type  # noqa: E402
 
 
 def errors(before: Errors, after: Errors, names, scale, title: str) -> plt.Figure:
@@ -132,7 +133,7 @@ def candidates(rows: list[dict], base_error: float, selected: set[str]) -> plt.F
     rows = sorted(rows, key=lambda r: r["heldout_error"])
     labels = [
         f"{r['name']}@{r['target']}"
-        + (f"={r['params']['steps']}" if r["name"] == "action_delay" else "")
+        + (f"={next(iter(r['params'].values()))}" if effect_type(r["name"]).shifts_actions else "")
         for r in rows
     ]
     fig, ax = plt.subplots(figsize=(7, 0.28 * len(rows) + 1.2))

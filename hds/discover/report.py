@@ -13,16 +13,9 @@ from omegaconf import OmegaConf
 
 from hds.discover import plots
 from hds.discover.workflow import Result
+from hds.effects.library import effect_type
 from hds.plots import save as save_figure
 from hds.utils.io import atomic_write_bytes, atomic_write_json
-
-NATIVE = {
-    "coulomb_friction": "joint frictionloss",
-    "viscous_damping": "joint damping",
-    "actuator_gain": "actuator gear",
-    "actuator_lag": "actuator dyntype filterexact",
-    "mass_scale": "body mass and inertia",
-}
 
 
 def _container(env_cfg) -> dict:
@@ -60,10 +53,9 @@ def write_mjcf(env_cfg, result: Result, out_dir: Path) -> Path:
     effects = result.corrected_effects
     spec = mujoco_spec(env_cfg, effects)
     xml = spec.to_xml()
-    native = [
-        f"{e['name']}@{e['target']} ({NATIVE[e['name']]})" for e in effects if e["name"] in NATIVE
-    ]
-    other = [f"{e['name']}@{e['target']} {e['params']}" for e in effects if e["name"] not in NATIVE]
+    mjcf = {e["name"]: effect_type(e["name"]).mjcf for e in effects}
+    native = [f"{e['name']}@{e['target']} ({mjcf[e['name']]})" for e in effects if mjcf[e["name"]]]
+    other = [f"{e['name']}@{e['target']} {e['params']}" for e in effects if not mjcf[e["name"]]]
     comment = (
         "<!-- Corrected by hds.discover. MuJoCo-native here: "
         f"{', '.join(native) or 'none'}. Not expressible in MJCF (apply them in the "

@@ -26,21 +26,10 @@ from hds.discover.fit import Engine, get_engine
 from hds.discover.identify import Identifiability, identifiability
 from hds.discover.locate import Location, locate
 from hds.discover.terms import Term, fit_terms
-from hds.effects.library import LIBRARY
+from hds.effects.base import ACTUATOR
+from hds.effects.library import effect_type
 
 log = logging.getLogger("hds")
-
-PHYSICAL_NAMES = {
-    "coulomb_friction": "Coulomb (dry) friction",
-    "viscous_damping": "viscous friction",
-    "actuator_gain": "actuator gain error",
-    "actuator_offset": "actuator offset (a constant added to the control)",
-    "actuator_deadzone": "actuator dead zone",
-    "action_delay": "action delay (dead time)",
-    "actuator_lag": "first-order actuator lag",
-    "mass_scale": "mass error",
-    "sensor_bias": "sensor bias",
-}
 
 
 @dataclass
@@ -55,7 +44,7 @@ class NamedEffect:
 
     @property
     def physical_name(self) -> str:
-        return PHYSICAL_NAMES.get(self.name, self.name)
+        return effect_type(self.name).physical_name
 
     def to_json(self) -> dict:
         return {
@@ -67,7 +56,7 @@ class NamedEffect:
             "explained_fraction": self.explained_fraction,
             "physical_name": self.physical_name,
             "at_joint": self.at_joint,
-            "kind": LIBRARY[self.name].target_kind,
+            "kind": effect_type(self.name).target_kind,
         }
 
     def as_effect(self) -> dict:
@@ -345,9 +334,11 @@ def name_effects(model, states, shares, delay_steps=None) -> list[NamedEffect]:
     cis = intervals(model, final, delay_steps) if final.selected else {}
     named = []
     for i, cand in enumerate(final.selected):
-        if cand.name == "action_delay":
-            params = {"steps": int(final.delay[cand.actuator])}
-            units = {"steps": LIBRARY[cand.name].param("steps").unit}
+        etype = effect_type(cand.name)
+        if cand.shifts_actions:
+            (param,) = cand.params
+            params = {param: int(final.delay[cand.actuator])}
+            units = {param: etype.param(param).unit}
         else:
             params = {
                 p: _round(final.theta[s]) for p, s in zip(cand.params, cand.slots, strict=True)
@@ -355,7 +346,7 @@ def name_effects(model, states, shares, delay_steps=None) -> list[NamedEffect]:
             units = {p: model.units[s] for p, s in zip(cand.params, cand.slots, strict=True)}
         ci = {p: [_round(lo), _round(hi)] for p, (lo, hi) in cis.get(cand.key, {}).items()}
         at_joint = {}
-        if LIBRARY[cand.name].target_kind == "actuator":  # a control offset as a joint force
+        if etype.target_kind == ACTUATOR:  # a control offset as a joint force
             gear = float(model.sim.sys.actuator.gear[model.sim.targets["actuator"][cand.target]])
             at_joint = {
                 p: _round(v * gear) for p, v in params.items() if units[p] == "control units"

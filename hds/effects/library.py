@@ -1,105 +1,63 @@
-"""The named physical effects: what each one is, where it acts, its parameters and units.
+"""The library of named physical effects: one registry, `LIBRARY`, in registration order.
 
-This module is pure metadata (no JAX): configs validate against it before anything compiles,
-and the simulator (`hds.effects.apply`), the MuJoCo plant and gap discovery read it.
+Each effect is one object (`hds.effects.base.Effect`) in the file of its family; configs
+validate against the registry before anything compiles, and the simulator
+(`hds.effects.apply`), the MuJoCo plant and gap discovery ask it for everything about an
+effect. Adding one: a subclass of `Effect` in a file, and `register(MyEffect())`.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
-JOINT, ACTUATOR, BODY, OBSERVATION = "joint", "actuator", "body", "observation"
+from hds.effects.actuator import (
+    ActionDelay,
+    ActuatorDeadzone,
+    ActuatorGain,
+    ActuatorLag,
+    ActuatorOffset,
+)
+from hds.effects.base import STAGES, TARGET_KINDS, Effect, Param
+from hds.effects.body import MassScale
+from hds.effects.friction import CoulombFriction, ViscousDamping
+from hds.effects.sensor import SensorBias
 
-
-@dataclass(frozen=True)
-class Param:
-    name: str
-    unit: str
-    nominal: float  # the value at which the effect does nothing
-    lower: float = -math.inf
-    upper: float = math.inf
-    discrete: bool = False  # integer, fitted by enumeration rather than by gradient
-
-
-@dataclass(frozen=True)
-class EffectType:
-    name: str
-    target_kind: str
-    description: str
-    params: tuple[Param, ...]
-
-    def param(self, name: str) -> Param:
-        return next(p for p in self.params if p.name == name)
+LIBRARY: dict[str, Effect] = {}
 
 
-LIBRARY: dict[str, EffectType] = {
-    e.name: e
-    for e in (
-        EffectType(
-            "coulomb_friction",
-            JOINT,
-            "dry friction opposing the joint's velocity with constant magnitude "
-            "(smoothed as F tanh(k qd) in the differentiable simulator, exact sign law in plants)",
-            (Param("force", "N or N m", 0.0, lower=0.0),),
-        ),
-        EffectType(
-            "viscous_damping",
-            JOINT,
-            "friction proportional to the joint's velocity",
-            (Param("coefficient", "N s/m or N m s/rad", 0.0, lower=0.0),),
-        ),
-        EffectType(
-            "actuator_gain",
-            ACTUATOR,
-            "the actuator's force is this multiple of its nominal force (gear scaling)",
-            (Param("gain", "1 = nominal", 1.0, lower=0.0),),
-        ),
-        EffectType(
-            "actuator_offset",
-            ACTUATOR,
-            "a constant added to the control before the actuator saturates",
-            (Param("offset", "control units", 0.0),),
-        ),
-        EffectType(
-            "actuator_deadzone",
-            ACTUATOR,
-            "controls within +-width/2 produce no force; outside, the band is subtracted",
-            (Param("width", "control units", 0.0, lower=0.0),),
-        ),
-        EffectType(
-            "action_delay",
-            ACTUATOR,
-            "the actuator applies the control given this many environment steps earlier",
-            (Param("steps", "environment steps", 0, lower=0, upper=50, discrete=True),),
-        ),
-        EffectType(
-            "actuator_lag",
-            ACTUATOR,
-            "first-order actuator dynamics: the applied control follows the command "
-            "with this time constant",
-            (Param("time_constant", "s", 0.0, lower=0.0),),
-        ),
-        EffectType(
-            "mass_scale",
-            BODY,
-            "the body's mass, and with it its inertia, is this multiple of the nominal",
-            (Param("scale", "1 = nominal", 1.0, lower=0.0),),
-        ),
-        EffectType(
-            "sensor_bias",
-            OBSERVATION,
-            "a constant added to one measured observation",
-            (Param("bias", "observation units", 0.0),),
-        ),
-    )
-}
-
-# Effects whose magnitude `real.friction_gap` scales.
-FRICTION_EFFECTS = {"coulomb_friction": "force", "viscous_damping": "coefficient"}
+def register(effect: Effect) -> Effect:
+    """Add an effect to the library under its name (configs, simulators, plants and
+    discovery then know it); returns it."""
+    what = type(effect).__name__
+    required = ("name", "target_kind", "description", "physical_name", "params", "stage")
+    missing = [a for a in required if not hasattr(effect, a)]
+    if missing:
+        raise ValueError(f"effect {what} lacks {missing}; set them as class attributes")
+    if effect.stage not in STAGES or effect.target_kind not in TARGET_KINDS:
+        raise ValueError(
+            f"effect {what}: stage {effect.stage!r} must be one of {list(STAGES)} and "
+            f"target_kind {effect.target_kind!r} one of {list(TARGET_KINDS)}"
+        )
+    if not effect.params or not all(isinstance(p, Param) for p in effect.params):
+        raise ValueError(f"effect {what}: params must be a tuple of hds.effects.Param")
+    if effect.name in LIBRARY:
+        raise ValueError(f"effect '{effect.name}' is registered already; give it another name")
+    LIBRARY[effect.name] = effect
+    return effect
 
 
-def effect_type(name: str) -> EffectType:
+register(CoulombFriction())
+register(ViscousDamping())
+register(ActuatorGain())
+register(ActuatorOffset())
+register(ActuatorDeadzone())
+register(ActionDelay())
+register(ActuatorLag())
+register(MassScale())
+register(SensorBias())
+
+
+def effect_type(name: str) -> Effect:
     if name not in LIBRARY:
         raise ValueError(f"unknown effect '{name}'; the library has: {', '.join(LIBRARY)}")
     return LIBRARY[name]

@@ -1,23 +1,21 @@
 """A plant made of C MuJoCo on the simulator's own MJCF, plus hidden effects.
 
-The effects MuJoCo has natively are written into the model (`mujoco_spec`, whose
-`spec.to_xml()` is an MJCF of the "real" system):
-  coulomb_friction  joint frictionloss (added)     viscous_damping  joint damping (added)
-  actuator_gain     actuator gear (scaled)         mass_scale       body mass, inertia (scaled)
-  actuator_lag      actuator dyntype filterexact, dynprm[0] = time constant, actearly
-The others act in `MujocoPlant.step`, with the semantics of `hds.effects.apply.EffectSet`:
-action_delay, actuator_deadzone and actuator_offset on the control (then clipped to ctrlrange),
-sensor_bias on the returned observation. Everything is float64.
+Each effect brings its exact law (hds.effects.base.Effect): the ones MuJoCo has natively
+(`Effect.mjcf`: frictionloss, damping, gear, filterexact dynamics, mass) are written into
+the model (`mujoco_spec`, whose `spec.to_xml()` is an MJCF of the "real" system); the others
+act in `MujocoPlant.step` in numpy, in the order of the simulator's stages: on the control
+(then clipped to ctrlrange), as a joint force held over the step (qfrc_applied), or on the
+returned observation. Everything is float64.
 """
 
 from __future__ import annotations
-
-import math
 
 import mujoco
 import numpy as np
 
 from hds.effects import place
+from hds.effects.base import COMMAND, OBSERVE, SUBSTEP, SYSTEM
+from hds.effects.library import effect_type
 from hds.envs.system import load_spec, state_names, target_names
 
 
@@ -26,44 +24,10 @@ def place_effects(spec: mujoco.MjSpec, effects, friction_gap: float = 1.0):
     ones into `spec` (in place) and return the placed (EffectSet, params) of all of them."""
     placed, params = place(effects, target_names(spec.compile()), friction_gap)
     for site, p in zip(placed.sites, params, strict=True):
-        value = {k: float(v) for k, v in p.items()}
-        if site.name == "coulomb_friction":
-            spec.joint(site.target).frictionloss += value["force"]
-        elif site.name == "viscous_damping":
-            spec.joint(site.target).damping[0] += value["coefficient"]
-        elif site.name == "actuator_gain":
-            actuator = spec.actuator(site.target)
-            actuator.gear = np.asarray(actuator.gear) * value["gain"]
-        elif site.name == "actuator_lag":
-            actuator = spec.actuator(site.target)
-            if actuator.dyntype != mujoco.mjtDyn.mjDYN_NONE:
-                raise ValueError(
-                    f"actuator_lag@{site.target}: the actuator already has "
-                    f"dynamics ({actuator.dyntype.name}); remove them or the effect"
-                )
-            actuator.dyntype = mujoco.mjtDyn.mjDYN_FILTEREXACT
-            actuator.dynprm[0] = value["time_constant"]
-            actuator.actearly = 1  # the force uses the updated filter state, as the simulator
-        elif site.name == "mass_scale":
-            _scale_mass(spec, spec.body(site.target), value["scale"])
+        effect = effect_type(site.name)
+        if effect.mjcf or effect.stage == SYSTEM:  # a system edit has only this law here
+            effect.write_mjcf(spec, site, {k: float(v) for k, v in p.items()})
     return placed, params
-
-
-def _scale_mass(spec: mujoco.MjSpec, body, scale: float) -> None:
-    """Scale a body's mass and inertia: through its geoms when the compiler infers them."""
-    mode = spec.compiler.inertiafromgeom
-    from_geoms = mode == mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_TRUE or (
-        mode == mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_AUTO and not body.explicitinertial
-    )
-    if from_geoms:  # mass and inertia are linear in density (or in a geom's given mass)
-        for geom in body.geoms:
-            geom.density *= scale
-            if not math.isnan(geom.mass):
-                geom.mass *= scale
-    else:
-        body.mass *= scale
-        body.inertia = np.asarray(body.inertia) * scale
-        body.fullinertia = np.asarray(body.fullinertia) * scale  # NaN (unused) stays NaN
 
 
 def mujoco_spec(env_cfg, effects=(), friction_gap: float = 1.0) -> mujoco.MjSpec:
@@ -87,8 +51,12 @@ class MujocoPlant:
         self.action_names = tuple(self.model.actuator(a).name for a in range(self.model.nu))
         self.ctrl_range = np.array(self.model.actuator_ctrlrange, dtype=np.float64)
         self.ctrl_range[self.model.actuator_ctrllimited == 0] = [-np.inf, np.inf]
+        self._forces = np.zeros(self.model.nv)  # the substep effects MuJoCo lacks
+        for i, site, effect in self.effects.at(SUBSTEP):
+            if not effect.mjcf:
+                self._forces[site.index] += effect.plant_force(site, self.params[i])
         self._data: list[mujoco.MjData] = []
-        self._delay: dict[int, np.ndarray] = {}
+        self._states: dict[int, np.ndarray] = {}
 
     def reset(self, q, qd) -> np.ndarray:
         q, qd = np.asarray(q, np.float64), np.asarray(qd, np.float64)
@@ -97,8 +65,12 @@ class MujocoPlant:
         for data, qi, qdi in zip(self._data, q, qd, strict=True):
             mujoco.mj_resetData(self.model, data)  # also zeroes activations (lag filters)
             data.qpos[:], data.qvel[:] = qi, qdi
+            if self._forces.any():
+                data.qfrc_applied[:] = self._forces
             mujoco.mj_forward(self.model, data)
-        self._delay = {i: np.zeros((len(q), s.steps)) for i, s in self.effects.of("action_delay")}
+        self._states = {
+            i: effect.plant_state(site, len(q)) for i, site, effect in self.effects.at(COMMAND)
+        }
         return self._observe()
 
     def step(self, u) -> np.ndarray:
@@ -108,16 +80,8 @@ class MujocoPlant:
                 f"step expects u of shape [B, {self.model.nu}] with B from reset "
                 f"({len(self._data)} episodes; call reset first), got {u.shape}"
             )
-        for i, s in self.effects.of("action_delay"):
-            if s.steps > 0:
-                buf = self._delay[i]
-                self._delay[i] = np.concatenate([buf[:, 1:], u[:, s.index, None]], axis=1)
-                u[:, s.index] = buf[:, 0]
-        for i, s in self.effects.of("actuator_deadzone"):
-            half = 0.5 * self.params[i]["width"]
-            u[:, s.index] -= np.clip(u[:, s.index], -half, half)
-        for i, s in self.effects.of("actuator_offset"):
-            u[:, s.index] += self.params[i]["offset"]
+        for i, site, effect in self.effects.at(COMMAND):
+            u, self._states[i] = effect.plant_command(site, self.params[i], self._states[i], u)
         u = np.clip(u, self.ctrl_range[:, 0], self.ctrl_range[:, 1])
         for data, ui in zip(self._data, u, strict=True):
             data.ctrl[:] = ui
@@ -132,6 +96,6 @@ class MujocoPlant:
 
     def _observe(self) -> np.ndarray:
         obs = np.concatenate(self.state(), axis=1)
-        for i, s in self.effects.of("sensor_bias"):
-            obs[:, s.index] += self.params[i]["bias"]
+        for i, site, effect in self.effects.at(OBSERVE):
+            obs = effect.plant_observe(site, self.params[i], obs)
         return obs

@@ -1,0 +1,62 @@
+"""Joint friction: Coulomb (dry) friction and viscous damping."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from hds.effects.base import JOINT, SUBSTEP, Effect, Param
+
+
+def friction_direction(v, sharpness, gradient_sharpness=None):
+    """The direction of dry friction: sign(v) when `sharpness` is None, else tanh(k v). With
+    `gradient_sharpness` k_g, the value of tanh(k v) and the gradient of tanh(k_g v) (a
+    surrogate gradient): a sharp law sticks like the plant's, but its gradient at rest is
+    nearly zero (a small push does not move a stuck cart), which leaves a policy that starts
+    inside the friction nothing to learn from; a softer law's gradient says how a larger
+    push moves it."""
+    if sharpness is None:
+        return jnp.sign(v)
+    direction = jnp.tanh(sharpness * v)
+    if gradient_sharpness is None:
+        return direction
+    surrogate = jnp.tanh(gradient_sharpness * v)
+    return surrogate + jax.lax.stop_gradient(direction - surrogate)
+
+
+class CoulombFriction(Effect):
+    name = "coulomb_friction"
+    target_kind = JOINT
+    description = (
+        "dry friction opposing the joint's velocity with constant magnitude "
+        "(smoothed as F tanh(k qd) in the differentiable simulator, exact sign law in plants)"
+    )
+    physical_name = "Coulomb (dry) friction"
+    params = (Param("force", "N or N m", 0.0, lower=0.0),)
+    stage, order = SUBSTEP, 1
+    mjcf = "joint frictionloss"
+    friction = "force"
+
+    def substep(self, site, p, state, u, force, qd, h, sharpness, gradient_sharpness):
+        direction = friction_direction(qd[site.index], sharpness, gradient_sharpness)
+        return u, force.at[site.index].add(-p["force"] * direction), state
+
+    def write_mjcf(self, spec, site, p):
+        spec.joint(site.target).frictionloss += p["force"]
+
+
+class ViscousDamping(Effect):
+    name = "viscous_damping"
+    target_kind = JOINT
+    description = "friction proportional to the joint's velocity"
+    physical_name = "viscous friction"
+    params = (Param("coefficient", "N s/m or N m s/rad", 0.0, lower=0.0),)
+    stage, order = SUBSTEP, 2
+    mjcf = "joint damping"
+    friction = "coefficient"
+
+    def substep(self, site, p, state, u, force, qd, h, sharpness, gradient_sharpness):
+        return u, force.at[site.index].add(-p["coefficient"] * qd[site.index]), state
+
+    def write_mjcf(self, spec, site, p):
+        spec.joint(site.target).damping[0] += p["coefficient"]
