@@ -103,31 +103,6 @@ def animate(
     return path
 
 
-def animate_run(
-    run_dir: Path, method: str | None = None, seed_index: int = 0, out_dir: Path | None = None
-) -> Path:
-    """One episode of a finished run's policy (`method`, default the run's own; the
-    seed_index-th run of its batch) on the simulator it trained on beside the run's plant,
-    animated into out_dir (default: the run's plots/)."""
-    from hds.policy import evaluate, load_policy, run_config
-
-    run_dir = Path(run_dir)
-    run = run_config(run_dir).runs()[seed_index]
-    policy = load_policy(run_dir, method, **run)
-    sim = evaluate(policy, episodes=1, plant=policy.training_plant())
-    real = evaluate(policy, episodes=1)
-    out = Path(out_dir or run_dir / "plots") / f"{policy.method}_sim_vs_real.gif"
-    return animate_episodes(
-        sim.episodes,
-        real.episodes,
-        policy.obs_names,
-        policy.config.real.plant,
-        policy.dt,
-        out,
-        policy.env.xml,
-    )
-
-
 def animate_episodes(sim, real, names, plant: str, dt: float, path: Path, xml: str) -> Path:
     """The first episode of `sim` and of `real` (hds.real.Episodes from the same initial
     state; observations named `names`) side by side, titled with their returns."""

@@ -37,8 +37,10 @@ class SweepSummary(Callback):
             atomic_write_json(sweep_dir / "summary.json", summary)
             print_table(summary["rows"], title=f"{config.name}: every job of {sweep_dir}")
         if failed := summary["failed_jobs"]:
+            # a finished job refused on a restart (another configuration) has both files
+            total = len({*failed, *(j["job"] for j in summary["jobs"])})
             sys.exit(
-                f"error: {len(failed)} of {len(failed) + len(summary['jobs'])} jobs failed: "
+                f"error: {len(failed)} of {total} jobs failed: "
                 f"{', '.join(failed)} (see their failed.txt); run the same sweep again, with "
                 f"hydra.sweep.dir={sweep_dir}, to rerun them and skip the finished ones"
             )

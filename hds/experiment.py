@@ -35,7 +35,7 @@ from hds.algo.randomize import randomized_env
 from hds.animate import animate_episodes
 from hds.checkpoint import Checkpoints
 from hds.config import Config, env_config
-from hds.data import initial_states
+from hds.data import concatenate, initial_states
 from hds.effects.apply import place
 from hds.envs import Env, make_env
 from hds.evaluation import Evaluator, diverged, gap_rows
@@ -174,14 +174,29 @@ def dynamics_model(cfg: Config, env, plant, out_dir: Path):
 
 def corrected_simulator(cfg: Config, env, plant, out_dir: Path):
     """The simulator plus the effects gap discovery names on data measured on the plant (the
-    same data a learned model of this seed is fitted on); its report goes to out_dir/discovery.
-    Returns (env, JSON-ready summary of the findings)."""
-    from hds.discover import corrected_env, discover, write_report
+    data a learned model of this seed is fitted on, and, while they cannot identify what more
+    excitation would, more of it at doubled amplitude: hds.discover.record_until_identifiable);
+    its report goes to out_dir/discovery. Returns (env, JSON-ready summary of the findings)."""
+    from hds.discover import corrected_env, discover, record_until_identifiable, write_report
     from hds.dynamics import measured_data
 
-    data, source = measured_data(
-        cfg.dynamics, env, plant, jax.random.split(jax.random.PRNGKey(cfg.seed))[0]
-    )
+    key = jax.random.split(jax.random.PRNGKey(cfg.seed))[0]
+    data, source = measured_data(cfg.dynamics, env, plant, key)
+    if source["data"] == "plant":
+
+        def record(scale, attempt):  # the first: the learned model's data
+            if not attempt:
+                return data
+            dyn = dataclasses.replace(cfg.dynamics, excitation_scale=scale)
+            return measured_data(dyn, env, plant, jax.random.fold_in(key, attempt))[0]
+
+        recorded, scale, notes = record_until_identifiable(
+            record, cfg.env, cfg.discover, cfg.dynamics.excitation_scale
+        )
+        data = concatenate(recorded)
+        source |= {"episodes": data.n_episodes, "excitation_scale": scale, "notes": notes}
+        for note in notes:
+            log.info("active excitation: %s", note)
     result = discover(data, cfg.env, cfg.discover)
     write_report(
         result, cfg.env, out_dir / "discovery", cfg.discover.plot_episodes, cfg.discover.bins

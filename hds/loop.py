@@ -33,7 +33,7 @@ from hds import experiment, plots, rundir  # noqa: E402
 from hds.algo.pods import make_train  # noqa: E402
 from hds.config import Config, env_config, validate  # noqa: E402
 from hds.data import collect, initial_states  # noqa: E402
-from hds.data.format import Dataset, load, save  # noqa: E402
+from hds.data.format import Dataset, concatenate, load, save  # noqa: E402
 from hds.envs import make_env  # noqa: E402
 from hds.evaluation import mean_ci  # noqa: E402
 from hds.logger import print_table  # noqa: E402
@@ -65,45 +65,21 @@ def record(cfg: Config, env, plant, params, key, scale: float) -> Dataset:
     return concatenate([deployed, excited])
 
 
-def concatenate(datasets: list[Dataset]) -> Dataset:
-    first = datasets[0]
-    return Dataset(
-        np.concatenate([d.obs for d in datasets]),
-        np.concatenate([d.actions for d in datasets]),
-        first.dt,
-        first.obs_names,
-        first.action_names,
-    )
-
-
-def unidentifiable(cfg: Config, data: Dataset) -> list[str]:
-    """Why the data cannot identify a candidate of discover.effects that more excitation
-    would (hds.discover.identifiability: e.g. a joint never moved past its friction); a
-    structural limit (a free cart's position bias) is no reason to record more."""
-    from hds.discover import identifiability
-
-    rows = identifiability(data, cfg.env, cfg.discover.min_motion, cfg.discover.effects)
-    return sorted({r.reason for r in rows if not r.identifiable and not r.structural})
-
-
 def excite_until_identifiable(cfg: Config, env, plant, params, key, data_so_far):
-    """Record a round's data; while the data so far cannot identify what they could (a joint
-    that friction holds still, an actuator never driven across its range), double the
-    excitation's amplitude, up to the actuator's whole range, and record again. Returns
-    (every dataset so far, the last amplitude, notes saying what was done and why)."""
-    scale, notes = cfg.dynamics.excitation_scale, []
-    while True:
-        key, sub = jax.random.split(key)
-        data_so_far = [*data_so_far, record(cfg, env, plant, params, sub, scale)]
-        reasons = unidentifiable(cfg, concatenate(data_so_far))
-        if not reasons or scale >= 1.0:
-            notes += [f"still not identifiable at full excitation: {r}" for r in reasons]
-            return data_so_far, scale, notes
-        notes.append(
-            f"{'; '.join(reasons)} (excitation {scale:g} of the half range): recorded more at "
-            f"{min(1.0, 2 * scale):g}"
-        )
-        scale = min(1.0, 2 * scale)
+    """A round's data (`record`), more and stronger while the data so far cannot identify
+    what they could (hds.discover.record_until_identifiable). Returns (every dataset so far,
+    the last amplitude, notes saying what was done and why)."""
+    from hds.discover import record_until_identifiable
+
+    keys = [key]
+
+    def record_attempt(scale, attempt):
+        keys[0], sub = jax.random.split(keys[0])
+        return record(cfg, env, plant, params, sub, scale)
+
+    return record_until_identifiable(
+        record_attempt, cfg.env, cfg.discover, cfg.dynamics.excitation_scale, data_so_far
+    )
 
 
 def round_budget(cfg: Config, r: int) -> Config:

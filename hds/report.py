@@ -21,6 +21,7 @@ from collections import defaultdict
 from pathlib import Path
 
 from hds import plots
+from hds.animate import animate_episodes
 from hds.evaluation import mean_ci
 from hds.utils.io import atomic_write_bytes, read_json
 
@@ -290,6 +291,31 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
     return path
 
 
+def animate_run(
+    run_dir: Path, method: str | None = None, seed_index: int = 0, out_dir: Path | None = None
+) -> Path:
+    """One episode of a finished run's policy (`method`, default the run's own; the
+    seed_index-th run of its batch) on the simulator it trained on beside the run's plant,
+    animated into out_dir (default: the run's plots/)."""
+    from hds.policy import evaluate, load_policy, run_config
+
+    run_dir = Path(run_dir)
+    run = run_config(run_dir).runs()[seed_index]
+    policy = load_policy(run_dir, method, **run)
+    sim = evaluate(policy, episodes=1, plant=policy.training_plant())
+    real = evaluate(policy, episodes=1)
+    out = Path(out_dir or run_dir / "plots") / f"{policy.method}_sim_vs_real.gif"
+    return animate_episodes(
+        sim.episodes,
+        real.episodes,
+        policy.obs_names,
+        policy.config.real.plant,
+        policy.dt,
+        out,
+        policy.env.xml,
+    )
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m hds.report", description=__doc__.splitlines()[0]
@@ -313,8 +339,6 @@ def main(argv=None) -> None:
     path = build(args.directory, args.out)
     print(f"wrote {path}")
     if args.gif is not None:
-        from hds.animate import animate_run
-
         root = Path(args.directory)
         runs = (
             [root]

@@ -24,7 +24,9 @@ import sys
 import tempfile
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import MISSING, DictConfig, OmegaConf
+
+from hds.config import Config
 
 log = logging.getLogger("hds")
 
@@ -86,12 +88,23 @@ def claim(out_dir: str | Path, cfg: DictConfig, hydra_dir: str | Path | None = N
 
 
 def differences(before: DictConfig, after: DictConfig) -> list[str]:
-    """`key: old -> new` for every result-changing key whose value differs (resolved)."""
+    """`key: old -> new` for every result-changing key whose value differs (resolved). A
+    setting this version of hds no longer has, or one it added whose value is its default,
+    is no difference: a run directory stays resumable across versions."""
     old, new = _flat(before), _flat(after)
+    defaults = _flat(OmegaConf.structured(Config))
+
+    def changed(key):
+        if key not in new:
+            return False
+        if key not in old:
+            return new[key] != defaults.get(key, MISSING)
+        return old[key] != new[key]
+
     return [
-        f"{key}: {old.get(key, '(absent)')} -> {new.get(key, '(absent)')}"
+        f"{key}: {old.get(key, '(absent)')} -> {new[key]}"
         for key in sorted(old.keys() | new.keys())
-        if old.get(key) != new.get(key) and key.split(".")[0] not in IGNORED
+        if changed(key) and key.split(".")[0] not in IGNORED
     ]
 
 

@@ -233,7 +233,7 @@ def test_a_failing_run_closes_its_w_and_b_run_and_a_resume_continues_it(tmp_path
 
 # Each layer calls downward only: the jitted core never imports the experiment layer, the
 # experiment layer never the tools built on it.
-TOOLS = {"run", "evaluate", "export", "report", "animate", "callbacks", "policy"}
+TOOLS = {"run", "evaluate", "export", "report", "callbacks", "policy"}
 LAYERS = {
     "core": ("algo", "envs", "effects", "real", "data", "dynamics", "networks", "noise"),
     "experiment": ("experiment",),

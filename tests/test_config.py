@@ -238,6 +238,20 @@ def test_a_run_directory_of_an_older_hds_loads_without_its_removed_settings(tmp_
     assert "no longer has: discover.min_share, retired" in caplog.text
 
 
+def test_a_run_of_an_older_hds_is_not_another_configuration_for_its_default_settings():
+    from hds.rundir import differences
+
+    now = OmegaConf.structured(make_config("method=pods_cl"))
+    before = OmegaConf.create(OmegaConf.to_container(now))
+    del before["gif"]  # a setting added since, at its default
+    before.discover.min_share = 0.1  # a setting removed since
+    assert differences(before, now) == []
+    now.gif = True
+    assert differences(before, now) == ["gif: (absent) -> True"]
+    now.gif, now.algo.epochs = False, 7
+    assert differences(before, now) == ["algo.epochs: 100 -> 7"]
+
+
 def test_wrong_type_fails():
     with pytest.raises(ConfigCompositionException) as err:
         make_config("algo.epochs=many")

@@ -248,6 +248,26 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
     assert gaps["real"] < 0.25 * gaps["nominal"], gaps
 
 
+def test_the_corrected_simulator_excites_harder_until_the_data_identify_the_friction(tmp_path):
+    """80 N of rail friction: the gentle default excitation never moves the cart, so the
+    corrected simulator records more at doubled amplitude before discovery names the law."""
+    from hds.envs import make_env
+    from hds.experiment import corrected_simulator, run_plants
+
+    cfg = make_config(
+        *TINY, "dynamics.episodes=16", "dynamics.horizon=60", "discover.stride=2",
+        "simulator=corrected", "real.friction_gap=4",
+    )  # fmt: skip
+    env, summary = corrected_simulator(cfg, make_env(cfg.env), run_plants(cfg)[0], tmp_path)
+    assert summary["excitation_scale"] > cfg.dynamics.excitation_scale
+    assert "slider moves in only" in summary["notes"][0]
+    assert summary["episodes"] > cfg.dynamics.episodes
+    (found,) = summary["effects"]
+    assert (found["name"], found["target"]) == ("coulomb_friction", "slider")
+    assert found["params"]["force"] == pytest.approx(80.0, rel=0.1)
+    assert [e.name for e in env.sim.effects.sites] == ["coulomb_friction"]
+
+
 def test_a_surrogate_friction_gradient_keeps_the_sharp_value():
     from hds.effects.friction import friction_direction
 

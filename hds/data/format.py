@@ -122,6 +122,18 @@ class Dataset:
 # checks
 
 
+def concatenate(datasets: list[Dataset]) -> Dataset:
+    """The episodes of several datasets of one system, in order, as one."""
+    first = datasets[0]
+    return Dataset(
+        np.concatenate([d.obs for d in datasets]),
+        np.concatenate([d.actions for d in datasets]),
+        first.dt,
+        first.obs_names,
+        first.action_names,
+    )
+
+
 def check(dataset: Dataset, where: str = "dataset") -> None:
     """Check that a dataset is consistent in itself (shapes, T, names, dt); no system needed."""
     obs, actions = dataset.obs, dataset.actions

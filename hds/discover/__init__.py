@@ -20,7 +20,7 @@ Command line: python -m hds.discover data=PATH [env=...] [retrain=true] (conf/di
 """
 
 from hds.discover.config import DiscoverAppConfig, DiscoverConfig
-from hds.discover.identify import Identifiability, identifiability
+from hds.discover.identify import Identifiability, identifiability, record_until_identifiable
 from hds.discover.io import load_dataset
 from hds.discover.report import corrected_env, write_report
 from hds.discover.workflow import NamedEffect, Result, discover
@@ -35,5 +35,6 @@ __all__ = [
     "discover",
     "identifiability",
     "load_dataset",
+    "record_until_identifiable",
     "write_report",
 ]
