@@ -139,10 +139,12 @@ def print_table(rows: list[dict], title: str = "sim2real") -> None:
     keys = list(dict.fromkeys(k for r in rows for k in r))  # rows of a sweep's jobs may differ
     for k in keys:
         table.add_column(k, justify="left" if k == "method" else "right")
-    for r in rows:
-        table.add_row(*[_cell(k, r.get(k, "")) for k in keys])
-    # wide enough for every header whole, also where the console is not a terminal (80)
-    width = max(console.width, sum(len(k) + 4 for k in keys) + 2)
+    cells = [[_cell(k, r.get(k, "")) for k in keys] for r in rows]
+    for row in cells:
+        table.add_row(*row)
+    # wide enough for every header and cell whole, also where the console is not a terminal
+    widths = [max(len(k), *(len(row[i]) for row in cells)) for i, k in enumerate(keys)]
+    width = max(console.width, sum(w + 4 for w in widths) + 2)
     Console(file=console.file, width=width, force_terminal=console.is_terminal).print(table)
 
 
