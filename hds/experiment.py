@@ -35,7 +35,7 @@ from hds.algo.randomize import randomized_env
 from hds.animate import animate_episodes
 from hds.checkpoint import Checkpoints
 from hds.config import Config, env_config
-from hds.data import concatenate, initial_states
+from hds.data import concatenate, initial_states, save
 from hds.effects.apply import place
 from hds.envs import Env, make_env
 from hds.evaluation import Evaluator, diverged, gap_rows
@@ -176,7 +176,8 @@ def corrected_simulator(cfg: Config, env, plant, out_dir: Path):
     """The simulator plus the effects gap discovery names on data measured on the plant (the
     data a learned model of this seed is fitted on, and, while they cannot identify what more
     excitation would, more of it at doubled amplitude: hds.discover.record_until_identifiable);
-    its report goes to out_dir/discovery. Returns (env, JSON-ready summary of the findings)."""
+    the data and the report go to out_dir/discovery. Returns (env, JSON-ready summary of the
+    findings)."""
     from hds.discover import corrected_env, discover, record_until_identifiable, write_report
     from hds.dynamics import measured_data
 
@@ -197,6 +198,7 @@ def corrected_simulator(cfg: Config, env, plant, out_dir: Path):
         source |= {"episodes": data.n_episodes, "excitation_scale": scale, "notes": notes}
         for note in notes:
             log.info("active excitation: %s", note)
+        save(data, out_dir / "discovery" / "data.npz")  # what discovery read, to re-run it on
     result = discover(data, cfg.env, cfg.discover)
     write_report(
         result, cfg.env, out_dir / "discovery", cfg.discover.plot_episodes, cfg.discover.bins

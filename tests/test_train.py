@@ -248,9 +248,12 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
     assert gaps["real"] < 0.25 * gaps["nominal"], gaps
 
 
-def test_the_corrected_simulator_excites_harder_until_the_data_identify_the_friction(tmp_path):
+def test_the_corrected_simulator_excites_harder_until_the_data_can_identify(tmp_path):
     """80 N of rail friction: the gentle default excitation never moves the cart, so the
-    corrected simulator records more at doubled amplitude before discovery names the law."""
+    corrected simulator records more at doubled amplitude, until the data move it, before
+    discovery runs (which law it then names is the study's to judge: README)."""
+    from hds.data import load
+    from hds.discover import identifiability
     from hds.envs import make_env
     from hds.experiment import corrected_simulator, run_plants
 
@@ -262,10 +265,11 @@ def test_the_corrected_simulator_excites_harder_until_the_data_identify_the_fric
     assert summary["excitation_scale"] > cfg.dynamics.excitation_scale
     assert "slider moves in only" in summary["notes"][0]
     assert summary["episodes"] > cfg.dynamics.episodes
-    (found,) = summary["effects"]
-    assert (found["name"], found["target"]) == ("coulomb_friction", "slider")
-    assert found["params"]["force"] == pytest.approx(80.0, rel=0.1)
-    assert [e.name for e in env.sim.effects.sites] == ["coulomb_friction"]
+    data = load(tmp_path / "discovery" / "data.npz")
+    assert data.n_episodes == summary["episodes"]
+    rows = identifiability(data, cfg.env, cfg.discover.min_motion, cfg.discover.effects)
+    assert all(r.identifiable or r.structural for r in rows)
+    assert "coulomb_friction" in [e.name for e in env.sim.effects.sites]
 
 
 def test_a_surrogate_friction_gradient_keeps_the_sharp_value():
