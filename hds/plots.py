@@ -113,8 +113,12 @@ def gap_vs_friction(summary: list[dict]) -> plt.Figure:
     axes[1].set_title("sim2real gap (sim - real)")
     for ax in axes:
         ax.set_xlabel("friction gap (x the plant's friction)")
-    axes[0].legend()
-    fig.tight_layout()
+        # linear near 0, logarithmic beyond: policies that work (returns of a few units) and
+        # those that fail (thousands) in one figure
+        ax.set_yscale("symlog", linthresh=10)
+    handles, labels = axes[0].get_legend_handles_labels()  # below the axes, over no line
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), frameon=False)
+    fig.tight_layout(rect=(0, 0.08 * (1 + (len(labels) - 1) // 6), 1, 1))
     return fig
 
 
