@@ -248,6 +248,7 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
     assert gaps["real"] < 0.25 * gaps["nominal"], gaps
 
 
+@pytest.mark.slow  # two rounds of recording and a discovery: ~1 min (make test-slow)
 def test_the_corrected_simulator_excites_harder_until_the_data_can_identify(tmp_path):
     """80 N of rail friction: the gentle default excitation never moves the cart, so the
     corrected simulator records more at doubled amplitude, until the data move it, before
