@@ -70,19 +70,19 @@ class Evaluator:
         """[n_runs, episodes]"""
         n_runs = jax.tree.leaves(params)[0].shape[0]
         plants = self.plant if isinstance(self.plant, list) else [self.plant] * n_runs
-        out = []
-        for s in range(n_runs):
-            p = jax.tree.map(lambda x, s=s: x[s], params)
-            ep = rollout(
-                plants[s],
-                self.env.task,
-                self.q0,
-                self.qd0,
-                lambda obs, p=p: np.asarray(self._act(p, jnp.asarray(obs, jnp.float32))),
-                self.env.task.horizon,
-            )
-            out.append(ep.returns)
-        return np.stack(out)
+        return np.stack(
+            [
+                self.episodes(jax.tree.map(lambda x, s=s: x[s], params), plants[s]).returns
+                for s in range(n_runs)
+            ]
+        )
+
+    def episodes(self, params, plant):
+        """The episodes (hds.real.Episodes) of one run's policy (`params`, unbatched) on
+        `plant` from the evaluation's initial states."""
+        task = self.env.task
+        act = lambda obs: np.asarray(self._act(params, jnp.asarray(obs, jnp.float32)))  # noqa: E731
+        return rollout(plant, task, self.q0, self.qd0, act, task.horizon)
 
 
 def gap_rows(

@@ -35,12 +35,12 @@ from hds.algo.randomize import randomized_env
 from hds.animate import animate_episodes
 from hds.checkpoint import Checkpoints
 from hds.config import Config, env_config
-from hds.data import concatenate, initial_states, save
+from hds.data import concatenate, save
 from hds.effects.apply import place
 from hds.envs import Env, make_env
 from hds.evaluation import Evaluator, diverged, gap_rows
 from hds.logger import RunLogger, print_table
-from hds.real import make_plant, rollout
+from hds.real import make_plant
 from hds.real.brax_plant import BraxPlant
 from hds.utils.io import atomic_write_json, read_json
 from hds.utils.runtime import enable_compilation_cache, over_runs, runs_vmapped
@@ -179,7 +179,7 @@ def corrected_simulator(cfg: Config, env, plant, out_dir: Path):
     the data and the report go to out_dir/discovery. Returns (env, JSON-ready summary of the
     findings)."""
     from hds.discover import corrected_env, discover, record_until_identifiable, write_report
-    from hds.dynamics import measured_data
+    from hds.dynamics import collect_data, measured_data
 
     key = jax.random.split(jax.random.PRNGKey(cfg.seed))[0]
     data, source = measured_data(cfg.dynamics, env, plant, key)
@@ -189,7 +189,7 @@ def corrected_simulator(cfg: Config, env, plant, out_dir: Path):
             if not attempt:
                 return data
             dyn = dataclasses.replace(cfg.dynamics, excitation_scale=scale)
-            return measured_data(dyn, env, plant, jax.random.fold_in(key, attempt))[0]
+            return collect_data(dyn, env, plant, jax.random.fold_in(key, attempt))
 
         recorded, scale, notes = record_until_identifiable(
             record, cfg.env, cfg.discover, cfg.dynamics.excitation_scale
@@ -482,18 +482,11 @@ def sim_vs_real_gif(cfg: Config, training: Training, plant, out_dir: Path) -> Pa
     the same on `plant`, drawn into out_dir/<method>_sim_vs_real.gif (`gif=true`)."""
     env = training.env
     params = jax.tree.map(lambda x: x[0], training.params)
-    act = jax.jit(training.trainer.policy.apply)
-
-    def policy(obs):
-        return np.asarray(act(params, jnp.asarray(obs, jnp.float32)))
-
-    q0, qd0 = initial_states(env.task, cfg.eval_seed, 1)
-    sim, real = (
-        rollout(p, env.task, q0, qd0, policy, env.task.horizon) for p in (BraxPlant(env), plant)
-    )
+    evaluator = Evaluator(env, training.trainer.policy, plant, episodes=1, seed=cfg.eval_seed)
+    sim, real = (evaluator.episodes(params, p) for p in (BraxPlant(env), plant))
     path = out_dir / f"{training.method}_sim_vs_real.gif"
-    dt = cfg.env.timestep * cfg.env.frames_per_step
-    return animate_episodes(sim, real, env.sim.obs_names, cfg.real.plant, dt, path, cfg.env.xml)
+    names, dt = env.sim.obs_names, env.sim.dt
+    return animate_episodes(sim, real, names, cfg.real.plant, dt, path, cfg.env.xml)
 
 
 def _method_figures(method: str, history: dict, rows: list[dict]) -> dict:

@@ -71,10 +71,9 @@ def excite_until_identifiable(cfg: Config, env, plant, params, key, data_so_far)
     the last amplitude, notes saying what was done and why)."""
     from hds.discover import record_until_identifiable
 
-    keys = [key]
-
     def record_attempt(scale, attempt):
-        keys[0], sub = jax.random.split(keys[0])
+        nonlocal key
+        key, sub = jax.random.split(key)
         return record(cfg, env, plant, params, sub, scale)
 
     return record_until_identifiable(
