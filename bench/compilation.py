@@ -15,7 +15,10 @@ from pathlib import Path
 
 from bench.common import REFERENCE, run_worker
 
-DEFAULT_BUDGET = {"backends": ["analytic", "generalized"]}
+DEFAULT_BUDGET = {
+    "backends": ["analytic", "generalized"],
+    "overrides": [],  # config overrides on top of the reference configuration
+}
 
 
 def entries_of(path: Path) -> set[str]:
@@ -26,11 +29,11 @@ def cache_size_mib(path: Path) -> float:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / 2**20
 
 
-def measure(backend: str) -> dict:
+def measure(backend: str, overrides: list[str]) -> dict:
     cache = Path(tempfile.mkdtemp(prefix="hds-bench-cache-"))
     try:
         spec = {
-            "overrides": [*REFERENCE, f"env.backend={backend}"],
+            "overrides": [*REFERENCE, f"env.backend={backend}", *overrides],
             "program": "chunk",
             "run": True,
             "cache": str(cache),
@@ -55,7 +58,7 @@ def measure(backend: str) -> dict:
 
 
 def run(budget: dict) -> dict:
-    results = [measure(b) for b in budget["backends"]]
+    results = [measure(b, budget["overrides"]) for b in budget["backends"]]
     rows = []
     for r in results:
         for kind in ("cold", "warm"):
@@ -79,8 +82,9 @@ def run(budget: dict) -> dict:
         "title": "cold and warm (persistent cache) compile",
         "tables": [
             {
-                "caption": "Seconds, each row its own process (reference configuration, 1 seed; "
-                "run = one compiled chunk of epochs)",
+                "caption": "Seconds, each row its own process (reference configuration"
+                + "".join(f", {o}" for o in budget["overrides"])
+                + ", 1 seed; run = one compiled chunk of epochs)",
                 "columns": [
                     "backend",
                     "cache",

@@ -8,7 +8,7 @@ other processes compete for the cores):
   scaling    seeds vmapped, horizon, rollouts per epoch: wall time and peak memory
   compile    cold and warm (persistent cache) compile, each in its own process
   engine     the tree engine vs brax generalized and MJX per system: compile, env-steps/s
-  discovery  time to a gap-discovery report (skipped where hds.discover does not exist)
+  discovery  time to a gap-discovery report
   coverage   how often discovery's 95% intervals hold hidden effects (C MuJoCo plant, noise)
   gpu        skipped on CPU
 

@@ -86,32 +86,52 @@ def test_the_peers_swingup_variant_is_the_swingup_experiment():
     assert variant.noise == experiment.noise
 
 
-def test_bench_run_writes_its_sections_where_told(tmp_path):
-    """`python -m bench.run compile scaling --out DIR` end to end on small budgets: each point a
-    worker process, the results in DIR (the committed ones untouched), the warm process
-    compiling from the cold one's persistent cache, and memory growing with vmapped seeds, less
-    with looped ones."""
+SMALL = "algo.rollouts=8,env.task.horizon=20,algo.inner_epochs=2"
+
+
+def bench_sections(tmp_path, *argv) -> dict:
+    """`python -m bench.run ARGV --out DIR`: its sections, written to DIR only."""
     import json
 
     from bench import run
     from bench.common import result_files
 
     committed = [p.read_bytes() for p in result_files("cpu") if p.exists()]
-    argv = ["compile", "scaling", "--out", str(tmp_path), "--set", "compile.backends=analytic"]
-    small = "algo.rollouts=8,env.task.horizon=20,algo.inner_epochs=2"
-    for setting in ("epochs=1", "seeds=1,2", "horizons=[]", "rollouts=[]", "repeats=1"):
-        argv += ["--set", f"scaling.{setting}"]
-    assert run.main([*argv, "--set", f"scaling.overrides={small}"]) == 0
+    assert run.main([*argv, "--out", str(tmp_path)]) == 0
     assert [p.read_bytes() for p in result_files("cpu") if p.exists()] == committed
-
     sections = json.loads((tmp_path / "results.json").read_text())["sections"]
     assert not any("error" in s for s in sections.values())
+    return sections
+
+
+def test_bench_run_writes_its_sections_where_told(tmp_path):
+    """`python -m bench.run compile --out DIR` end to end on a small budget: each point a worker
+    process, the results in DIR (the committed ones untouched), the warm process compiling from
+    the cold one's persistent cache."""
+    sets = ("compile.backends=analytic", f"compile.overrides={SMALL}")
+    sections = bench_sections(tmp_path, "compile", *(a for s in sets for a in ("--set", s)))
     (compiled,) = sections["compile"]["data"]
     assert compiled["cache_mib"] > 0 and compiled["warm_hit"], compiled["warm_new_entries"]
+    report = (tmp_path / "RESULTS.md").read_text()
+    assert "cold and warm (persistent cache) compile" in report
+
+
+@pytest.mark.slow  # three worker processes, each compiling a whole training: make test-slow
+def test_bench_scaling_memory_grows_with_vmapped_seeds_not_looped_ones(tmp_path):
+    sets = (
+        "epochs=1",
+        "seeds=1,2",
+        "horizons=[]",
+        "rollouts=[]",
+        "repeats=1",
+        f"overrides={SMALL}",
+    )
+    sections = bench_sections(
+        tmp_path, "scaling", *(a for s in sets for a in ("--set", f"scaling.{s}"))
+    )
     one, two, looped = sections["scaling"]["data"]
     assert [(r["seeds"], r["vmapped"]) for r in (one, two, looped)] == [(1, 1), (2, 2), (2, 1)]
     temp = [r["memory"]["temp_mib"] for r in (one, two, looped)]
     assert temp[1] > 1.5 * temp[0] and temp[2] < temp[1], temp  # a loop holds one run at a time
     assert all(r["run_s"] > 0 and len(r["repeat_run_s"]) <= 1 for r in (one, two, looped))
-    report = (tmp_path / "RESULTS.md").read_text()
-    assert "cold and warm (persistent cache) compile" in report and "calls in median" in report
+    assert "calls in median" in (tmp_path / "RESULTS.md").read_text()

@@ -144,7 +144,10 @@ TOLERANCE = {
 }
 
 
-@pytest.mark.parametrize("backend", ["spring", "positional", "mjx"])
+# mjx compiles for over a minute on 2 cores: make test-slow
+@pytest.mark.parametrize(
+    "backend", ["spring", "positional", pytest.param("mjx", marks=pytest.mark.slow)]
+)
 def test_other_backends_track_the_generalized_one(backend, cartpole_env):
     env = make_env(make_config(f"env.backend={backend}").env)
     obs, reference = _ten_steps(env), _ten_steps(cartpole_env)
