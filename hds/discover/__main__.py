@@ -61,6 +61,7 @@ def main(dcfg) -> float:
     from hds.discover.sysid import write_handoff
 
     handoff = write_handoff(cfg.env, result.missing_effects, out_dir)
+    log.info("mujoco.sysid hand-off: %s (%s)", handoff.params, ", ".join(handoff.handed_off))
     for line in handoff.not_handed_off:
         log.info("not handed off to mujoco.sysid: %s", line)
     print_summary(result, out_dir)

@@ -180,7 +180,7 @@ def write_handoff(env_cfg, named, out_dir) -> Handoff:
     header = [
         "# mujoco.sysid parameter specification written by hds.discover "
         "(ParameterDict.load_from_disk reads it).",
-        f"# Model: {MODEL_FILE} (the simulator with every named effect at its estimate).",
+        f"# Model: {MODEL_FILE} (the simulator, each named effect MuJoCo has at its estimate).",
         "# Names are <element>/<name>/<field>[index] of that MJCF; "
         "hds.discover.sysid.load_handoff attaches the modifiers.",
         "# Not handed off: " + ("none" if not skipped else ""),
