@@ -146,8 +146,13 @@ def test_a_sysid_fit_from_the_handoff_moves_to_the_truth(sysid, env_cfg, tmp_pat
     at_truth, _, _ = residual_fn(true, params)  # (sets params to `true`)
     assert np.abs(np.concatenate(at_truth)).max() < 1e-6
     params.update_from_vector(start)
-    fitted, _ = sysid.optimize(params, residual_fn, verbose=False, max_iters=20)
+    fitted, outcome = sysid.optimize(params, residual_fn, verbose=False, max_iters=20)
     np.testing.assert_allclose(fitted.as_vector(), true, rtol=0.01)
+    # MuJoCo's own results: parameters, intervals and the identified MJCF
+    sysid.save_results(tmp_path / "fit", [sequences], params, fitted, outcome, residual_fn)
+    saved = sysid.ParameterDict.load_from_disk(tmp_path / "fit" / "params_x_hat.yaml")
+    np.testing.assert_allclose(saved.as_vector(), fitted.as_vector())
+    assert (tmp_path / "fit" / "confidence.pkl").is_file()
 
 
 def test_load_handoff_names_a_parameter_the_model_lacks(env_cfg, tmp_path):
