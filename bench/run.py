@@ -10,6 +10,7 @@ other processes compete for the cores):
   engine     the tree engine vs brax generalized and MJX per system: compile, env-steps/s
   discovery  time to a gap-discovery report
   coverage   how often discovery's 95% intervals hold hidden effects (C MuJoCo plant, noise)
+  sysid      EMPS fitted by IDIM-LS, hds discovery and mujoco.sysid (from the hand-off)
   gpu        skipped on CPU
 
 Budgets are each section's DEFAULT_BUDGET; override a key with --set, e.g.
@@ -46,6 +47,7 @@ SECTIONS = {
     "engine": "bench.engine",
     "discovery": "bench.discovery",
     "coverage": "bench.coverage",
+    "sysid": "bench.sysid",
     "gpu": "bench.gpu",
 }
 

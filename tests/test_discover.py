@@ -357,6 +357,17 @@ def test_emps_names_coulomb_viscous_and_offset_within_ten_percent():
     before, after = result.error("before", "validation"), result.error("after", "validation")
     assert shrink(before, after) >= 3.0
     assert np.all(after.rollout_rmse < before.rollout_rmse)
+    # IDIM-LS, the benchmark's own fit of the force equation, on the same record: the split
+    # between Coulomb and viscous friction differs (README), their sum at the speeds the
+    # axis moves at does not, and IDIM-LS's values lie inside discovery's 95% intervals
+    idim = emps.idim_ls(EMPS / emps.ESTIMATION)
+    by_name = {e.name: e for e in result.missing_effects}
+    coulomb, viscous = by_name["coulomb_friction"], by_name["viscous_damping"]
+    speed = np.median(np.abs(data.obs[..., 1]))
+    hds_force = coulomb.params["force"] + viscous.params["coefficient"] * speed
+    assert hds_force == pytest.approx(idim["Fc"] + idim["Fv"] * speed, rel=0.02)
+    assert coulomb.ci95["force"][0] < idim["Fc"] < coulomb.ci95["force"][1]
+    assert viscous.ci95["coefficient"][0] < idim["Fv"] < viscous.ci95["coefficient"][1]
 
 
 # The command line, the report, the corrected model ----------------------------------------------
@@ -414,6 +425,13 @@ def test_command_line_writes_the_report_and_hds_run_accepts_the_corrected_model(
 
     model = mujoco.MjModel.from_xml_path(report["corrected_mjcf"])
     assert model.dof_frictionloss[0] == pytest.approx(found["params"]["force"], rel=1e-4)
+    # the hand-off to MuJoCo's own system identification loads in mujoco.sysid
+    from mujoco import sysid
+
+    handoff = sysid.ParameterDict.load_from_disk(out / "sysid" / "params.yaml")
+    assert handoff.keys() == ["joint/slider/frictionloss"]
+    assert handoff.as_vector()[0] == pytest.approx(found["params"]["force"], rel=1e-4)
+    assert mujoco.MjModel.from_xml_path(str(out / "sysid" / "model.xml")).nv == 2
     # hds.report on the discovery directory: its section (named effects, errors before and
     # after, figures) in DIR/report/, discovery's own report.md left as it was
     from hds.report import main as report_main

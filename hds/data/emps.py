@@ -123,3 +123,20 @@ def published_effects() -> dict[str, dict]:
         "viscous_damping@axis": {"coefficient": p["Fv"]},
         "actuator_offset@motor": {"offset": -p["offset"] / p["gtau"]},
     }
+
+
+def idim_ls(path: str | Path, cutoff: float = 100.0, order: int = 4) -> dict[str, float]:
+    """The benchmark's reference identification, IDIM-LS (inverse dynamic identification model,
+    least squares) on one EMPS record: qm filtered as `estimate_velocity` does, differentiated
+    twice centrally, and gtau vir = M qdd + Fv qd + Fc sign(qd) + offset solved by least
+    squares at every 1 kHz sample. Returns M, Fv, Fc, offset (the keys of PUBLISHED) and
+    `relative_error`, the norm of the force residual over the norm of the force."""
+    signals = read_mat(path)
+    _, qd = estimate_velocity(signals["qm"], SAMPLE_DT, cutoff, order)
+    qdd = np.gradient(qd, SAMPLE_DT)
+    force = float(signals["gtau"][0]) * signals["vir"]
+    regressors = np.stack([qdd, qd, np.sign(qd), np.ones_like(qd)], axis=1)
+    theta, *_ = np.linalg.lstsq(regressors, force, rcond=None)
+    residual = force - regressors @ theta
+    fitted = dict(zip(("M", "Fv", "Fc", "offset"), theta.tolist()))
+    return fitted | {"relative_error": float(np.linalg.norm(residual) / np.linalg.norm(force))}

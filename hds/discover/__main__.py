@@ -1,6 +1,7 @@
 """`python -m hds.discover data=PATH [env=...] [retrain=true]`: gap discovery from the command
-line. Writes report.md, report.json, plots/, conf/env/<env>_corrected.yaml and corrected.xml
-to the run directory (hydra.run.dir)."""
+line. Writes report.md, report.json, plots/, conf/env/<env>_corrected.yaml, corrected.xml and
+the mujoco.sysid hand-off (sysid/params.yaml, sysid/model.xml) to the run directory
+(hydra.run.dir)."""
 
 from __future__ import annotations
 
@@ -57,7 +58,12 @@ def main(dcfg) -> float:
         data_name=str(cfg.data),
     )
     from hds.discover.io import print_summary
+    from hds.discover.sysid import write_handoff
 
+    handoff = write_handoff(cfg.env, result.missing_effects, out_dir)
+    log.info("mujoco.sysid hand-off: %s (%s)", handoff.params, ", ".join(handoff.handed_off))
+    for line in handoff.not_handed_off:
+        log.info("not handed off to mujoco.sysid: %s", line)
     print_summary(result, out_dir)
     return float(result.error("after").normalized)
 
