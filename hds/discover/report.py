@@ -145,6 +145,30 @@ def _selection_notes(result: Result) -> list[str]:
     return lines
 
 
+def _terms_section(result: Result) -> list[str]:
+    """The sparse force terms beyond the library, added to the corrected model."""
+    if not result.terms:
+        return []
+    before = result.error("before").normalized
+    named, terms = result.error("after").normalized, result.with_terms["heldout"][1].normalized
+    lines = [
+        "## Terms beyond the library",
+        "",
+        "Sparse terms of each joint's missing force, added to the corrected model as "
+        f"`joint_force_terms` (held-out k-step error, normalized RMSE: {_fmt(before)} as "
+        f"it is, {_fmt(named)} with the named effects, {_fmt(terms)} with the terms too):",
+        "",
+        "| joint | term | coefficient | reading | share of its missing force |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for t in result.terms:
+        lines.append(
+            f"| {t.joint} | {t.term} | {_fmt(t.coefficient)} {t.unit} | {t.reading} | "
+            f"{t.share:.1%} |"
+        )
+    return lines + [""]
+
+
 def _fmt(x: float) -> str:
     return f"{x:.4g}" if np.isfinite(x) else "inf"
 
@@ -229,6 +253,7 @@ def markdown(
     ]
     for w in result.warnings:
         lines += [f"> **Warning**: {w}", ""]
+    lines += _terms_section(result)
     lines += [
         "## Error before and after",
         "",
