@@ -10,6 +10,7 @@ other processes compete for the cores):
   engine     the tree engine vs brax generalized and MJX per system: compile, env-steps/s
   discovery  time to a gap-discovery report (skipped where hds.discover does not exist)
   coverage   how often discovery's 95% intervals hold hidden effects (C MuJoCo plant, noise)
+  terms      effects outside the library (a rail spring, pole drag) found as force terms
   gpu        skipped on CPU
 
 Budgets are each section's DEFAULT_BUDGET; override a key with --set, e.g.
@@ -46,6 +47,7 @@ SECTIONS = {
     "engine": "bench.engine",
     "discovery": "bench.discovery",
     "coverage": "bench.coverage",
+    "terms": "bench.terms",
     "gpu": "bench.gpu",
 }
 
