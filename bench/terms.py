@@ -66,7 +66,7 @@ def measure(case: str, spec: tuple, env_cfg, task, budget: dict, seed: int) -> d
     with timed() as t:
         result = discover(data, env_cfg, settings)
     found = {(x.joint, x.term): x for x in result.terms}.get((joint, term))
-    with_terms = result.with_terms["heldout"][1].normalized if result.terms else np.nan
+    with_terms = result.after_terms["heldout"][1].normalized if result.terms else np.nan
     return {
         "case": case,
         "seed": seed,

@@ -334,7 +334,9 @@ def open_loop(env, obs0, actions) -> np.ndarray:
     return np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(obs0), jnp.asarray(actions)))
 
 
-def test_the_spring_term_joins_the_corrected_simulator_and_the_gap_shrinks(spring_result, env_cfg):
+def test_the_spring_term_joins_the_corrected_simulator_and_the_gap_shrinks(
+    spring_result, env_cfg, tmp_path
+):
     """The fitted spring is written into the corrected env config as a joint_force_terms
     effect; the simulator built from that config (as `hds.run` builds it) replays the held-out
     plant episodes (measured states and actions, 0.4 s open loop) at under half the raw
@@ -360,9 +362,15 @@ def test_the_spring_term_joins_the_corrected_simulator_and_the_gap_shrinks(sprin
 
     raw, fixed = error(make_env(env_cfg)), error(make_env(env_config(corrected)))
     assert fixed < 0.5 * raw, (raw, fixed)  # the cart's position, m
-    # discovery's own k-step comparison says the same
+    # discovery's own k-step comparison says the same, and its report says what was added
     before = result.error("before").normalized
-    assert result.with_terms["heldout"][1].normalized < 0.5 * before
+    assert result.after_terms["heldout"][1].normalized < 0.5 * before
+    report = write_report(result, env_cfg, tmp_path, plot_episodes=0)
+    assert report["errors_with_terms"]["heldout"]["rollout_nrmse"] < 0.5 * before
+    assert "added to the corrected model as `joint_force_terms`" in " ".join(
+        (tmp_path / "report.md").read_text().split()
+    )
+    assert "joint_force_terms@slider {'q': -30" in (tmp_path / "corrected.xml").read_text()
 
 
 def test_quadratic_drag_on_the_pole_is_a_term_and_the_named_damping_a_compensation(
@@ -386,7 +394,7 @@ def test_quadratic_drag_on_the_pole_is_a_term_and_the_named_damping_a_compensati
     assert terms["qd"].coefficient == pytest.approx(damping, rel=0.2)
     assert any("viscous_damping@hinge" in w and "nearly cancel" in w for w in result.warnings)
     named_only = result.error("after").normalized
-    assert result.with_terms["heldout"][1].normalized < 0.2 * named_only
+    assert result.after_terms["heldout"][1].normalized < 0.2 * named_only
 
 
 NOISY = {k: HIDDEN[k] for k in ("coulomb_slider", "viscous_hinge", "lag")}

@@ -166,16 +166,21 @@ def test_registration_refuses_twice_and_incomplete_and_the_plant_names_a_missing
 # The generic joint force terms (hds.effects.force_terms): gap discovery's terms beyond the library
 
 
-def test_force_terms_with_a_known_stiffness_are_the_mjcf_joint_stiffness(cfg, nominal, tmp_path):
-    """A term -k q on the rail steps exactly as the same MJCF with joint stiffness k does."""
+@pytest.mark.parametrize("backend", ["analytic", "tree"])
+def test_force_terms_with_a_known_stiffness_are_the_mjcf_joint_stiffness(
+    cfg, nominal, tmp_path, backend
+):
+    """A term -k q on the rail steps as the same MJCF with joint stiffness k does, on the
+    analytic and the tree backends (the effect acts through the backends' shared path)."""
     spec = load_spec(cfg.env.xml)
     assert spec.joint("slider").stiffness[0] == 0.0
     spec.joint("slider").stiffness[0] = 30.0
     path = tmp_path / "cartpole_spring.xml"
     path.write_text(spec.to_xml())
     spring = {"name": "joint_force_terms", "target": "slider", "params": {"q": -30.0}}
-    terms = sim_trajectory(make_env(cfg.env, effects=[spring]))
-    stiff = sim_trajectory(make_env(dataclasses.replace(cfg.env, xml=str(path)), effects=[]))
+    env_cfg = dataclasses.replace(cfg.env, backend=backend)
+    terms = sim_trajectory(make_env(env_cfg, effects=[spring]))
+    stiff = sim_trajectory(make_env(dataclasses.replace(env_cfg, xml=str(path)), effects=[]))
     np.testing.assert_allclose(terms, stiff, atol=1e-5)
     assert np.abs(terms - nominal)[:, -1, 0].max() > 0.01  # the spring pulled the carts
 

@@ -60,7 +60,7 @@ def print_summary(result, out_dir: Path) -> None:
     console.print(table)
     b, a = result.error("before"), result.error("after")
     with_terms = (
-        f" ({result.with_terms['heldout'][1].normalized:.4g} with the terms)"
+        f" ({result.after_terms['heldout'][1].normalized:.4g} with the terms)"
         if result.terms
         else ""
     )

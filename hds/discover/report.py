@@ -150,7 +150,7 @@ def _terms_section(result: Result) -> list[str]:
     if not result.terms:
         return []
     before = result.error("before").normalized
-    named, terms = result.error("after").normalized, result.with_terms["heldout"][1].normalized
+    named, terms = result.error("after").normalized, result.after_terms["heldout"][1].normalized
     lines = [
         "## Terms beyond the library",
         "",

@@ -24,7 +24,7 @@ import numpy as np
 
 from hds.discover.compare import Residuals
 from hds.discover.data import Data
-from hds.effects.force_terms import FEATURE, FEATURES, HINGE, SLIDE, term_force
+from hds.effects.force_terms import FEATURE, FEATURES, HINGE, SLIDE
 from hds.envs.system import load_spec
 
 MIN_SHARE = 0.01  # a term must explain this share of a joint's missing-force variance
@@ -41,8 +41,8 @@ class Term:
     unit: str
     reading: str
     share: float  # of the joint's missing-force variance on held-out episodes it explains
-    param: str = ""  # the coefficient's parameter of the joint_force_terms effect
-    actuator: int = 0  # for a term in a control: the actuator's index
+    param: str  # the coefficient's parameter of the joint_force_terms effect
+    actuator: int  # for a term in a control: the actuator's index (else 0)
 
     def to_json(self) -> dict:
         return dict(self.__dict__)
@@ -138,12 +138,12 @@ def features(res: Residuals, data: Data, model: mujoco.MjModel, j: int) -> dict[
     q, qd = obs[:, j], obs[:, model.nq + j]
     kind = joint_type(model, j)
     out = {
-        f.label: term_force(np, {f.param: 1.0}, q, qd, np.sign(qd), None)
+        f.label: f.value(np, q, qd, np.sign(qd), None)
         for f in FEATURES
         if kind in f.joints and f.param != "u"
     }
     for a, name in enumerate(data.action_names):
-        out[f"u {name}"] = term_force(np, {"u": 1.0}, q, qd, None, acts[:, a])
+        out[f"u {name}"] = FEATURE["u"].value(np, q, qd, None, acts[:, a])
     return out
 
 

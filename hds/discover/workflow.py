@@ -91,8 +91,9 @@ class Result:
     correlations: list[dict] = field(default_factory=list)  # between the named effects' params
     law_mismatch: list[NamedEffect] = field(default_factory=list)  # see `discover`
     terms: list[Term] = field(default_factory=list)  # sparse force terms beyond the library
-    # the corrected simulator's (named effects and terms) residuals and errors, when terms are
-    with_terms: dict[str, tuple[Residuals, Errors]] = field(default_factory=dict)
+    # per set, the corrected simulator's (named effects and terms) residuals and errors; empty
+    # when no term is found
+    after_terms: dict[str, tuple[Residuals, Errors]] = field(default_factory=dict)
 
     def errors_on(self, dataset: Dataset, set_name: str = "heldout") -> tuple[Errors, Errors]:
         """Errors before and after on another dataset with this one's layout and split, e.g.
@@ -132,7 +133,7 @@ class Result:
             "correlations": self.correlations,
             "terms_beyond_the_library": [t.to_json() for t in self.terms],
             "errors_with_terms": {
-                s: errors.to_json(names) for s, (_, errors) in self.with_terms.items()
+                s: errors.to_json(names) for s, (_, errors) in self.after_terms.items()
             },
             "identifiability": [r.to_json() for r in self.identifiability],
             "noise_std": [float(x) for x in self.data.noise],
@@ -272,7 +273,7 @@ def discover(
             env_cfg, data, after["identification"][0], after["heldout"][0], cfg.stop_margin
         )
         if result.terms:  # the corrected simulator, terms included, on the same windows
-            result.with_terms = corrected_errors(env_cfg, result.corrected_effects, data, cfg)
+            result.after_terms = corrected_errors(env_cfg, result.corrected_effects, data, cfg)
         timing["terms"] = time.perf_counter() - t0
     result.correlations = correlations(final) if final.selected else []
     result.remainder = remainder
@@ -421,7 +422,7 @@ def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
                     + "; ".join(t.describe() for t in result.terms)
                     + " (added to the corrected model as joint_force_terms: held-out k-step "
                     f"error {result.error('before').normalized:.3g} -> "
-                    f"{result.with_terms['heldout'][1].normalized:.3g})"
+                    f"{result.after_terms['heldout'][1].normalized:.3g})"
                     if result.terms
                     else ""
                 )
