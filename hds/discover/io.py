@@ -55,7 +55,10 @@ def print_summary(result, out_dir: Path) -> None:
         table.add_row(e.name, e.target, params, f"{e.explained_fraction:.1%}")
     for t in result.terms:  # added to the corrected model too
         table.add_row(
-            "joint_force_terms", t.joint, f"{t.coefficient:.4g} x {t.term} ({t.unit})", "term"
+            "joint_force_terms",
+            t.joint,
+            f"{t.coefficient:.4g} x {t.term} ({t.unit})",
+            f"{t.share:.0%} of its force",
         )
     console.print(table)
     b, a = result.error("before"), result.error("after")

@@ -25,7 +25,8 @@ def _container(env_cfg) -> dict:
 
 
 def corrected_env(env_cfg, result: Result) -> dict:
-    """The env config of the corrected simulator: the original with the named effects added."""
+    """The env config of the corrected simulator: the original with the named effects and the
+    force terms beyond the library added."""
     env = _container(env_cfg)
     env["name"] = f"{env['name']}_corrected"
     env["effects"] = [dict(e, params=dict(e["params"])) for e in result.corrected_effects]
@@ -39,7 +40,8 @@ def write_config(env_cfg, result: Result, out_dir: Path) -> Path:
     path = Path(out_dir) / "conf" / "env" / f"{env['name']}.yaml"
     header = (
         "# The simulator corrected by gap discovery (hds.discover): the original env with "
-        "the named effects.\n# Use it with: python -m hds.run --config-dir "
+        "the named effects\n# (and joint_force_terms: the force terms beyond the library).\n"
+        "# Use it with: python -m hds.run --config-dir "
         f"{path.parent.parent} env={env['name']}\n"
     )
     atomic_write_bytes(path, (header + OmegaConf.to_yaml(OmegaConf.create(env))).encode())
