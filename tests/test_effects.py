@@ -53,7 +53,7 @@ T = 15  # environment steps of 0.04 s
 def toy_effect():
     register(ForceBias())
     yield
-    del LIBRARY["force_bias"]  # other test modules of this process see the nine again
+    del LIBRARY["force_bias"]  # other test modules of this process see the library as it was
 
 
 @pytest.fixture(scope="module")
