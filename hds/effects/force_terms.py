@@ -3,8 +3,11 @@
 `FEATURES` is the one vocabulary of terms: the effect's parameters are their coefficients, and
 gap discovery's sparse regression (hds.discover.terms) selects among the same features, so
 what it fits is added to the corrected simulator as `joint_force_terms` as it is. sign(qd) is
-exact in discovery's regression and in plants, and smoothed as the friction effects' is
-(hds.effects.friction.friction_direction) in the differentiable simulator.
+exact in discovery's regression and in the brax plant, and smoothed as the friction effects'
+is (hds.effects.friction.friction_direction) in the differentiable simulator. u is the control
+the actuator applies (after the command effects and the lag); discovery regresses on the
+measured action, the same thing unless a named actuator effect transforms it. The position is
+read at the joint's dof index, which `check_site` makes sure is its position's index too.
 """
 
 from __future__ import annotations
