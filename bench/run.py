@@ -11,6 +11,7 @@ other processes compete for the cores):
   discovery  time to a gap-discovery report
   coverage   how often discovery's 95% intervals hold hidden effects (C MuJoCo plant, noise)
   sysid      EMPS fitted by IDIM-LS, hds discovery and mujoco.sysid (from the hand-off)
+  terms      effects outside the library (a rail spring, pole drag) found as force terms
   gpu        skipped on CPU
 
 Budgets are each section's DEFAULT_BUDGET; override a key with --set, e.g.
@@ -48,6 +49,7 @@ SECTIONS = {
     "discovery": "bench.discovery",
     "coverage": "bench.coverage",
     "sysid": "bench.sysid",
+    "terms": "bench.terms",
     "gpu": "bench.gpu",
 }
 

@@ -10,6 +10,8 @@ Cost: analytic backend only (compiles in seconds); one tiny training.
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,7 +19,7 @@ import pytest
 from conftest import make_config
 
 from hds.algo.pods import make_train
-from hds.effects import LIBRARY, Effect, Param, register
+from hds.effects import LIBRARY, Effect, Param, place, register
 from hds.effects.base import JOINT, SUBSTEP
 from hds.envs import make_env
 from hds.envs.system import load_spec
@@ -35,7 +37,7 @@ class ForceBias(Effect):
     params = (Param("force", "N or N m", 0.0),)
     stage = SUBSTEP
 
-    def substep(self, site, p, state, u, force, qd, h, sharpness, gradient_sharpness):
+    def substep(self, site, p, state, u, force, q, qd, h, sharpness, gradient_sharpness):
         return u, force.at[site.index].add(p["force"]), state
 
     def plant_force(self, site, p):
@@ -51,7 +53,7 @@ T = 15  # environment steps of 0.04 s
 def toy_effect():
     register(ForceBias())
     yield
-    del LIBRARY["force_bias"]  # other test modules of this process see the nine again
+    del LIBRARY["force_bias"]  # other test modules of this process see the library as it was
 
 
 @pytest.fixture(scope="module")
@@ -102,10 +104,15 @@ def test_a_registered_effect_is_in_the_config_schema_and_validated(cfg):
         make_config("env.backend=analytic", "env.effects=[{name: force_bias, target: slide}]")
 
 
-def test_the_simulator_applies_it_as_the_same_force_from_an_actuator(cfg):
+@pytest.fixture(scope="module")
+def nominal(cfg) -> np.ndarray:
+    """The trajectory of the simulator with no effect."""
+    return sim_trajectory(make_env(cfg.env, effects=[]))
+
+
+def test_the_simulator_applies_it_as_the_same_force_from_an_actuator(cfg, nominal):
     toy = sim_trajectory(make_env(cfg.env))
     offset = sim_trajectory(make_env(cfg.env, effects=[same_force(cfg.env)]))
-    nominal = sim_trajectory(make_env(cfg.env, effects=[]))
     np.testing.assert_allclose(toy, offset, atol=1e-5)
     assert np.all(toy[:, -1, 0] - nominal[:, -1, 0] > 0.01)  # it pushed the cart forward
 
@@ -154,3 +161,82 @@ def test_registration_refuses_twice_and_incomplete_and_the_plant_names_a_missing
             MujocoPlant(cfg.env, effects)
     finally:
         del LIBRARY["unplanted_force"]
+
+
+# The generic joint force terms (hds.effects.force_terms): gap discovery's terms beyond the library
+
+
+@pytest.mark.parametrize("backend", ["analytic", "tree"])
+def test_force_terms_with_a_known_stiffness_are_the_mjcf_joint_stiffness(
+    cfg, nominal, tmp_path, backend
+):
+    """A term -k q on the rail steps as the same MJCF with joint stiffness k does, on the
+    analytic and the tree backends (the effect acts through the backends' shared path)."""
+    spec = load_spec(cfg.env.xml)
+    assert spec.joint("slider").stiffness[0] == 0.0
+    spec.joint("slider").stiffness[0] = 30.0
+    path = tmp_path / "cartpole_spring.xml"
+    path.write_text(spec.to_xml())
+    spring = {"name": "joint_force_terms", "target": "slider", "params": {"q": -30.0}}
+    env_cfg = dataclasses.replace(cfg.env, backend=backend)
+    terms = sim_trajectory(make_env(env_cfg, effects=[spring]))
+    stiff = sim_trajectory(make_env(dataclasses.replace(env_cfg, xml=str(path)), effects=[]))
+    np.testing.assert_allclose(terms, stiff, atol=1e-5)
+    assert np.abs(terms - nominal)[:, -1, 0].max() > 0.01  # the spring pulled the carts
+
+
+def test_force_terms_sum_coefficient_times_feature_and_differentiate_in_the_coefficients(cfg):
+    """The joint force, by hand: every feature of the vocabulary at once on the hinge, the
+    control's term from the first actuator; d force / d coefficient is the feature."""
+    coefficients = {"q": 1.0, "sin_q": 2.0, "cos_q": -3.0, "qd": 0.5}
+    coefficients |= {"sign_qd": -0.7, "abs_qd_qd": -0.2, "u": 0.3}
+    env = make_env(cfg.env, effects=[])
+    names = env.sim.targets
+    placed, params = place(
+        [{"name": "joint_force_terms", "target": "hinge", "params": coefficients}], names
+    )
+    hinge = names["joint"]["hinge"]
+    q, qd, u = jnp.array([0.3, 1.2]), jnp.array([-0.4, -2.0]), jnp.array([0.8])
+    force = placed.substep(params, {}, u, q, qd, 0.01, None)[1]
+    expected = (
+        1.0 * 1.2
+        + 2.0 * np.sin(1.2)
+        - 3.0 * np.cos(1.2)
+        + 0.5 * -2.0
+        - 0.7 * -1.0
+        - 0.2 * 2.0 * -2.0
+        + 0.3 * 0.8
+    )
+    assert float(force[hinge]) == pytest.approx(expected, rel=1e-5)
+    assert float(force[names["joint"]["slider"]]) == 0.0
+
+    def hinge_force(p):
+        return placed.substep((p,), {}, u, q, qd, 0.01, 50.0)[1][hinge]
+
+    grad = jax.grad(hinge_force)(params[0])
+    assert float(grad["abs_qd_qd"]) == pytest.approx(-4.0)
+    assert float(grad["sin_q"]) == pytest.approx(np.sin(1.2), rel=1e-5)
+    assert float(grad["sign_qd"]) == pytest.approx(np.tanh(50.0 * -2.0))  # smoothed sign
+
+
+@pytest.mark.parametrize(
+    "effect, message",
+    [
+        ("{name: joint_force_terms, target: slider, params: {q2: 1.0}}", "no parameter \\['q2'\\]"),
+        ("{name: joint_force_terms, target: rail, params: {q: 1.0}}", "no joint 'rail'"),
+        (
+            "{name: joint_force_terms, target: slider, params: {u: 1.0, actuator: 3}}",
+            "actuator = 3",
+        ),
+    ],
+)
+def test_force_terms_naming_an_unknown_feature_joint_or_actuator_are_refused(effect, message):
+    with pytest.raises(ValueError, match=message) as err:
+        make_config("env.backend=analytic", f"env.effects=[{effect}]")
+    assert "\n" not in str(err.value)
+
+
+def test_the_mujoco_plant_refuses_force_terms_with_one_line(cfg):
+    spring = {"name": "joint_force_terms", "target": "slider", "params": {"q": -30.0}}
+    with pytest.raises(ValueError, match="joint_force_terms@slider.*MJCF.*real=brax"):
+        MujocoPlant(cfg.env, [spring])

@@ -29,7 +29,7 @@ import numpy as np
 from hds.data.format import Dataset, concatenate
 from hds.discover.data import noise_level
 from hds.effects.base import ACTUATOR, BODY, JOINT, OBSERVATION
-from hds.effects.library import LIBRARY, effect_type
+from hds.effects.library import candidate_effects, effect_type
 from hds.envs.system import load_spec, one_dof_joints, state_names
 
 MIN_SPAN = 0.05  # share of the actuator's range the control must span to show a gain
@@ -80,14 +80,14 @@ def moving_share(obs: np.ndarray, noise: np.ndarray, names, joint: str) -> float
 def identifiability(
     dataset: Dataset, env_cfg, min_motion: float = 0.05, effects=None
 ) -> list[Identifiability]:
-    """Per candidate (effect of `effects`, default the whole library, x place of its kind on
+    """Per candidate (effect of `effects`, default the library's candidates, x place of its kind on
     the model of `env_cfg`): whether `dataset` can identify it, why not, and the excitation
     that would (within the actuators' control ranges). `min_motion`: the share of samples a
     joint must move in (discover.min_motion)."""
     model = load_spec(env_cfg.xml, env_cfg.timestep).compile()
     facts = _Facts(dataset, model, min_motion)
     rows = []
-    for name in effects or list(LIBRARY):
+    for name in effects or candidate_effects():
         kind = effect_type(name).target_kind
         for target in facts.targets[kind]:
             reason, excitation = CHECKS[kind](facts, name, target)

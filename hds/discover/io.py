@@ -53,11 +53,23 @@ def print_summary(result, out_dir: Path) -> None:
             for p, v in e.params.items()
         )
         table.add_row(e.name, e.target, params, f"{e.explained_fraction:.1%}")
+    for t in result.terms:  # added to the corrected model too
+        table.add_row(
+            "joint_force_terms",
+            t.joint,
+            f"{t.coefficient:.4g} x {t.term} ({t.unit})",
+            f"{t.share:.0%} of its force",
+        )
     console.print(table)
     b, a = result.error("before"), result.error("after")
+    with_terms = (
+        f" ({result.after_terms['heldout'][1].normalized:.4g} with the terms)"
+        if result.terms
+        else ""
+    )
     console.print(
         f"held-out k-step error (normalized RMSE): {b.normalized:.4g} -> "
-        f"{a.normalized:.4g}; unexplained {result.unexplained_fraction:.1%}"
+        f"{a.normalized:.4g}{with_terms}; unexplained {result.unexplained_fraction:.1%}"
     )
     for w in result.warnings:
         console.print(f"[yellow]warning:[/yellow] {w}")

@@ -105,13 +105,15 @@ class Model:
         sim = self.sim
         effects = sim.effects
         lo, hi = jnp.asarray(sim.ctrl_range[:, 0]), jnp.asarray(sim.ctrl_range[:, 1])
-        zeros_qd = jnp.zeros(sim.n_obs - sim.nq)
+        zeros_q, zeros_qd = jnp.zeros(sim.nq), jnp.zeros(sim.n_obs - sim.nq)
 
         def warm(est, ut):
             ut, est = effects.command(params, est, ut, sim.sharpness)
             ut = jnp.clip(ut, lo, hi)
             for _ in range(sim.frames):
-                _, _, est = effects.substep(params, est, ut, zeros_qd, sim.timestep, sim.sharpness)
+                _, _, est = effects.substep(
+                    params, est, ut, zeros_q, zeros_qd, sim.timestep, sim.sharpness
+                )
             return est, None
 
         est = effects.init_state()

@@ -25,7 +25,8 @@ def _container(env_cfg) -> dict:
 
 
 def corrected_env(env_cfg, result: Result) -> dict:
-    """The env config of the corrected simulator: the original with the named effects added."""
+    """The env config of the corrected simulator: the original with the named effects and the
+    force terms beyond the library added."""
     env = _container(env_cfg)
     env["name"] = f"{env['name']}_corrected"
     env["effects"] = [dict(e, params=dict(e["params"])) for e in result.corrected_effects]
@@ -39,7 +40,8 @@ def write_config(env_cfg, result: Result, out_dir: Path) -> Path:
     path = Path(out_dir) / "conf" / "env" / f"{env['name']}.yaml"
     header = (
         "# The simulator corrected by gap discovery (hds.discover): the original env with "
-        "the named effects.\n# Use it with: python -m hds.run --config-dir "
+        "the named effects\n# (and joint_force_terms: the force terms beyond the library).\n"
+        "# Use it with: python -m hds.run --config-dir "
         f"{path.parent.parent} env={env['name']}\n"
     )
     atomic_write_bytes(path, (header + OmegaConf.to_yaml(OmegaConf.create(env))).encode())
@@ -145,6 +147,30 @@ def _selection_notes(result: Result) -> list[str]:
     return lines
 
 
+def _terms_section(result: Result) -> list[str]:
+    """The sparse force terms beyond the library, added to the corrected model."""
+    if not result.terms:
+        return []
+    before = result.error("before").normalized
+    named, terms = result.error("after").normalized, result.after_terms["heldout"][1].normalized
+    lines = [
+        "## Terms beyond the library",
+        "",
+        "Sparse terms of each joint's missing force, added to the corrected model as "
+        f"`joint_force_terms` (held-out k-step error, normalized RMSE: {_fmt(before)} as "
+        f"it is, {_fmt(named)} with the named effects, {_fmt(terms)} with the terms too):",
+        "",
+        "| joint | term | coefficient | reading | share of its missing force |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for t in result.terms:
+        lines.append(
+            f"| {t.joint} | {t.term} | {_fmt(t.coefficient)} {t.unit} | {t.reading} | "
+            f"{t.share:.1%} |"
+        )
+    return lines + [""]
+
+
 def _fmt(x: float) -> str:
     return f"{x:.4g}" if np.isfinite(x) else "inf"
 
@@ -229,6 +255,7 @@ def markdown(
     ]
     for w in result.warnings:
         lines += [f"> **Warning**: {w}", ""]
+    lines += _terms_section(result)
     lines += [
         "## Error before and after",
         "",

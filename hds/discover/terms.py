@@ -6,14 +6,17 @@ window's measured state) it is the missing generalized force, in N (slide) or N 
 Per joint, that force is regressed on candidate terms of the window's state and action, by
 forward selection on the held-out episodes' error (a term is added while it lowers the held-out
 mean squared force error by at least `stop_margin` of it and MIN_SHARE of the joint's missing
-force), the way discovery selects effects. Reported, not yet added to the corrected model.
-Each term is reported with units and a physical reading: a force -k q on a rail is a spring.
+force), the way discovery selects effects. Each term is reported with units and a physical
+reading (a force -k q on a rail is a spring), and a joint's terms are added to the corrected
+model as one `joint_force_terms` effect (`term_effects`).
 
-Terms: q (slide) or sin q, cos q (hinge); qd; sign(qd); |qd| qd; each action.
+Terms: the features of hds.effects.force_terms (q on a slide, sin q and cos q on a hinge, qd,
+sign(qd), |qd| qd) and each action.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import mujoco
@@ -21,29 +24,25 @@ import numpy as np
 
 from hds.discover.compare import Residuals
 from hds.discover.data import Data
+from hds.effects.force_terms import FEATURE, FEATURES, HINGE, SLIDE
 from hds.envs.system import load_spec
 
 MIN_SHARE = 0.01  # a term must explain this share of a joint's missing-force variance
+TERM_EFFECT = "joint_force_terms"
 
-READINGS = {  # term -> (unit of its coefficient, physical reading of a force -c * term)
-    "q": ("{F}/{Q}", "a spring (stiffness k = -coefficient)"),
-    "sin q": ("{F}", "a torque in sin of the angle (gravity-like)"),
-    "cos q": ("{F}", "a torque in cos of the angle (an offset gravity)"),
-    "qd": ("{F} s/{Q}", "viscous friction (coefficient = -coefficient)"),
-    "sign(qd)": ("{F}", "dry (Coulomb) friction (force = -coefficient)"),
-    "|qd| qd": ("{F} s^2/{Q}^2", "quadratic drag (coefficient = -coefficient)"),
-    "u": ("{F} per control unit", "a force proportional to the control"),
-}
+log = logging.getLogger("hds")
 
 
 @dataclass
 class Term:
     joint: str
-    term: str  # one of READINGS' keys (actions: "u <name>")
+    term: str  # as reports write it (actions: "u <name>")
     coefficient: float
     unit: str
     reading: str
     share: float  # of the joint's missing-force variance on held-out episodes it explains
+    param: str  # the coefficient's parameter of the joint_force_terms effect
+    actuator: int  # for a term in a control: the actuator's index (else 0)
 
     def to_json(self) -> dict:
         return dict(self.__dict__)
@@ -53,6 +52,40 @@ class Term:
             f"a force on {self.joint} of {self.coefficient:.4g} x {self.term} "
             f"({self.unit}): {self.reading}; {self.share:.0%} of the missing force"
         )
+
+
+def term_effects(terms: list[Term]) -> list[dict]:
+    """The terms as effects: one `joint_force_terms` per joint (a joint's terms in one control
+    only: a term in a second actuator's control is left out, with a warning)."""
+    by_joint: dict[str, dict] = {}
+    for t in terms:
+        effect = by_joint.setdefault(
+            t.joint, {"name": TERM_EFFECT, "target": t.joint, "params": {}}
+        )
+        params = effect["params"]
+        if t.param == "u" and "u" in params:
+            log.warning("%s: not added (a joint's terms use one control)", t.describe())
+            continue
+        params[t.param] = t.coefficient
+        if t.param == "u":
+            params["actuator"] = t.actuator
+    return list(by_joint.values())
+
+
+def with_terms(effects: list[dict], terms: list[Term]) -> list[dict]:
+    """`effects` plus the terms' effects; terms on a joint that already has a
+    `joint_force_terms` effect add to its coefficients."""
+    out = [dict(e, params=dict(e["params"])) for e in effects]
+    placed = {(e["name"], e["target"]): e for e in out}
+    for new in term_effects(terms):
+        old = placed.get((TERM_EFFECT, new["target"]))
+        if old is None:
+            out.append(new)
+            continue
+        for param, value in new["params"].items():
+            known = 0.0 if param == "actuator" else old["params"].get(param, 0.0)
+            old["params"][param] = known + value
+    return out
 
 
 def missing_force(res: Residuals, data: Data, model: mujoco.MjModel) -> np.ndarray:
@@ -70,19 +103,47 @@ def missing_force(res: Residuals, data: Data, model: mujoco.MjModel) -> np.ndarr
     return out
 
 
+def compensations(named, terms: list[Term]) -> list[str]:
+    """Warnings for named effects (NamedEffect) that a term of the same law on the same joint
+    largely cancels: the named effect compensated for what the other terms now explain (a
+    viscous damping standing in for quadratic drag); the corrected model carries their sum."""
+    out = []
+    for t in terms:
+        law = FEATURE[t.param].same_law
+        for e in named:
+            if law is None or (e.name, e.target) != (law[0], t.joint):
+                continue
+            value = e.params[law[1]]
+            net = value - t.coefficient  # the named force is -value x term
+            if abs(net) < 0.5 * abs(value):
+                others = ", ".join(o.term for o in terms if o.joint == t.joint and o is not t)
+                out.append(
+                    f"{e.name}@{e.target} ({law[1]} = {value:.4g} {e.units[law[1]]}) and the "
+                    f"term {t.coefficient:.4g} x {t.term} nearly cancel (net {net:.4g}): the "
+                    f"named effect compensated for {others or 'the other terms'}; the "
+                    "corrected model carries their sum"
+                )
+    return out
+
+
+def joint_type(model: mujoco.MjModel, j: int) -> str:
+    return HINGE if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE else SLIDE
+
+
 def features(res: Residuals, data: Data, model: mujoco.MjModel, j: int) -> dict[str, np.ndarray]:
+    """{term: value at each window's start} of joint j: its FEATURES and each action."""
     obs = np.asarray(data.obs, dtype=np.float64)[res.episode, res.start]
     pad = data.acts.shape[1] - (data.obs.shape[1] - 1)
     acts = np.asarray(data.acts, dtype=np.float64)[res.episode, pad + res.start]
     q, qd = obs[:, j], obs[:, model.nq + j]
-    out = {}
-    if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE:
-        out["sin q"], out["cos q"] = np.sin(q), np.cos(q)
-    else:
-        out["q"] = q
-    out["qd"], out["sign(qd)"], out["|qd| qd"] = qd, np.sign(qd), np.abs(qd) * qd
+    kind = joint_type(model, j)
+    out = {
+        f.label: f.value(np, q, qd, np.sign(qd), None)
+        for f in FEATURES
+        if kind in f.joints and f.param != "u"
+    }
     for a, name in enumerate(data.action_names):
-        out[f"u {name}"] = acts[:, a]
+        out[f"u {name}"] = FEATURE["u"].value(np, q, qd, None, acts[:, a])
     return out
 
 
@@ -120,11 +181,10 @@ def fit_terms(env_cfg, data: Data, ident: Residuals, held: Residuals, stop_margi
     """The sparse terms of each joint's missing force (see the module's docstring)."""
     model = load_spec(env_cfg.xml, env_cfg.timestep).compile()
     f_fit, f_held = missing_force(ident, data, model), missing_force(held, data, model)
+    label = {f.label: f for f in FEATURES}
     out = []
     for j in range(model.njnt):
-        joint = model.joint(j).name
-        hinge = model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE
-        units = {"F": "N m" if hinge else "N", "Q": "rad" if hinge else "m"}
+        joint, kind = model.joint(j).name, joint_type(model, j)
         feats_fit, feats_held = features(ident, data, model, j), features(held, data, model, j)
         names = list(feats_fit)
         x_fit = np.stack([feats_fit[n] for n in names], 1)
@@ -132,6 +192,11 @@ def fit_terms(env_cfg, data: Data, ident: Residuals, held: Residuals, stop_margi
         dof = int(model.jnt_dofadr[j])
         picked = select(x_fit, f_fit[:, dof], x_held, f_held[:, dof], names, stop_margin)
         for name, coef, share in picked:
-            unit, reading = READINGS[name.split(" ")[0] if name.startswith("u ") else name]
-            out.append(Term(joint, name, coef, unit.format(**units), reading, share))
+            control = name.startswith("u ")
+            feature = FEATURE["u"] if control else label[name]
+            actuator = data.action_names.index(name[2:]) if control else 0
+            unit = feature.unit_on(kind)
+            out.append(
+                Term(joint, name, coef, unit, feature.reading, share, feature.param, actuator)
+            )
     return out

@@ -25,7 +25,7 @@ from hds.discover.explain import (
 from hds.discover.fit import Engine, get_engine
 from hds.discover.identify import Identifiability, identifiability
 from hds.discover.locate import Location, locate
-from hds.discover.terms import Term, fit_terms
+from hds.discover.terms import Term, compensations, fit_terms, with_terms
 from hds.effects.base import ACTUATOR
 from hds.effects.library import effect_type
 
@@ -91,6 +91,9 @@ class Result:
     correlations: list[dict] = field(default_factory=list)  # between the named effects' params
     law_mismatch: list[NamedEffect] = field(default_factory=list)  # see `discover`
     terms: list[Term] = field(default_factory=list)  # sparse force terms beyond the library
+    # per set, the corrected simulator's (named effects and terms) residuals and errors; empty
+    # when no term is found
+    after_terms: dict[str, tuple[Residuals, Errors]] = field(default_factory=dict)
 
     def errors_on(self, dataset: Dataset, set_name: str = "heldout") -> tuple[Errors, Errors]:
         """Errors before and after on another dataset with this one's layout and split, e.g.
@@ -106,7 +109,10 @@ class Result:
 
     @property
     def corrected_effects(self) -> list[dict]:
-        return self.env_effects + [e.as_effect() for e in self.missing_effects]
+        """The env's effects, the named ones and the terms beyond the library."""
+        return with_terms(
+            self.env_effects + [e.as_effect() for e in self.missing_effects], self.terms
+        )
 
     def error(self, which: str, set_name: str = "heldout") -> Errors:
         return (self.before if which == "before" else self.after)[set_name][1]
@@ -126,6 +132,9 @@ class Result:
             "dropped_proxies": [c.key for c in self.selection.dropped],
             "correlations": self.correlations,
             "terms_beyond_the_library": [t.to_json() for t in self.terms],
+            "errors_with_terms": {
+                s: errors.to_json(names) for s, (_, errors) in self.after_terms.items()
+            },
             "identifiability": [r.to_json() for r in self.identifiability],
             "noise_std": [float(x) for x in self.data.noise],
             "noise_floor_nrmse": float(
@@ -263,6 +272,8 @@ def discover(
         result.terms = fit_terms(
             env_cfg, data, after["identification"][0], after["heldout"][0], cfg.stop_margin
         )
+        if result.terms:  # the corrected simulator, terms included, on the same windows
+            result.after_terms = corrected_errors(env_cfg, result.corrected_effects, data, cfg)
         timing["terms"] = time.perf_counter() - t0
     result.correlations = correlations(final) if final.selected else []
     result.remainder = remainder
@@ -297,11 +308,24 @@ def with_backend(env_cfg, backend: str):
     """The env config with another physics backend (a dataclass or a DictConfig)."""
     if env_cfg.backend == backend:
         return env_cfg
+    return _replace(env_cfg, backend=backend)
+
+
+def _replace(env_cfg, **changes):
     if dataclasses.is_dataclass(env_cfg):
-        return dataclasses.replace(env_cfg, backend=backend)
+        return dataclasses.replace(env_cfg, **changes)
     from omegaconf import OmegaConf
 
-    return OmegaConf.merge(env_cfg, {"backend": backend})
+    return OmegaConf.merge(env_cfg, changes)
+
+
+def corrected_errors(env_cfg, effects: list[dict], data: Data, cfg: DiscoverConfig):
+    """Residuals and errors, per set, of the env's simulator with `effects` (no candidates)."""
+    engine = get_engine(
+        _replace(env_cfg, effects=effects), data.dt, [], cfg.max_delay, cfg.warmup, cfg.horizon
+    )
+    no_delay = np.zeros(len(engine.model.sim.action_names), np.int32)
+    return compare(engine, data, engine.model.nominal, no_delay)
 
 
 def _effect_dict(spec) -> dict:
@@ -393,13 +417,22 @@ def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
                 f"structure: the residual of {top['variable']} depends on "
                 f"{top['feature']} (eta^2 = {top['eta2']:.2f}); the simulator probably "
                 "misses an effect outside the library"
-                + (": " + "; ".join(t.describe() for t in result.terms) if result.terms else "")
+                + (
+                    ": "
+                    + "; ".join(t.describe() for t in result.terms)
+                    + " (added to the corrected model as joint_force_terms: held-out k-step "
+                    f"error {result.error('before').normalized:.3g} -> "
+                    f"{result.after_terms['heldout'][1].normalized:.3g})"
+                    if result.terms
+                    else ""
+                )
             )
         else:
             out.append(
                 f"{share} stays unexplained, with no structure any feature reveals: "
                 "measurement noise, or an effect the features do not show"
             )
+    out += compensations(result.missing_effects, result.terms)
     for e in result.law_mismatch:
         out.append(
             f"{e.name}@{e.target} lowered the held-out error ({e.explained_fraction:.1%} of "

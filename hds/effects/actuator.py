@@ -127,7 +127,7 @@ class ActuatorLag(Effect):
     def init_state(self, site):
         return jnp.zeros(())
 
-    def substep(self, site, p, state, u, force, qd, h, sharpness, gradient_sharpness):
+    def substep(self, site, p, state, u, force, q, qd, h, sharpness, gradient_sharpness):
         tau = jnp.maximum(p["time_constant"], 1e-6)
         y = state + (1.0 - jnp.exp(-h / tau)) * (u[site.index] - state)
         # The force uses the updated output (MuJoCo's actearly), so a time constant of 0

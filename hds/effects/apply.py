@@ -79,14 +79,15 @@ class EffectSet:
             u, state[i] = effect.command(site, params[i], state.get(i), u, sharpness)
         return u, _stateful(state)
 
-    def substep(self, params, state: dict, u, qd, h: float, sharpness, gradient_sharpness=None):
-        """One physics substep: (applied control, joint forces [nqd], next state).
-        `gradient_sharpness`: see `hds.effects.friction.friction_direction`."""
+    def substep(self, params, state: dict, u, q, qd, h: float, sharpness, gradient_sharpness=None):
+        """One physics substep at joint positions q and velocities qd: (applied control, joint
+        forces [nqd], next state). `gradient_sharpness`: see
+        `hds.effects.friction.friction_direction`."""
         state = dict(state)
         force = jnp.zeros_like(qd)
         for i, site, effect in self.at(SUBSTEP):
             u, force, state[i] = effect.substep(
-                site, params[i], state.get(i), u, force, qd, h, sharpness, gradient_sharpness
+                site, params[i], state.get(i), u, force, q, qd, h, sharpness, gradient_sharpness
             )
         return u, force, _stateful(state)
 
@@ -130,7 +131,9 @@ def check(specs, names: dict[str, dict[str, int]]) -> list[tuple[EffectSpec, dic
         if spec.key in seen:
             raise ValueError(f"effect '{spec.key}' is given twice; give each effect once")
         seen.add(spec.key)
-        checked.append((spec, check_params(spec.name, dict(spec.params), where=spec.key)))
+        values = check_params(spec.name, dict(spec.params), where=spec.key)
+        etype.check_site(spec.target, values, names, spec.key)
+        checked.append((spec, values))
     return checked
 
 

@@ -60,6 +60,12 @@ class Effect:
     # discovery fits it by shifting the measured actions (a delay): its one discrete
     # parameter is enumerated, with no parameter in the simulator
     shifts_actions: bool = False
+    # one of discovery's candidates; False: a generic effect it fits otherwise (force terms)
+    candidate: bool = True
+
+    def check_site(self, target: str, values: dict, names: dict, where: str) -> None:
+        """Refuse, with one line, what its parameters cannot mean on this model; `names`: the
+        model's targets by kind (hds.effects.apply.check)."""
 
     def param(self, name: str) -> Param:
         return next(p for p in self.params if p.name == name)
@@ -80,9 +86,9 @@ class Effect:
         smoothing of a discontinuous law."""
         raise self._missing("command")
 
-    def substep(self, site, p, state, u, force, qd, h, sharpness, gradient_sharpness):
+    def substep(self, site, p, state, u, force, q, qd, h, sharpness, gradient_sharpness):
         """(applied control, joint forces [nqd], state) after the effect, for one substep
-        of h seconds at joint velocities qd."""
+        of h seconds at joint positions q and velocities qd."""
         raise self._missing("substep")
 
     def observe(self, site, p, obs):

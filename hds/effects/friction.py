@@ -37,7 +37,7 @@ class CoulombFriction(Effect):
     mjcf = "joint frictionloss"
     friction = "force"
 
-    def substep(self, site, p, state, u, force, qd, h, sharpness, gradient_sharpness):
+    def substep(self, site, p, state, u, force, q, qd, h, sharpness, gradient_sharpness):
         direction = friction_direction(qd[site.index], sharpness, gradient_sharpness)
         return u, force.at[site.index].add(-p["force"] * direction), state
 
@@ -55,7 +55,7 @@ class ViscousDamping(Effect):
     mjcf = "joint damping"
     friction = "coefficient"
 
-    def substep(self, site, p, state, u, force, qd, h, sharpness, gradient_sharpness):
+    def substep(self, site, p, state, u, force, q, qd, h, sharpness, gradient_sharpness):
         return u, force.at[site.index].add(-p["coefficient"] * qd[site.index]), state
 
     def write_mjcf(self, spec, site, p):

@@ -19,6 +19,7 @@ from hds.effects.actuator import (
 )
 from hds.effects.base import STAGES, TARGET_KINDS, Effect, Param
 from hds.effects.body import MassScale
+from hds.effects.force_terms import JointForceTerms
 from hds.effects.friction import CoulombFriction, ViscousDamping
 from hds.effects.sensor import SensorBias
 
@@ -55,6 +56,12 @@ register(ActionDelay())
 register(ActuatorLag())
 register(MassScale())
 register(SensorBias())
+register(JointForceTerms())
+
+
+def candidate_effects() -> list[str]:
+    """The effects gap discovery fits as candidates (the generic force terms it fits apart)."""
+    return [name for name, effect in LIBRARY.items() if effect.candidate]
 
 
 def effect_type(name: str) -> Effect:

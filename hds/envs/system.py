@@ -145,7 +145,7 @@ class Simulator:
         def substep(carry, _):
             ps, est = carry
             applied, force, est = self.effects.substep(
-                params, est, u, ps.qd, self.timestep, self.sharpness, self.gradient_sharpness
+                params, est, u, ps.q, ps.qd, self.timestep, self.sharpness, self.gradient_sharpness
             )
             act = jnp.concatenate([applied, force[self.force_dofs]])
             return (self.pipeline.step(sys, ps, act), est), None
