@@ -56,12 +56,14 @@ class Hooks:
         epoch (return, loss, step_size, ...) plus "method" (the rows' label).
     policy_params_fn(epoch, params): after every compiled chunk of epochs (and checkpoint);
         params: the policy parameters of every run, stacked [n_runs, ...].
-    console: the progress bar and the final table.
+    console: the progress bar and the final table; live_progress: the bar redrawn in place
+        (False: a line per chunk of epochs, for jobs that share a terminal or a log file).
     """
 
     progress_fn: Callable[[int, dict], None] | None = None
     policy_params_fn: Callable[[int, object], None] | None = None
     console: bool = True
+    live_progress: bool = True
 
 
 @dataclass
@@ -499,7 +501,9 @@ def _method_figures(method: str, history: dict, rows: list[dict]) -> dict:
 @contextlib.contextmanager
 def method_logger(cfg: Config, out_dir: Path, method: str, hooks: Hooks):
     """The progress bar and W&B run of one method, closed however training ends."""
-    logger = RunLogger(cfg, out_dir, method, cfg.runs(), console=hooks.console)
+    logger = RunLogger(
+        cfg, out_dir, method, cfg.runs(), console=hooks.console, live=hooks.live_progress
+    )
     try:
         yield logger
     except BaseException:

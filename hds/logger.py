@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import html
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -28,10 +29,11 @@ class RunLogger:
     are stepped by epoch, labelled per run by seed and swept setting, and whose summary holds
     the final returns and gaps. `close` ends both, also when training failed."""
 
-    def __init__(self, cfg, out_dir: Path, method: str, runs: list[dict], console: bool = True):
+    def __init__(self, cfg, out_dir: Path, method: str, runs: list[dict], console=True, live=True):
         self.cfg, self.out_dir, self.method = cfg, Path(out_dir), method
         self.labels = [run_label(r) for r in runs]
-        self.show = console
+        self.show, self.live = console, live
+        self.epoch, self.started = 0, time.perf_counter()
         self.wandb = self.progress = None
 
     def start(self, first_epoch: int) -> None:
@@ -52,7 +54,8 @@ class RunLogger:
             )
             self.wandb.define_metric("epoch")
             self.wandb.define_metric("*", step_metric="epoch")
-        if self.show:
+        self.epoch = first_epoch
+        if self.show and self.live:
             self.progress = Progress(
                 TextColumn("[bold]{task.description}"),
                 BarColumn(),
@@ -81,10 +84,18 @@ class RunLogger:
                 }
                 row |= {"epoch": first_epoch + i + 1, "wall_time_per_epoch": seconds_per_epoch}
                 self.wandb.log(row)
+        self.epoch += n
+        ret = _finite_mean(metrics["return"][:, -1])
+        shown = f"{ret:.1f}" if np.isfinite(ret) else "diverged (every rollout non-finite)"
         if self.progress:
-            ret = _finite_mean(metrics["return"][:, -1])
-            shown = f"{ret:.1f}" if np.isfinite(ret) else "diverged (every rollout non-finite)"
             self.progress.update(self.task, advance=n, ret=shown)
+        elif self.show:  # a line per chunk: jobs running side by side share the terminal
+            elapsed = time.perf_counter() - self.started
+            console.print(
+                f"{self.method} epoch {self.epoch}/{self.cfg.algo.epochs} return {shown} "
+                f"({elapsed:.0f} s)",
+                highlight=False,
+            )
 
     def finish(self, rows: list[dict], figures: dict) -> None:
         """The final rows (one per run) as a table and as summary scalars, and the figures."""

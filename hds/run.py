@@ -26,7 +26,7 @@ from hydra.types import RunMode  # noqa: E402
 from hds import rundir  # noqa: E402
 from hds.config import validate  # noqa: E402
 from hds.evaluation import no_finite_result  # noqa: E402
-from hds.experiment import run  # noqa: E402
+from hds.experiment import Hooks, run  # noqa: E402
 from hds.utils.cli import check_command_line  # noqa: E402
 from hds.utils.io import atomic_write_bytes  # noqa: E402
 from hds.utils.runtime import enable_compilation_cache  # noqa: E402
@@ -44,6 +44,13 @@ def wandb_group(hydra_cfg) -> str:
     return "/".join(directory.resolve().parts[-3:])[-128:]  # W&B allows 128 characters
 
 
+def one_job_at_a_time(hydra_cfg) -> bool:
+    """Whether this run has the terminal to itself: a single run, or a multirun on Hydra's basic
+    launcher (jobs one after another); joblib's jobs run side by side, submitit's write files."""
+    multirun = hydra_cfg.mode == RunMode.MULTIRUN
+    return not multirun or str(hydra_cfg.launcher._target_).endswith(".BasicLauncher")
+
+
 @hydra.main(config_path="../conf", config_name="config", version_base="1.3")
 def main(dcfg) -> float:
     hydra_cfg = HydraConfig.get()
@@ -55,7 +62,7 @@ def main(dcfg) -> float:
         with rundir.claim(out_dir, dcfg, hydra_dir):  # locked; its config.yaml is dcfg's
             cfg = validate(dcfg)  # every range check, before anything compiles
             enable_compilation_cache()
-            result = run(cfg, out_dir)
+            result = run(cfg, out_dir, Hooks(live_progress=one_job_at_a_time(hydra_cfg)))
         if failure := no_finite_result(result.rows):
             raise FloatingPointError(failure)
     except Exception as err:

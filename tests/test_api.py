@@ -202,6 +202,38 @@ def test_train_calls_its_hooks_and_returns_a_typed_result(tmp_path):
     )
 
 
+def test_jobs_side_by_side_print_a_line_per_chunk_not_a_live_bar(tmp_path, capsys):
+    from omegaconf import OmegaConf
+
+    from hds.logger import RunLogger
+    from hds.run import one_job_at_a_time
+
+    cfg = hds.compose(["debug=fast", "logger=none"])
+    logger = RunLogger(cfg, tmp_path, "pods_cl", cfg.runs(), live=False)
+    logger.start(first_epoch=0)
+    for _ in range(2):
+        logger.log_epochs(0, {"return": np.full((1, 3), -12.34)}, 0.1)
+    logger.close()
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split(" (")[0] for line in lines] == [
+        "pods_cl epoch 3/6 return -12.3",
+        "pods_cl epoch 6/6 return -12.3",
+    ]
+
+    def hydra(mode, launcher):
+        return OmegaConf.create({"mode": mode, "launcher": {"_target_": launcher}})
+
+    basic, joblib = (
+        "hydra._internal.core_plugins.basic_launcher.BasicLauncher",
+        "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher",
+    )
+    from hydra.types import RunMode
+
+    assert one_job_at_a_time(hydra(RunMode.RUN, joblib))
+    assert one_job_at_a_time(hydra(RunMode.MULTIRUN, basic))
+    assert not one_job_at_a_time(hydra(RunMode.MULTIRUN, joblib))
+
+
 @pytest.mark.parametrize("killed_at", [3, 6])  # after the first chunk; after the last one
 def test_a_failing_run_closes_its_w_and_b_run_and_a_resume_continues_it(tmp_path, killed_at):
     cfg = hds.compose(["debug=fast", "real=none", "logger.group=test"])
