@@ -200,7 +200,7 @@ def test_hds_run_writes_every_output(tmp_path):
         "hds.run",
         *TINY[:-1],
         "method=hds",
-        "real=mujoco",
+        "real=brax",  # its oracle trains beside: two methods, two W&B runs
         "seeds=2",
         f"hydra.run.dir={out}",
     ]
