@@ -149,40 +149,6 @@ def _matmul(a, b):
     return tuple(tuple(_dot(row, col) for col in columns) for row in a)
 
 
-def _barrier(tree):
-    """The traced scalars of `tree`, computed once as a stage of their own.
-
-    XLA's CPU fuser copies cheap elementwise producers into every consumer, so an unrolled
-    step of shared subexpressions would be recomputed per consumer (compile and run time
-    growing steeply with the tree); `lax.optimization_barrier` does not stop it on CPU. A
-    reduction is where the fuser materialises a result, so the stage's outputs leave through
-    one, forward and backward (`_materialise`)."""
-    leaves, treedef = jax.tree.flatten(tree)
-    traced = [i for i, x in enumerate(leaves) if not isinstance(x, float)]
-    if traced:
-        kept = _materialise(jnp.stack([leaves[i] for i in traced]))
-        for n, i in enumerate(traced):
-            leaves[i] = kept[n]
-    return jax.tree.unflatten(treedef, leaves)
-
-
-@jax.custom_vjp
-def _materialise(x):
-    """x itself, as the output of a reduction (a sum with zeros)."""
-    return jnp.sum(jnp.stack([x, jnp.zeros_like(x)]), axis=0)
-
-
-def _materialise_forward(x):
-    return _materialise(x), None
-
-
-def _materialise_backward(_, cotangent):
-    return (_materialise(cotangent),)
-
-
-_materialise.defvjp(_materialise_forward, _materialise_backward)
-
-
 def _values(x):
     """Nested tuples of Python floats when x is known at trace time, else of traced scalars."""
     known = concrete([x])
@@ -344,7 +310,7 @@ def _unrolled_dynamics(sys, q, qd):
         for j in chain:
             mass[j][k] = mass[k][j] = _dot6(s[j], column)
         mass[k][k] = _add(mass[k][k], armature[k])
-    return _barrier((mass, bias))
+    return mass, bias
 
 
 # -- larger trees: stacked over the bodies ------------------------------------------------
