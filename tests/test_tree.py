@@ -319,3 +319,34 @@ def test_a_short_training_improves_the_return():
     r0 = evaluator.sim_returns(before).mean(axis=1)
     r1 = evaluator.sim_returns(state.policy).mean(axis=1)
     assert np.all(r1 > r0 + 0.1 * np.abs(r0)), (r0, r1)
+
+
+# One effect hidden in each new system's C MuJoCo plant (their simulators run the tree engine)
+HIDDEN_PER_SYSTEM = {
+    "double_cartpole_balance": ("coulomb_friction", "slider", "force", 3.0),
+    "furuta_balance": ("actuator_gain", "motor", "gain", 0.7),
+    "acrobot_swingup": ("viscous_damping", "shoulder", "coefficient", 0.3),
+}
+
+
+@pytest.mark.slow  # a discovery through the tree engine per system: make test-slow
+@pytest.mark.parametrize("task", list(HIDDEN_PER_SYSTEM))
+def test_discovery_names_an_effect_hidden_in_each_systems_plant(task):
+    from hds.data import collect, random_steps
+    from hds.discover import DiscoverConfig, discover
+    from hds.envs import make_env
+    from hds.real.mujoco_plant import MujocoPlant
+
+    name, target, param, value = HIDDEN_PER_SYSTEM[task]
+    env_cfg = make_config(f"env={task}", "real=none").env
+    plant = MujocoPlant(env_cfg, [{"name": name, "target": target, "params": {param: value}}])
+    episodes, steps = 16, 150
+    rng = np.random.default_rng(0)
+    nq, nv = plant.model.nq, plant.model.nv
+    q0, qd0 = rng.uniform(-0.3, 0.3, (episodes, nq)), rng.uniform(-0.3, 0.3, (episodes, nv))
+    u = random_steps(1, episodes, steps, plant.dt, plant.ctrl_range, 0.1, 0.5, scale=0.5)
+    data = collect(plant, make_env(env_cfg).task, q0, qd0, u)
+    result = discover(data, env_cfg, DiscoverConfig(stride=2))
+    named = {(e.name, e.target): e.params for e in result.missing_effects}
+    assert (name, target) in named, result.missing_effects
+    assert named[(name, target)][param] == pytest.approx(value, rel=0.15)
