@@ -24,8 +24,8 @@ run: $(STAMP)
 # longest end-to-end tests (marked slow: a whole sim2real loop and its resume, domain
 # randomization against fixed values, a training on the tree engine, the corrected simulator's
 # active excitation, the mjx backend, a sweep on joblib's launcher, the bench's scaling section,
-# a discovery on each tree-engine system)
-# run in `make test-slow`, to keep `make test` (what CI runs) under 10 minutes on 2 cores.
+# a discovery on each tree-engine system) run in `make test-slow`, to keep `make test` (what CI
+# runs) under 10 minutes on 2 cores.
 # TEST_WORKERS=0 runs them in this process.
 TEST_WORKERS ?= 2
 test: $(STAMP)
