@@ -422,28 +422,6 @@ def test_one_percent_measurement_noise(plants, task, env_cfg, hidden):
 EMPS = SHARED / "data" / "emps"
 
 
-def test_the_noise_lower_bound_holds_the_true_noise_and_tightens_with_episodes():
-    """Measurement noise is estimated; the misfit the intervals allow for is measured above
-    a lower bound on it, which must lie below the true noise (95%) and close in with data."""
-    from hds.discover.data import noise_level, noise_lower_bound
-
-    rng = np.random.default_rng(0)
-    t = np.linspace(0.0, 2.0, 81)[None, :, None]
-
-    def record(episodes):  # smooth motion plus white noise of std 1e-3
-        smooth = np.sin(3.0 * t + rng.uniform(0, 6, (episodes, 1, 2)))
-        return smooth + 1e-3 * rng.normal(size=(episodes, 81, 2))
-
-    trials = [record(12) for _ in range(100)]
-    lows = np.array([noise_lower_bound(o) for o in trials])
-    assert np.mean(np.all(lows < 1e-3, axis=1)) >= 0.9
-    assert lows.mean() > 0.8e-3  # a bound, not zero
-    for obs in trials[:5]:
-        assert np.all(noise_lower_bound(obs) <= noise_level(obs))
-    few, many = (np.mean([1e-3 - noise_lower_bound(record(n)) for _ in range(20)]) for n in (6, 48))
-    assert 0 < many < 0.6 * few
-
-
 @pytest.mark.skipif(not (EMPS / "DATA_EMPS.mat").is_file(), reason="no ../shared/data/emps")
 def test_emps_names_coulomb_viscous_and_offset_within_ten_percent():
     from hydra import compose, initialize_config_dir

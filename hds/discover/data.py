@@ -9,7 +9,6 @@ from dataclasses import dataclass
 
 import jax.numpy as jnp
 import numpy as np
-from scipy import stats
 
 from hds.data.format import Dataset, split_episodes, validate
 
@@ -36,7 +35,6 @@ class Data:
     acts: jnp.ndarray  # [E, pad + T, n_act] zeros before each episode (and after short ones)
     scale: jnp.ndarray  # [n_obs] each variable's std on the identification set
     noise: np.ndarray  # [n_obs] estimated measurement noise std (`noise_level`)
-    noise_low: np.ndarray  # [n_obs] a lower 95% bound on it (`noise_lower_bound`)
     windows: dict  # set name -> Windows
     horizon: int  # k
     dt: float
@@ -67,20 +65,6 @@ def noise_level(obs: np.ndarray, order: int = 4) -> np.ndarray:
     d = np.diff(obs, n=order, axis=1).reshape(-1, obs.shape[-1])
     mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0) / 0.6745
     return mad / np.sqrt(math.comb(2 * order, order))
-
-
-def noise_lower_bound(obs: np.ndarray, level: float = 0.95, order: int = 4) -> np.ndarray:
-    """[n_obs] a lower `level` bound on each variable's noise std (`noise_level` of obs
-    [E, T+1, n_obs]), from the spread of its per-episode estimates. The noise is itself
-    estimated (about 5% of its std on a few thousand samples); a floor set too high would
-    count part of what the model leaves (its law mismatch) as noise."""
-    pooled = noise_level(obs, order) ** 2
-    if len(obs) < 2:
-        return np.sqrt(pooled)
-    per_episode = np.stack([noise_level(o[None], order) ** 2 for o in obs])
-    se = per_episode.std(axis=0, ddof=1) / np.sqrt(len(obs))
-    t = stats.t.ppf(0.5 + level / 2, len(obs) - 1)
-    return np.sqrt(np.maximum(pooled - t * se, 0.0))
 
 
 def check_size(dataset: Dataset, horizon: int, where: str = "dataset") -> None:
@@ -167,7 +151,6 @@ def prepare(
         acts=jnp.asarray(acts, jnp.float32),
         scale=jnp.asarray(scale, jnp.float32),
         noise=noise_level(dataset.obs[ident]),
-        noise_low=noise_lower_bound(dataset.obs[ident]),
         windows=windows,
         horizon=int(horizon),
         dt=dataset.dt,

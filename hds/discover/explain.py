@@ -85,14 +85,12 @@ def candidate_params(model, cand: Candidate, theta, delay) -> dict[str, float]:
 
 
 def forward_selection(
-    engine: Engine, ident, heldout, cfg, estimate: bool = False, floor=(0.0, 0.0), banned=()
+    engine: Engine, ident, heldout, cfg, estimate: bool = False, floor: float = 0.0, banned=()
 ) -> Selection:
     """Select effects; `ident` and `heldout` are `Data.arrays(...)` of the two episode sets;
     `estimate`: fit each window's initial state too (noisy data); `floor`: the held-out
-    normalized RMSE measurement noise alone leaves, and a lower 95% bound on it (the misfit
-    the intervals allow for is measured above the bound); `banned`: keys of candidates the
-    data cannot identify (never fitted)."""
-    floor, floor_low = floor
+    normalized RMSE measurement noise alone leaves; `banned`: keys of candidates the data
+    cannot identify (never fitted)."""
     model = engine.model
     sw = _slot_width(model)
     sizes = sorted(
@@ -112,7 +110,7 @@ def forward_selection(
     banned = set(banned)
     if not any(c.key not in banned for c in model.candidates):
         return Selection(states, rounds, "the library has no candidate the data can identify")
-    fit = _Fitter(engine, ident, heldout, cfg, estimate, sizes, sw, floor_low)
+    fit = _Fitter(engine, ident, heldout, cfg, estimate, sizes, sw, floor)
     # each round adds one effect, and may drop one: at most twice max_effects rounds
     for round_index in range(1, 2 * cfg.max_effects + 1):
         if len(state.selected) >= cfg.max_effects:
@@ -248,9 +246,8 @@ class _Fitter:
         self.estimate, self.sizes, self.sw = estimate, sizes, sw
         obs, _, _, _, mask, _ = ident
         self.count = float(np.sum(np.asarray(mask))) * engine.horizon * obs.shape[-1]
-        # the squared residual per entry that noise alone leaves, at the noise's lower bound
-        # (what is above it may be misfit): estimated initial states (n_obs unknowns per
-        # window of k * n_obs residuals) absorb 1/k of it
+        # the squared residual per entry that noise alone leaves: estimated initial states
+        # (n_obs unknowns per window of k * n_obs residuals) absorb 1/k of it
         self.noise_mse = floor**2 * ((1.0 - 1.0 / engine.horizon) if estimate else 1.0)
 
     def width(self, n_slots: int) -> int:

@@ -213,10 +213,9 @@ def discover(
         np.round(relative_noise, 4).tolist(),
     )
     floor = float(np.sqrt(np.mean(relative_noise**2)))
-    floor_low = float(np.sqrt(np.mean((data.noise_low / np.asarray(data.scale)) ** 2)))
     ident = data.arrays("identification")
     selection = forward_selection(
-        engine, ident, data.arrays("heldout"), cfg, estimate, (floor, floor_low), banned
+        engine, ident, data.arrays("heldout"), cfg, estimate, floor, banned
     )
     # What the selected effects leave: if a feature still explains much of it, the gap has a
     # structure no effect of the library has, and an effect that explains less than that
