@@ -3,12 +3,11 @@
 Discovery's named effects become a mujoco.sysid parameter specification: `sysid/params.yaml`
 (`mujoco.sysid.ParameterDict.save_to_disk`'s format) beside report.json, and `sysid/model.xml`,
 the MJCF it refers to (the simulator with the named effects written as MuJoCo model fields,
-each at discovery's estimate). Each parameter is one model field, named
-`<element>/<name>/<field>`, e.g. `joint/axis/frictionloss`, `actuator/motor/biasprm[0]`:
-
-  coulomb_friction  -> joint frictionloss    viscous_damping -> joint damping
-  actuator_gain     -> actuator gear         actuator_offset -> actuator biasprm[0] (affine bias)
-  actuator_lag      -> actuator dynprm[0]    mass_scale      -> body mass (inertia scaled along)
+each at discovery's estimate). Each parameter is one model field (the effect's
+`mujoco_field`), named `<element>/<name>/<field>`, e.g. `joint/axis/frictionloss`,
+`actuator/motor/biasprm[0]`: Coulomb friction is the joint's frictionloss, viscous damping its
+damping, a gain the actuator's gear, an offset its affine bias, a lag its filter's dynprm[0],
+a mass scale the body's mass (inertia scaled along).
 
 Initial values are discovery's estimates, bounds the effect's own (`Param` bounds, or its
 `fit_bounds`) in the field's units; mujoco.sysid's default optimizer needs finite bounds, so
@@ -42,23 +41,6 @@ from hds.utils.io import atomic_write_bytes
 
 HANDOFF_DIR, PARAMS_FILE, MODEL_FILE = "sysid", "params.yaml", "model.xml"
 UNBOUNDED_SPAN = 10.0  # an unbounded end: this many times the effect's size from the estimate
-
-# effect -> (element, field, index or None, how the effect's parameter enters the field)
-FIELDS = {
-    "coulomb_friction": ("joint", "frictionloss", None, "add"),
-    "viscous_damping": ("joint", "damping", 0, "add"),
-    "actuator_gain": ("actuator", "gear", 0, "scale"),
-    "actuator_offset": ("actuator", "biasprm", 0, "bias"),
-    "actuator_lag": ("actuator", "dynprm", 0, "add"),
-    "mass_scale": ("body", "mass", None, "scale"),
-}
-NO_FIELD = {
-    "actuator_deadzone": "MuJoCo has no dead-zone field",
-    "action_delay": "a whole number of environment steps: MuJoCo's optimizer fits continuous "
-    "fields (apply it to the recorded controls)",
-    "sensor_bias": "acts on the measurement, not the model (mujoco.sysid.apply_bias in a "
-    "modify_residual)",
-}
 
 
 def sysid_module():
@@ -130,10 +112,11 @@ def field_param(base: mujoco.MjSpec, spec: mujoco.MjSpec, effect) -> FieldParam 
     """The effect (a NamedEffect) as a model field of `spec`, which holds it already (but for
     the offset, written here as the actuator's affine bias), `base` the spec without it; or
     why it cannot be one."""
-    if effect.name not in FIELDS:
-        return NO_FIELD.get(effect.name, "MuJoCo has no field for it")
-    element, attr, index, law = FIELDS[effect.name]
-    (param,) = effect_type(effect.name).params
+    kind = effect_type(effect.name)
+    if isinstance(kind.mujoco_field, str):
+        return kind.mujoco_field
+    element, attr, index, law = kind.mujoco_field
+    (param,) = kind.params
     lower, upper = param.fit_bounds or (param.lower, param.upper)
     where = (element, effect.target, attr, index)
     if law == "bias":  # force = gain (u + offset): the bias is gain x offset

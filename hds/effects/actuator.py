@@ -18,6 +18,7 @@ class ActuatorGain(Effect):
     params = (Param("gain", "1 = nominal", 1.0, lower=0.0, fit_bounds=(0.05, 20.0)),)
     stage, order = SYSTEM, 1
     mjcf = "actuator gear"
+    mujoco_field = ("actuator", "gear", 0, "scale")
     needs = "span"
 
     def modify_system(self, site, p, sys):
@@ -36,6 +37,7 @@ class ActuatorGain(Effect):
 
 class ActuatorOffset(Effect):
     name = "actuator_offset"
+    mujoco_field = ("actuator", "biasprm", 0, "bias")
     target_kind = ACTUATOR
     description = "a constant added to the control before the actuator saturates"
     physical_name = "actuator offset (a constant added to the control)"
@@ -60,6 +62,7 @@ def _clip(u, half, sharpness):
 
 class ActuatorDeadzone(Effect):
     name = "actuator_deadzone"
+    mujoco_field = "MuJoCo has no dead-zone field"
     target_kind = ACTUATOR
     description = "controls within +-width/2 produce no force; outside, the band is subtracted"
     physical_name = "actuator dead zone"
@@ -81,6 +84,10 @@ class ActionDelay(Effect):
     """Its length is static (it sets the buffer's shape): `site.static("steps")`."""
 
     name = "action_delay"
+    mujoco_field = (
+        "a whole number of environment steps: MuJoCo's optimizer fits continuous fields "
+        "(apply it to the recorded controls)"
+    )
     target_kind = ACTUATOR
     description = "the actuator applies the control given this many environment steps earlier"
     physical_name = "action delay (dead time)"
@@ -122,6 +129,7 @@ class ActuatorLag(Effect):
     params = (Param("time_constant", "s", 0.0, lower=0.0, fit_start_in_timesteps=0.5),)
     stage, order = SUBSTEP, 0
     mjcf = "actuator dyntype filterexact"
+    mujoco_field = ("actuator", "dynprm", 0, "add")
     needs = "changes"
 
     def init_state(self, site):

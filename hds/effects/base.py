@@ -53,6 +53,10 @@ class Effect:
     stage: str  # SYSTEM, COMMAND, SUBSTEP or OBSERVE
     order: int = 0  # a stage applies its effects in increasing order (then as placed)
     mjcf: str = ""  # what it is in an MJCF when MuJoCo has it natively ('' when it has not)
+    # the MuJoCo model field its one parameter is, for the mujoco.sysid hand-off
+    # (hds.discover.sysid): (element, field, index or None, how the parameter enters it: 'add',
+    # 'scale' or 'bias', the actuator's affine bias), or why it has none
+    mujoco_field: tuple | str = "MuJoCo has no field for it"
     friction: str = ""  # the parameter `real.friction_gap` scales ('' : not a friction)
     # what identifiability asks of an actuator's control for this effect: 'span' (a force's
     # size shows across the range) or 'changes' (how fast the actuator follows shows in them)

@@ -18,6 +18,7 @@ class MassScale(Effect):
     params = (Param("scale", "1 = nominal", 1.0, lower=0.0, fit_bounds=(0.05, 20.0)),)
     stage, order = SYSTEM, 0
     mjcf = "body mass and inertia"
+    mujoco_field = ("body", "mass", None, "scale")
 
     def modify_system(self, site, p, sys):
         scale = p["scale"]

@@ -35,6 +35,7 @@ class CoulombFriction(Effect):
     params = (Param("force", "N or N m", 0.0, lower=0.0),)
     stage, order = SUBSTEP, 1
     mjcf = "joint frictionloss"
+    mujoco_field = ("joint", "frictionloss", None, "add")
     friction = "force"
 
     def substep(self, site, p, state, u, force, q, qd, h, sharpness, gradient_sharpness):
@@ -53,6 +54,7 @@ class ViscousDamping(Effect):
     params = (Param("coefficient", "N s/m or N m s/rad", 0.0, lower=0.0),)
     stage, order = SUBSTEP, 2
     mjcf = "joint damping"
+    mujoco_field = ("joint", "damping", 0, "add")
     friction = "coefficient"
 
     def substep(self, site, p, state, u, force, q, qd, h, sharpness, gradient_sharpness):

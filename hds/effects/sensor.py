@@ -7,6 +7,9 @@ from hds.effects.base import OBSERVATION, OBSERVE, Effect, Param
 
 class SensorBias(Effect):
     name = "sensor_bias"
+    mujoco_field = (
+        "acts on the measurement, not the model (mujoco.sysid.apply_bias in a modify_residual)"
+    )
     target_kind = OBSERVATION
     description = "a constant added to one measured observation"
     physical_name = "sensor bias"
