@@ -60,8 +60,9 @@ def write_mjcf(env_cfg, result: Result, out_dir: Path) -> Path:
     other = [f"{e['name']}@{e['target']} {e['params']}" for e in effects if not mjcf[e["name"]]]
     comment = (
         "<!-- Corrected by hds.discover. MuJoCo-native here: "
-        f"{', '.join(native) or 'none'}. Not expressible in MJCF (apply them in the "
-        f"controller or sensor path, as hds.real.MujocoPlant does): "
+        f"{', '.join(native) or 'none'}. Not expressible in MJCF (hds's simulators apply "
+        "them; hds.real.MujocoPlant those with a plant law, in its controller, force or "
+        f"sensor path): "
         f"{', '.join(other) or 'none'}. -->\n"
     )
     path = Path(out_dir) / "corrected.xml"
