@@ -48,7 +48,7 @@ def main(dcfg) -> float:
         from hds.experiment import retrain
 
         gaps = retrain(cfg, corrected_env(cfg.env, result), out_dir)
-    write_report(
+    report = write_report(
         result,
         cfg.env,
         out_dir,
@@ -58,11 +58,10 @@ def main(dcfg) -> float:
         data_name=str(cfg.data),
     )
     from hds.discover.io import print_summary
-    from hds.discover.sysid import write_handoff
 
-    handoff = write_handoff(cfg.env, result.missing_effects, out_dir)
-    log.info("mujoco.sysid hand-off: %s (%s)", handoff.params, ", ".join(handoff.handed_off))
-    for line in handoff.not_handed_off:
+    handoff = report["sysid_handoff"]
+    log.info("mujoco.sysid hand-off: %s (%s)", handoff["params"], ", ".join(handoff["handed_off"]))
+    for line in handoff["not_handed_off"]:
         log.info("not handed off to mujoco.sysid: %s", line)
     print_summary(result, out_dir)
     return float(result.error("after").normalized)

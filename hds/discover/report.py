@@ -12,6 +12,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from hds.discover import plots
+from hds.discover.sysid import write_handoff
 from hds.discover.workflow import Result
 from hds.effects.library import effect_type
 from hds.plots import save as save_figure
@@ -364,6 +365,7 @@ def write_report(
     out_dir = Path(out_dir)
     config_path = write_config(env_cfg, result, out_dir)
     mjcf_path = write_mjcf(env_cfg, result, out_dir)
+    handoff = write_handoff(env_cfg, result.missing_effects, out_dir)
     files = write_plots(result, out_dir, plot_episodes, bins)
     if retrain:
         import matplotlib.pyplot as plt
@@ -374,6 +376,11 @@ def write_report(
     report = result.to_json()
     report["corrected_config"] = str(config_path)
     report["corrected_mjcf"] = str(mjcf_path)
+    report["sysid_handoff"] = {
+        "params": str(handoff.params),
+        "handed_off": list(handoff.handed_off),
+        "not_handed_off": handoff.not_handed_off,
+    }
     report["run_command"] = (
         f"python -m hds.run --config-dir {config_path.parent.parent} env={config_path.stem}"
     )
