@@ -185,9 +185,15 @@ class Engine:
         return tuple(np.asarray(x) for x in out)
 
     def errors(self, theta, delay, data) -> np.ndarray:
-        """[C] normalized RMSE of each row of theta [C, N] with its delays [C, n_act]."""
+        """[C] normalized RMSE of each row of theta [C, N] with its delays [C, n_act]. Fewer
+        rows than the library's candidates are padded to that many (the last row repeated),
+        so one compiled program serves the base model, every round and the delay ranges."""
+        rows = len(theta)
+        pad = max(len(self.model.candidates) - rows, 0)
+        theta = np.concatenate([theta, np.repeat(theta[-1:], pad, axis=0)])
+        delay = np.concatenate([delay, np.repeat(delay[-1:], pad, axis=0)])
         mse = self.losses(jnp.asarray(theta, jnp.float32), jnp.asarray(delay, jnp.int32), data)
-        return np.sqrt(np.asarray(mse, dtype=np.float64))
+        return np.sqrt(np.asarray(mse, dtype=np.float64))[:rows]
 
     def predictions(self, theta, delay, data) -> np.ndarray:
         return np.asarray(
