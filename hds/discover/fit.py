@@ -41,15 +41,35 @@ class Engine:
         self.model, self.horizon = model, int(horizon)
         self.predict = jax.jit(self._predict)
         self.losses = jax.jit(jax.vmap(self._loss, in_axes=(0, 0, None)))
-        self._fit = jax.jit(self._fit_each, static_argnums=(4, 5))
+        self._fit = jax.jit(self._fit_each, static_argnums=(5, 6))
 
-    def _fit_each(self, theta0, slots, delay, data, iterations: int, estimate: bool):
+    def _fit_each(self, theta0, slots, delay, active, data, iterations: int, estimate: bool):
         """The candidates' fits one after another (lax.map, not vmap): a vmapped while loop
         runs every row until the slowest converges, here each row stops at its own
-        convergence (a fifth of the iterations in a typical round)."""
-        return jax.lax.map(
-            lambda row: self._fit_one(*row, data, iterations, estimate), (theta0, slots, delay)
-        )
+        convergence (a fifth of the iterations in a typical round). Rows not `active` (the
+        padding of a batch that fills fewer rows) skip their fit: theta0, NaN loss, zeros."""
+
+        m, episodes = slots.shape[1], data[0].shape[0]
+        dtype = theta0.dtype
+
+        def skipped(theta0):
+            return (
+                theta0,
+                jnp.asarray(jnp.nan, dtype),
+                jnp.zeros((m, m), dtype),
+                jnp.zeros((episodes, m), dtype),
+                jnp.asarray(0, jnp.int32),
+            )
+
+        def row(args):
+            theta0, slots, delay, active = args
+            return jax.lax.cond(
+                active,
+                lambda: self._fit_one(theta0, slots, delay, data, iterations, estimate),
+                lambda: skipped(theta0),
+            )
+
+        return jax.lax.map(row, (theta0, slots, delay, active))
 
     # -- single-candidate pieces (vmapped or mapped above) ---------------------------------
 
@@ -173,11 +193,14 @@ class Engine:
 
     # -- host-side entry points ------------------------------------------------------------
 
-    def fit(self, theta0, slots, delay, data, iterations: int, estimate: bool = False):
+    def fit(self, theta0, slots, delay, data, iterations: int, estimate: bool = False, rows=None):
+        """The fits of `fit_each`; only the first `rows` rows are fitted (default: all)."""
+        active = np.arange(len(theta0)) < (len(theta0) if rows is None else rows)
         out = self._fit(
             jnp.asarray(theta0, jnp.float32),
             jnp.asarray(slots, jnp.int32),
             jnp.asarray(delay, jnp.int32),
+            jnp.asarray(active),
             data,
             int(iterations),
             bool(estimate),
