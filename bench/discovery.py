@@ -194,7 +194,8 @@ def run(budget: dict) -> dict:
             f"{r['backend']}, cache {r['cache']}: hidden in the plant: {r['hidden']}; named "
             "by discovery: "
             + ("; ".join(r["named"]) if r["named"] else "nothing")
-            + f" (stopped: {r['stopped']})."
+            + f" (stopped: {r['stopped']}); linearizations (rows x (1 + iterations)) per "
+            f"round of forward selection: {r['linearizations']}."
             for r in runs
         ]
         + [
@@ -261,6 +262,11 @@ def measure(backend: str, budget: dict) -> dict:
         "timing": dict(result.timing),
         "named": named,
         "stopped": result.stopped,
+        # each row of a round's batched fit linearizes once at its start and once per
+        # iteration: the work of the round, one row after another
+        "linearizations": [
+            sum(row["iterations"] + 1 for row in rows) for rows in result.selection.rounds
+        ],
         "jax_s": {k: jax_log.seconds[k] for k in COMPILE_EVENTS},
         "programs": {k: jax_log.counts[k] for k in ("compile", "cache_load")},
     }
