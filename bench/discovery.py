@@ -147,6 +147,7 @@ def run(budget: dict) -> dict:
                 "rows": [
                     [
                         r["backend"],
+                        r["cache"],
                         r["build_s"],
                         r["collect_s"],
                         r["discover_s"],
