@@ -9,17 +9,28 @@ into a temporary directory: the time a user waits for report.md after having the
 
 Each row fits on its own backend (`discover.backend` set to it: the default, auto, would fit on
 the analytic backend whatever the env's), and starts with discovery's engine cache and JAX's
-in-memory caches emptied, so each row pays its own compiles.
+in-memory caches emptied, so each row pays its own compiles. Per backend three rows: in this
+process with no persistent compilation cache; then, each in a fresh process
+(`python -m bench.discovery SPEC OUT`), cold on an empty persistent cache directory and warm, a
+second process on the same directory (hds.utils.runtime.enable_compilation_cache, as
+`python -m hds.discover` enables it). JAX's own compile events (jax.monitoring) split each
+row's time into tracing, lowering, XLA compile (or persistent-cache load) and the rest.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import shutil
+import subprocess
+import sys
 import tempfile
+from collections import defaultdict
+from pathlib import Path
 
 import numpy as np
 
-from bench.common import compose, timed
+from bench.common import ROOT, compose, timed
 
 DEFAULT_BUDGET = {
     "episodes": 20,
@@ -52,9 +63,69 @@ def record(plant, task, episodes: int, steps: int, seed: int):
     return collect(plant, task, q0, qd0, u)
 
 
+COMPILE_EVENTS = {
+    "trace": "/jax/core/compile/jaxpr_trace_duration",
+    "lower": "/jax/core/compile/jaxpr_to_mlir_module_duration",
+    "compile": "/jax/core/compile/backend_compile_duration",  # a persistent-cache load too
+    "cache_load": "/jax/compilation_cache/cache_retrieval_time_sec",  # hits only
+}
+
+
+class CompileLog:
+    """JAX's compile events (jax.monitoring) while open: `seconds` and `counts` per kind of
+    COMPILE_EVENTS (counts["compile"]: programs compiled or loaded; counts["cache_load"]:
+    of them, loaded from the persistent cache)."""
+
+    def __enter__(self):
+        import jax
+
+        self.seconds, self.counts = defaultdict(float), defaultdict(int)
+        self._kinds = {event: kind for kind, event in COMPILE_EVENTS.items()}
+        jax.monitoring.register_event_duration_secs_listener(self._record)
+        return self
+
+    def _record(self, event: str, secs: float, **_) -> None:
+        kind = self._kinds.get(event)
+        if kind is not None:
+            self.seconds[kind] += secs
+            self.counts[kind] += 1
+
+    def __exit__(self, *exc):
+        import jax
+
+        jax.monitoring.unregister_event_duration_listener(self._record)
+
+
+def in_process(spec: dict) -> dict:
+    """One row in a fresh process (`python -m bench.discovery SPEC OUT`), with the persistent
+    compilation cache of spec["cache"]."""
+    with tempfile.TemporaryDirectory(prefix="hds-bench-") as tmp:
+        out = Path(tmp) / "row.json"
+        cmd = [sys.executable, "-m", "bench.discovery", json.dumps(spec), str(out)]
+        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=1800)
+        if proc.returncode != 0 or not out.exists():
+            tail = (proc.stderr or proc.stdout)[-2000:]
+            raise RuntimeError(f"bench.discovery row failed (rc {proc.returncode}):\n{tail}")
+        return json.loads(out.read_text())
+
+
+def rows_of(backend: str, budget: dict) -> list[dict]:
+    """The backend's three rows: in this process without a persistent cache; in fresh
+    processes on an empty persistent cache directory (cold), then on the same one (warm)."""
+    rows = [{**measure(backend, budget), "cache": "none (in-process)"}]
+    cache = Path(tempfile.mkdtemp(prefix="hds-bench-cache-"))
+    try:
+        spec = {"backend": backend, "budget": budget, "cache": str(cache)}
+        rows.append({**in_process(spec), "cache": "empty (new process)"})
+        rows.append({**in_process(spec), "cache": "warm (new process)"})
+    finally:
+        shutil.rmtree(cache, ignore_errors=True)
+    return rows
+
+
 def run(budget: dict) -> dict:
     title = "time to a gap-discovery report"
-    runs = [measure(backend, budget) for backend in budget["backends"]]
+    runs = [row for backend in budget["backends"] for row in rows_of(backend, budget)]
     stages = sorted({k for r in runs for k in r["timing"]})
     return {
         "title": title,
@@ -65,6 +136,7 @@ def run(budget: dict) -> dict:
                 "backend; discover()'s stages from Result.timing)",
                 "columns": [
                     "backend",
+                    "persistent cache",
                     "env + plant build",
                     "data collection",
                     "discover()",
@@ -75,6 +147,7 @@ def run(budget: dict) -> dict:
                 "rows": [
                     [
                         r["backend"],
+                        r["cache"],
                         r["build_s"],
                         r["collect_s"],
                         r["discover_s"],
@@ -84,19 +157,55 @@ def run(budget: dict) -> dict:
                     ]
                     for r in runs
                 ],
-            }
+            },
+            {
+                "caption": "Where discover() + write_report() spend their seconds (JAX's "
+                "compile events; programs: distinct XLA programs compiled or loaded, of which "
+                "from the persistent cache)",
+                "columns": [
+                    "backend",
+                    "persistent cache",
+                    "discover() + write_report()",
+                    "tracing",
+                    "lowering",
+                    "XLA compile or cache load",
+                    "running and host work",
+                    "programs",
+                    "from cache",
+                ],
+                "rows": [
+                    [
+                        r["backend"],
+                        r["cache"],
+                        r["discover_s"] + r["report_s"],
+                        r["jax_s"]["trace"],
+                        r["jax_s"]["lower"],
+                        r["jax_s"]["compile"],
+                        r["discover_s"]
+                        + r["report_s"]
+                        - sum(r["jax_s"][k] for k in ("trace", "lower", "compile")),
+                        r["programs"]["compile"],
+                        r["programs"]["cache_load"],
+                    ]
+                    for r in runs
+                ],
+            },
         ],
         "notes": [
-            f"{r['backend']}: hidden in the plant: {r['hidden']}; named by discovery: "
+            f"{r['backend']}, cache {r['cache']}: hidden in the plant: {r['hidden']}; named "
+            "by discovery: "
             + ("; ".join(r["named"]) if r["named"] else "nothing")
-            + f" (stopped: {r['stopped']})."
+            + f" (stopped: {r['stopped']}); linearizations (rows x (1 + iterations)) per "
+            f"round of forward selection: {r['linearizations']}."
             for r in runs
         ]
         + [
-            "Compile time is included in every row: no persistent cache, and discovery's "
-            "engine cache and JAX's in-memory caches are emptied before each row (the rows "
-            "share one process, so only its start-up, imports and JAX's initialisation, falls "
-            "on the first row)."
+            "Compile time is included in every row: discovery's engine cache and JAX's "
+            "in-memory caches are emptied before each row; the in-process rows share one "
+            "process, so only its start-up (imports, JAX's initialisation) falls on the first. "
+            "A warm row still traces and lowers (Python work); only XLA's compile comes from "
+            "the persistent cache, and only for programs that took over 0.5 s to compile "
+            "(jax_persistent_cache_min_compile_time_secs)."
         ],
         "data": runs,
     }
@@ -130,12 +239,13 @@ def measure(backend: str, budget: dict) -> dict:
         plant = make_plant(cfg.real, cfg.env)
     with timed() as data_t:
         dataset = record(plant, env.task, budget["episodes"], budget["steps"], budget["seed"])
-    with timed() as found:
-        result = discover(dataset, cfg.env, discover_config(cfg, backend, budget["stride"]))
-    if result.backend != backend:  # the row is labelled by the backend the fits ran on
-        raise RuntimeError(f"discovery fitted on {result.backend}, not on {backend}")
-    with tempfile.TemporaryDirectory(prefix="hds-bench-report-") as out, timed() as written:
-        write_report(result, cfg.env, out)
+    with CompileLog() as jax_log:
+        with timed() as found:
+            result = discover(dataset, cfg.env, discover_config(cfg, backend, budget["stride"]))
+        if result.backend != backend:  # the row is labelled by the backend the fits ran on
+            raise RuntimeError(f"discovery fitted on {result.backend}, not on {backend}")
+        with tempfile.TemporaryDirectory(prefix="hds-bench-report-") as out, timed() as written:
+            write_report(result, cfg.env, out)
     named = [
         f"{e.name} on {e.target}: "
         + ", ".join(f"{k} {v:.3g} {e.units.get(k, '')}".strip() for k, v in e.params.items())
@@ -153,4 +263,25 @@ def measure(backend: str, budget: dict) -> dict:
         "timing": dict(result.timing),
         "named": named,
         "stopped": result.stopped,
+        # each row of a round's batched fit linearizes once at its start and once per
+        # iteration: the work of the round, one row after another
+        "linearizations": [
+            sum(row["iterations"] + 1 for row in rows) for rows in result.selection.rounds
+        ],
+        "jax_s": {k: jax_log.seconds[k] for k in COMPILE_EVENTS},
+        "programs": {k: jax_log.counts[k] for k in ("compile", "cache_load")},
     }
+
+
+def main() -> None:
+    """`python -m bench.discovery SPEC_JSON OUT_JSON`: one row in this process, with the
+    persistent compilation cache of SPEC["cache"]."""
+    from hds.utils.runtime import enable_compilation_cache
+
+    spec, out = json.loads(sys.argv[1]), Path(sys.argv[2])
+    enable_compilation_cache(spec["cache"])
+    out.write_text(json.dumps(measure(spec["backend"], spec["budget"])))
+
+
+if __name__ == "__main__":
+    main()

@@ -321,6 +321,30 @@ def test_an_effect_outside_the_library_stays_unexplained(spring_result):
     assert any("-29" in w or "-30" in w for w in result.warnings)  # named in the warning
 
 
+def test_a_batched_fit_fits_only_the_rows_it_fills(spring_result):
+    """A fit call that fills fewer rows than the batch (the drop step's refits) skips the
+    rest: they come back as given, loss NaN, no iteration, while the rows it fills fit as in
+    a fuller call. One row's held-out error is its error within a batch (the same program,
+    padded). Same shapes as discovery's own calls: nothing new compiles."""
+    engine, model = spring_result.engine, spring_result.engine.model
+    ident = spring_result.data.arrays("identification")
+    estimate = spring_result.initial_state == "estimated"
+    n_c = len(model.candidates)
+    theta0 = np.tile(model.nominal, (n_c, 1))
+    slots = -np.ones((n_c, 3), np.int32)
+    for row, cand in enumerate([c for c in model.candidates if c.slots][:2]):
+        slots[row, 0] = cand.slots[0]
+        theta0[row, cand.slots[0]] = model.start[cand.slots[0]]
+    delay = np.zeros((n_c, len(model.sim.action_names)), np.int32)
+    two = engine.fit(theta0, slots, delay, ident, CFG.iterations, estimate, rows=2)
+    one = engine.fit(theta0, slots, delay, ident, CFG.iterations, estimate, rows=1)
+    np.testing.assert_allclose(one[0][0], two[0][0], rtol=1e-6)
+    assert one[1][0] == pytest.approx(two[1][0], rel=1e-6) and np.isfinite(two[1][1])
+    assert np.isnan(one[1][1]) and one[4][1] == 0 and np.array_equal(one[0][1], theta0[1])
+    batch = engine.errors(two[0], delay, ident)
+    assert engine.errors(two[0][:1], delay[:1], ident) == pytest.approx(batch[:1], rel=1e-6)
+
+
 def open_loop(env, obs0, actions) -> np.ndarray:
     """[E, T, n_obs] of the env's simulator from measured states, replaying measured actions."""
 

@@ -239,7 +239,8 @@ class Batch(NamedTuple):
 
 class _Fitter:
     """Batched fits of the engine for selection: every candidate added to a state, or given
-    sets of effects; always C rows (one compile per slot width)."""
+    sets of effects; always C rows (one compile per slot width), the rows a call leaves
+    empty skipped."""
 
     def __init__(self, engine, ident, heldout, cfg, estimate, sizes, sw, floor):
         self.engine, self.ident, self.heldout, self.cfg = engine, ident, heldout, cfg
@@ -253,10 +254,10 @@ class _Fitter:
     def width(self, n_slots: int) -> int:
         return next(w for w in self.sizes if w >= n_slots)
 
-    def run(self, theta0, slots, delay) -> Batch:
+    def run(self, theta0, slots, delay, rows=None) -> Batch:
         engine = self.engine
         theta, loss, h, g, its = engine.fit(
-            theta0, slots, delay, self.ident, self.cfg.iterations, self.estimate
+            theta0, slots, delay, self.ident, self.cfg.iterations, self.estimate, rows
         )
         held = engine.errors(theta, delay, self.heldout)
         return Batch(theta, delay, held, loss, h, g, slots, its)
@@ -299,7 +300,7 @@ class _Fitter:
             for c in chosen:
                 if c.shifts_actions:
                     delay[i, c.actuator] = state.delay[c.actuator]
-        batch = self.run(theta0, slots, delay)
+        batch = self.run(theta0, slots, delay, rows=len(sets))
         return [self.state(chosen, batch, i) for i, chosen in enumerate(sets)]
 
 

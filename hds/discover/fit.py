@@ -9,14 +9,14 @@ data layout and reused for every candidate, every round and every call:
   fit(theta0 [C, N], slots [C, M], delay [C, n_act], data)
       -> theta [C, N], loss [C], H [C, M, M], G [C, E, M], iterations [C]
 
-`fit` runs C independent fits at once (vmap): candidate c moves only the entries `slots[c]`
-of theta (-1 pads), from theta0[c], with its own action delays. Each iteration linearizes the
-k-step residuals (forward mode: one tangent per fitted parameter, all windows of all
-identification episodes in one batch), solves the damped Gauss-Newton system and keeps the
-step only if the error falls. It returns the Gauss-Newton matrix H = J J^T and the per-episode
-gradients G[e] = J_e r_e at the optimum, from which `confidence_intervals` builds a
-cluster-robust (sandwich) covariance: windows of one episode overlap and their errors
-correlate, so episodes, not residuals, are the independent units.
+`fit` runs C independent fits in one call, one after another: candidate c moves only the
+entries `slots[c]` of theta (-1 pads), from theta0[c], with its own action delays. Each
+iteration linearizes the k-step residuals (forward mode: one tangent per fitted parameter,
+all windows of all identification episodes in one batch), solves the damped Gauss-Newton
+system and keeps the step only if the error falls. It returns the Gauss-Newton matrix
+H = J J^T and the per-episode gradients G[e] = J_e r_e at the optimum, from which
+`confidence_intervals` builds a cluster-robust (sandwich) covariance: windows of one
+episode overlap and their errors correlate, so episodes, not residuals, are the independent units.
 """
 
 from __future__ import annotations
@@ -41,11 +41,37 @@ class Engine:
         self.model, self.horizon = model, int(horizon)
         self.predict = jax.jit(self._predict)
         self.losses = jax.jit(jax.vmap(self._loss, in_axes=(0, 0, None)))
-        self._fit = jax.jit(
-            jax.vmap(self._fit_one, in_axes=(0, 0, 0, None, None, None)), static_argnums=(4, 5)
-        )
+        self._fit = jax.jit(self._fit_each, static_argnums=(5, 6))
 
-    # -- single-candidate pieces (vmapped above) -------------------------------------------
+    def _fit_each(self, theta0, slots, delay, active, data, iterations: int, estimate: bool):
+        """The candidates' fits one after another (lax.map, not vmap): a vmapped while loop
+        runs every row until the slowest converges, here each row stops at its own
+        convergence (a fifth of the iterations in a typical round). Rows not `active` (the
+        padding of a batch that fills fewer rows) skip their fit: theta0, NaN loss, zeros."""
+
+        m, episodes = slots.shape[1], data[0].shape[0]
+        dtype = theta0.dtype
+
+        def skipped(theta0):
+            return (
+                theta0,
+                jnp.asarray(jnp.nan, dtype),
+                jnp.zeros((m, m), dtype),
+                jnp.zeros((episodes, m), dtype),
+                jnp.asarray(0, jnp.int32),
+            )
+
+        def row(args):
+            theta0, slots, delay, active = args
+            return jax.lax.cond(
+                active,
+                lambda: self._fit_one(theta0, slots, delay, data, iterations, estimate),
+                lambda: skipped(theta0),
+            )
+
+        return jax.lax.map(row, (theta0, slots, delay, active))
+
+    # -- single-candidate pieces (vmapped or mapped above) ---------------------------------
 
     def _predict(self, theta, delay, data):
         obs, acts, episode, start = data[:4]
@@ -167,11 +193,14 @@ class Engine:
 
     # -- host-side entry points ------------------------------------------------------------
 
-    def fit(self, theta0, slots, delay, data, iterations: int, estimate: bool = False):
+    def fit(self, theta0, slots, delay, data, iterations: int, estimate: bool = False, rows=None):
+        """The fits of `fit_each`; only the first `rows` rows are fitted (default: all)."""
+        active = np.arange(len(theta0)) < (len(theta0) if rows is None else rows)
         out = self._fit(
             jnp.asarray(theta0, jnp.float32),
             jnp.asarray(slots, jnp.int32),
             jnp.asarray(delay, jnp.int32),
+            jnp.asarray(active),
             data,
             int(iterations),
             bool(estimate),
@@ -179,9 +208,15 @@ class Engine:
         return tuple(np.asarray(x) for x in out)
 
     def errors(self, theta, delay, data) -> np.ndarray:
-        """[C] normalized RMSE of each row of theta [C, N] with its delays [C, n_act]."""
+        """[C] normalized RMSE of each row of theta [C, N] with its delays [C, n_act]. Fewer
+        rows than the library's candidates are padded to that many (the last row repeated),
+        so one compiled program serves the base model, every round and the delay ranges."""
+        rows = len(theta)
+        pad = max(len(self.model.candidates) - rows, 0)
+        theta = np.concatenate([theta, np.repeat(theta[-1:], pad, axis=0)])
+        delay = np.concatenate([delay, np.repeat(delay[-1:], pad, axis=0)])
         mse = self.losses(jnp.asarray(theta, jnp.float32), jnp.asarray(delay, jnp.int32), data)
-        return np.sqrt(np.asarray(mse, dtype=np.float64))
+        return np.sqrt(np.asarray(mse, dtype=np.float64))[:rows]
 
     def predictions(self, theta, delay, data) -> np.ndarray:
         return np.asarray(

@@ -112,12 +112,17 @@ def trajectories(
                 (before, "tab:red", "simulated before"),
                 (after, "tab:blue", "simulated after"),
             ):
-                for j, r in enumerate(_chain(res, e, horizon)):
-                    s = res.start[r]
-                    tt = t[s : s + horizon + 1]
-                    yy = np.concatenate([[obs[e, s, i]], res.predicted[r, :, i]])
-                    ax.plot(tt, yy, color=color, lw=1.0, label=label if j == 0 else None)
-                    ax.plot(tt[:1], yy[:1], ".", color="k", ms=3)
+                # every window of the chain in one line, NaN between windows: one artist
+                # instead of one per window keeps drawing the figure cheap
+                chain = _chain(res, e, horizon)
+                starts = res.start[chain]
+                idx = starts[:, None] + np.arange(horizon + 1)
+                tt = np.c_[t[idx], np.full(len(chain), np.nan)].ravel()
+                yy = np.c_[
+                    obs[e, starts, i], res.predicted[chain, :, i], np.full(len(chain), np.nan)
+                ]
+                ax.plot(tt, yy.ravel(), color=color, lw=1.0, label=label)
+                ax.plot(t[starts], obs[e, starts, i], ".", color="k", ms=3)
             ax.set_ylabel(name)
             if i == 0:
                 ax.set_title(f"{title}: episode {e}", fontsize=9)
