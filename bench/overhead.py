@@ -241,7 +241,37 @@ def measure(backend: str, budget: dict) -> dict:
 
 
 def run(budget: dict) -> dict:
-    results = [measure(b, budget) for b in budget["backends"]]
+    return section([measure(b, budget) for b in budget["backends"]], budget)
+
+
+def targets_of(results: list[dict], budget: dict) -> list[dict]:
+    """The first target per backend; and, where the regression's floor was measured, the
+    restated one: an epoch within the ratio of the bare engine plus that floor (the floor alone
+    is several times the closed-form engine's epoch, so no trainer meets the first there)."""
+    ratio = budget["target_ratio"]
+    out = []
+    for r in results:
+        out.append(
+            {
+                "target": f"{r['backend']}: epoch <= {ratio}x bare engine",
+                "value": f"{r['ratio']:.2f}x",
+                "met": r["ratio"] <= ratio,
+            }
+        )
+        if r["floor"]:
+            floored = r["epoch_s"] / (r["bare_s"] + r["floor"]["regress_floor_s"])
+            out.append(
+                {
+                    "target": f"{r['backend']}: epoch <= {ratio}x (bare engine + regression floor)",
+                    "value": f"{floored:.2f}x",
+                    "met": floored <= ratio,
+                }
+            )
+    return out
+
+
+def section(results: list[dict], budget: dict) -> dict:
+    """The section's tables, targets and notes from the measured results."""
     rows = []
     for r in results:
         p = r["parts_s"]
@@ -281,14 +311,7 @@ def run(budget: dict) -> dict:
         for r in results
         if r["floor"]
     ]
-    targets = [
-        {
-            "target": f"{r['backend']}: epoch <= {budget['target_ratio']}x bare engine",
-            "value": f"{r['ratio']:.2f}x",
-            "met": r["ratio"] <= budget["target_ratio"],
-        }
-        for r in results
-    ]
+    targets = targets_of(results, budget)
     return {
         "title": "trainer epoch over the bare engine cost",
         "tables": [
