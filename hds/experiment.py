@@ -57,7 +57,7 @@ class Hooks:
     policy_params_fn(epoch, params): after every compiled chunk of epochs (and checkpoint);
         params: the policy parameters of every run, stacked [n_runs, ...].
     console: the progress bar and the final table; live_progress: the bar redrawn in place
-        (False: a line per chunk of epochs, for jobs that share a terminal or a log file).
+        (False: a line at each tenth of the epochs, for jobs that share a terminal or a log file).
     """
 
     progress_fn: Callable[[int, dict], None] | None = None

@@ -89,13 +89,20 @@ class RunLogger:
         shown = f"{ret:.1f}" if np.isfinite(ret) else "diverged (every rollout non-finite)"
         if self.progress:
             self.progress.update(self.task, advance=n, ret=shown)
-        elif self.show:  # a line per chunk: jobs running side by side share the terminal
+        elif self.show and self._tenth_crossed(n):
+            # a line at each tenth of the epochs: jobs running side by side share the terminal
             elapsed = time.perf_counter() - self.started
             console.print(
                 f"{self.method} epoch {self.epoch}/{self.cfg.algo.epochs} return {shown} "
                 f"({elapsed:.0f} s)",
                 highlight=False,
             )
+
+    def _tenth_crossed(self, n: int) -> bool:
+        """Whether the last n epochs crossed a tenth of the run's epochs (or ended it)."""
+        total = self.cfg.algo.epochs
+        tenth = max(total // 10, 1)
+        return self.epoch // tenth > (self.epoch - n) // tenth or self.epoch >= total
 
     def finish(self, rows: list[dict], figures: dict) -> None:
         """The final rows (one per run) as a table and as summary scalars, and the figures."""

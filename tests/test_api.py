@@ -202,7 +202,7 @@ def test_train_calls_its_hooks_and_returns_a_typed_result(tmp_path):
     )
 
 
-def test_jobs_side_by_side_print_a_line_per_chunk_not_a_live_bar(tmp_path, capsys):
+def test_jobs_side_by_side_print_a_line_each_tenth_not_a_live_bar(tmp_path, capsys):
     from omegaconf import OmegaConf
 
     from hds.logger import RunLogger
@@ -219,6 +219,14 @@ def test_jobs_side_by_side_print_a_line_per_chunk_not_a_live_bar(tmp_path, capsy
         "pods_cl epoch 3/6 return -12.3",
         "pods_cl epoch 6/6 return -12.3",
     ]
+    cfg = hds.compose(["debug=fast", "logger=none", "algo.epochs=100"])
+    logger = RunLogger(cfg, tmp_path, "hds", cfg.runs(), live=False)
+    logger.start(first_epoch=0)
+    for chunk in [3] * 33 + [1]:  # a line where a tenth is crossed, and at the end
+        logger.log_epochs(0, {"return": np.full((1, chunk), -1.0)}, 0.1)
+    logger.close()
+    epochs = [int(line.split()[2].split("/")[0]) for line in capsys.readouterr().out.splitlines()]
+    assert epochs == [12, 21, 30, 42, 51, 60, 72, 81, 90, 100]
 
     def hydra(mode, launcher):
         return OmegaConf.create({"mode": mode, "launcher": {"_target_": launcher}})
