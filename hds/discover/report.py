@@ -378,7 +378,7 @@ def write_report(
     report["corrected_mjcf"] = str(mjcf_path)
     report["sysid_handoff"] = {
         "params": str(handoff.params),
-        "handed_off": list(handoff.handed_off),
+        "handed_off": handoff.handed_off,
         "not_handed_off": handoff.not_handed_off,
     }
     report["run_command"] = (

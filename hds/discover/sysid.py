@@ -159,7 +159,7 @@ def write_handoff(env_cfg, named, out_dir) -> Handoff:
             skipped.append(f"{effect.name}@{effect.target} {dict(effect.params)}: {found}")
         else:
             params.add(sysid.Parameter(found.name, found.value, found.lower, found.upper))
-    handoff = Handoff(folder / PARAMS_FILE, folder / MODEL_FILE, params.keys(), skipped)
+    handoff = Handoff(folder / PARAMS_FILE, folder / MODEL_FILE, list(params.keys()), skipped)
     header = [
         "# mujoco.sysid parameter specification written by hds.discover "
         "(ParameterDict.load_from_disk reads it).",

@@ -37,12 +37,12 @@ class ActuatorGain(Effect):
 
 class ActuatorOffset(Effect):
     name = "actuator_offset"
-    mujoco_field = ("actuator", "biasprm", 0, "bias")
     target_kind = ACTUATOR
     description = "a constant added to the control before the actuator saturates"
     physical_name = "actuator offset (a constant added to the control)"
     params = (Param("offset", "control units", 0.0),)
     stage, order = COMMAND, 2
+    mujoco_field = ("actuator", "biasprm", 0, "bias")
 
     def command(self, site, p, state, u, sharpness):
         return u.at[site.index].add(p["offset"]), state
@@ -62,12 +62,12 @@ def _clip(u, half, sharpness):
 
 class ActuatorDeadzone(Effect):
     name = "actuator_deadzone"
-    mujoco_field = "MuJoCo has no dead-zone field"
     target_kind = ACTUATOR
     description = "controls within +-width/2 produce no force; outside, the band is subtracted"
     physical_name = "actuator dead zone"
     params = (Param("width", "control units", 0.0, lower=0.0),)
     stage, order = COMMAND, 1
+    mujoco_field = "MuJoCo has no dead-zone field"
     needs = "span"
 
     def command(self, site, p, state, u, sharpness):
@@ -84,15 +84,15 @@ class ActionDelay(Effect):
     """Its length is static (it sets the buffer's shape): `site.static("steps")`."""
 
     name = "action_delay"
-    mujoco_field = (
-        "a whole number of environment steps: MuJoCo's optimizer fits continuous fields "
-        "(apply it to the recorded controls)"
-    )
     target_kind = ACTUATOR
     description = "the actuator applies the control given this many environment steps earlier"
     physical_name = "action delay (dead time)"
     params = (Param("steps", "environment steps", 0, lower=0, upper=50, discrete=True),)
     stage, order = COMMAND, 0
+    mujoco_field = (
+        "a whole number of environment steps: MuJoCo's optimizer fits continuous fields "
+        "(apply it to the recorded controls)"
+    )
     needs = "changes"
     shifts_actions = True
 
