@@ -44,12 +44,16 @@ lint: $(STAMP)
 sweep: $(STAMP)
 	$(BIN)/python -m hds.run -m +experiment=sim2real_friction real.friction_gap=0,0.5,1,2
 
-# The study of experiments/sim2real_friction: the sweep (resumable: finished jobs are skipped;
-# delete $(STUDY_RUN) to start over), then its report, figures and GIF (job 19: closed-loop
-# PODS from the frictionless simulator on the 80 N plant) into experiments/sim2real_friction/results.
+# The study of experiments/sim2real_friction: its sweeps (resumable: finished jobs are skipped;
+# delete $(STUDY_RUN) to start over): friction gaps, then the other effects' plants (policies
+# that depend on the plant, then those trained once), then one report of all, its figures and
+# GIF (job 19: closed-loop PODS from the frictionless simulator on the 80 N plant) into
+# experiments/sim2real_friction/results.
 STUDY_RUN := outputs/study/sim2real_friction
 study: $(STAMP)
 	$(BIN)/python -m hds.run +experiment=sim2real_study hydra.sweep.dir=$(STUDY_RUN)
+	$(BIN)/python -m hds.run +experiment=sim2real_study_effects hydra.sweep.dir=$(STUDY_RUN)/effects
+	$(BIN)/python -m hds.run +experiment=sim2real_study_shared hydra.sweep.dir=$(STUDY_RUN)/shared
 	$(BIN)/python -m hds.report $(STUDY_RUN) --out experiments/sim2real_friction/results --gif 19
 
 clean:

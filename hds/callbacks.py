@@ -17,14 +17,16 @@ log = logging.getLogger("hds")
 
 
 def gather(sweep_dir: Path) -> dict:
-    """One summary of every finished job below sweep_dir (each job's rows, tagged by job)."""
+    """One summary of every finished job below sweep_dir (each job's rows, those on its
+    further plants included, tagged by job)."""
     rows, jobs = [], []
     for path in sorted(Path(sweep_dir).glob("*/summary.json"), key=lambda p: p.parent.name):
         summary = read_json(path)
         jobs.append(
             {"job": path.parent.name, "name": summary.get("name"), "real": summary.get("real")}
         )
-        rows += [{**row, "job": path.parent.name} for row in summary["rows"]]
+        job_rows = summary["rows"] + summary.get("rows_eval_plants", [])
+        rows += [{**row, "job": path.parent.name} for row in job_rows]
     failed = sorted(p.parent.name for p in Path(sweep_dir).glob("*/failed.txt"))
     return {"rows": rows, "jobs": jobs, "failed_jobs": failed}
 

@@ -112,6 +112,10 @@ class RealConfig:
     plant: str = "mujoco"  # mujoco: C MuJoCo, an independent engine; brax: the simulator itself
     friction_gap: float = 1.0  # scales every friction effect below
     effects: list[EffectConfig] = _effects_field()  # the effects the simulator does not know
+    name: str = ""  # the plant's name in rows and reports (empty: its effects, e.g. gain@slide)
+
+    def label(self) -> str:
+        return self.name or "+".join(f"{e.name}@{e.target}" for e in self.effects) or "none"
 
     def check(self):
         _one_of("real.plant", self.plant, ("mujoco", "brax"))
@@ -436,6 +440,10 @@ class Config:
     simulator: str = "nominal"
     oracle: bool = True  # with real=brax, also train an oracle beside the run's own policy
     eval_episodes: int = 32  # initial states shared by the simulator and plant evaluations
+    # further plants every policy is also evaluated on (rows per plant): a policy that does not
+    # depend on the plant (trained on the nominal or a randomized simulator) trained once for
+    # a family of plants. Compose them from conf/real/: defaults `- /real@eval_plants.gain: gain`
+    eval_plants: dict[str, RealConfig] = field(default_factory=dict)
     # the key of those initial states: one set for every method, seed and job, so that rows
     # compare like for like and a multirun over seeds matches a run of them together
     eval_seed: int = 10_000
@@ -521,9 +529,12 @@ def _check_all(node) -> None:
     default instances of the schemas, with missing values, while it composes)."""
     if hasattr(node, "check"):
         node.check()
-    children = node if isinstance(node, list) else getattr(node, "__dict__", {}).values()
+    if isinstance(node, dict):
+        children = node.values()
+    else:
+        children = node if isinstance(node, list) else getattr(node, "__dict__", {}).values()
     for child in children:
-        if isinstance(child, list) or hasattr(child, "__dataclass_fields__"):
+        if isinstance(child, list | dict) or hasattr(child, "__dataclass_fields__"):
             _check_all(child)
 
 
@@ -539,6 +550,8 @@ def _check_effect_targets(config) -> None:
     groups = [("env.effects", env.effects)]
     if isinstance(real, RealConfig):
         groups.append(("real.effects", real.effects))
+    for key, plant in getattr(config, "eval_plants", {}).items():
+        groups.append((f"eval_plants.{key}.effects", plant.effects))
     dr = getattr(config, "dr", None)
     if isinstance(dr, DRConfig):
         ranged = [_effects.EffectSpec(e.name, e.target) for e in dr.effects]

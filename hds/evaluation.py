@@ -66,10 +66,11 @@ class Evaluator:
             effects = jax.tree.map(lambda x: jnp.stack([x] * n_runs), self.env.params)
         return np.asarray(self._sim(params, effects))
 
-    def real_returns(self, params) -> np.ndarray:
-        """[n_runs, episodes]"""
+    def real_returns(self, params, plant=None) -> np.ndarray:
+        """[n_runs, episodes] on the evaluation's plant(s), or on `plant` (one, or one per run)."""
         n_runs = jax.tree.leaves(params)[0].shape[0]
-        plants = self.plant if isinstance(self.plant, list) else [self.plant] * n_runs
+        plant = plant or self.plant
+        plants = plant if isinstance(plant, list) else [plant] * n_runs
         return np.stack(
             [
                 self.episodes(jax.tree.map(lambda x, s=s: x[s], params), plants[s]).returns

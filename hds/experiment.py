@@ -90,6 +90,7 @@ class Result:
     run_dir: Path
     rows: list[dict]
     histories: dict = field(default_factory=dict)
+    rows_eval_plants: list[dict] = field(default_factory=list)  # on cfg.eval_plants
     timing: dict = field(default_factory=dict)
     dynamics: dict = field(default_factory=dict)
     discovery: dict = field(default_factory=dict)
@@ -99,6 +100,7 @@ class Result:
         return {
             "name": self.name,
             "rows": self.rows,
+            "rows_eval_plants": self.rows_eval_plants,
             "timing": self.timing,
             "dynamics": self.dynamics,
             "discovery": self.discovery,
@@ -113,6 +115,7 @@ class Result:
             Path(run_dir),
             summary["rows"],
             summary.get("history", {}),
+            summary.get("rows_eval_plants", []),
             summary.get("timing", {}),
             summary.get("dynamics", {}),
             summary.get("discovery", {}),
@@ -381,18 +384,36 @@ def _check_finite(state, method: str) -> None:
 # --- evaluation --------------------------------------------------------------------------------
 
 
-def evaluate_training(cfg: Config, training: Training, plants) -> list[dict]:
+def evaluate_training(cfg: Config, training: Training, plants) -> tuple[list, list]:
     """One row per run: mean return on the simulator the policy trained on (what it was
-    promised) and on its plant, from the same initial states. Runs whose rollouts diverged
-    are named in a warning."""
+    promised) and on its plant, from the same initial states; and the same on each plant of
+    `cfg.eval_plants`. Each row names its plant. Runs whose rollouts diverged are named in a
+    warning."""
     evaluator = Evaluator(
         training.env, training.trainer.policy, plants, cfg.eval_episodes, cfg.eval_seed
     )
     sim = evaluator.sim_returns(training.params, training.effects)
-    real = evaluator.real_returns(training.params)
-    for line in diverged(training.method, cfg.runs(), sim, real, training.history.get("return")):
-        log.warning(line)
-    return gap_rows(training.method, cfg.runs(), sim, real, cfg.env.task.solved_at)
+    own = [{"plant": cfg.real.label(), **r} for r in cfg.runs()]
+    others = [
+        (
+            plant,
+            [{"plant": real.label(), "friction_gap": real.friction_gap, **r} for r in cfg.runs()],
+        )
+        for real, plant in eval_plants(cfg)
+    ]
+    rows = []
+    for plant, runs in [(plants, own), *others]:
+        real = evaluator.real_returns(training.params, plant)
+        for line in diverged(training.method, runs, sim, real, training.history.get("return")):
+            log.warning(line)
+        rows.append(gap_rows(training.method, runs, sim, real, cfg.env.task.solved_at))
+    return rows[0], [row for more in rows[1:] for row in more]
+
+
+def eval_plants(cfg: Config) -> list[tuple]:
+    """(config, plant) of each further plant the policies are evaluated on, at its own
+    friction gap (a swept gap applies to the run's own plant only)."""
+    return [(real, make_plant(real, cfg.env)) for real in cfg.eval_plants.values()]
 
 
 # --- the whole experiment ------------------------------------------------------------------------
@@ -418,14 +439,18 @@ def run(cfg: Config, out_dir: str | Path | None = None, hooks: Hooks | None = No
         [],
         dynamics=model_report,
         discovery=discovery,
-        real={"plant": cfg.real.plant, "friction_gap": cfg.real.friction_gap},
+        real={
+            "plant": cfg.real.plant,
+            "name": cfg.real.label(),
+            "friction_gap": cfg.real.friction_gap,
+        },
     )
     for method, method_env, method_effects, method_model in methods:
         with method_logger(cfg, out_dir, method, hooks) as logger:
             training = train(
                 cfg, method_env, out_dir, method, method_model, method_effects, hooks, logger
             )
-            rows = evaluate_training(cfg, training, plants)
+            rows, rows_eval_plants = evaluate_training(cfg, training, plants)
             logger.finish(rows, _method_figures(method, training.history, rows))
             if discovery and method == methods[0][0]:
                 logger.log_files({"discovery_report": out_dir / "discovery" / "report.md"})
@@ -433,10 +458,11 @@ def run(cfg: Config, out_dir: str | Path | None = None, hooks: Hooks | None = No
                 gif = sim_vs_real_gif(cfg, training, plants[0], out_dir / "plots")
                 logger.log_files({"sim_vs_real_gif": gif})
         result.rows += rows
+        result.rows_eval_plants += rows_eval_plants
         result.histories[method], result.timing[method] = training.history, training.timing
     if hooks.console:
         print_table(
-            result.rows,
+            result.rows + result.rows_eval_plants,
             title=f"{cfg.name}: return on the simulator and on the {cfg.real.plant} plant",
         )
     keys = plots.varying_keys(result.rows)
@@ -468,7 +494,7 @@ def retrain(cfg: Config, corrected_env: dict, out_dir: Path) -> dict:
         log.info("retrain: PODS on the %s simulator", method)
         with method_logger(cfg, Path(out_dir), method, Hooks()) as logger:
             training = train(cfg, make_env(env_cfg), Path(out_dir), method, logger=logger)
-            method_rows = evaluate_training(cfg, training, plant)
+            method_rows, _ = evaluate_training(cfg, training, plant)
             logger.finish(method_rows, {})
         rows += method_rows
     plant_desc = {

@@ -157,7 +157,7 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
         training = experiment.train(
             round_cfg, env, rdir, method, model, hooks=hooks, logger=logger, init_params=params
         )
-        rows = experiment.evaluate_training(round_cfg, training, plants)
+        rows, _ = experiment.evaluate_training(round_cfg, training, plants)
         logger.finish(rows, {})
     real, gap = (mean_ci([row[k] for row in rows]) for k in ("real_return", "gap"))
     report = {"rows": rows, "real_return": real, "gap": gap}

@@ -38,23 +38,39 @@ ROW_COLUMNS = (
 
 
 def settings_of(rows: list[dict]) -> list[str]:
-    """The swept keys that tell rows apart, besides the friction gap (a column of its own)."""
+    """The swept keys that tell rows apart, besides the friction gap (part of the plant)."""
     return plots.varying_keys(rows, exclude=("friction_gap",))
+
+
+def plant_of(summary: dict, job_dir: Path) -> str:
+    """The name of the plant a job's own rows were measured on: in its summary, or (written
+    before plants had names) its config's."""
+    name = summary.get("real", {}).get("name")
+    if name is None and (job_dir / "config.yaml").is_file():
+        from hds.config import load_config
+
+        name = load_config(job_dir / "config.yaml").real.label()
+    return name or "-"
 
 
 def collect_rows(root: Path) -> tuple[list[dict], list[tuple]]:
     """Every row of every run summary below root (a sweep's gathered summary is skipped: its
-    jobs are read directly), with the plant's friction gap; and every (label: method and swept
-    setting, friction gap, job, history of those runs). Both empty when root holds no run."""
+    jobs are read directly), each with its plant and friction gap, also the rows of the
+    further plants a job evaluated its policies on (`eval_plants`); and every (label: method
+    and swept setting, (plant, friction gap), job, history of those runs). Both empty when
+    root holds no run."""
     rows, runs = [], []
     for path in sorted(root.rglob("summary.json")):
         summary = read_json(path)
         if "history" not in summary:  # the sweep-level summary gathered from its jobs
             continue
-        gap = summary.get("real", {}).get("friction_gap")
+        own = {
+            "plant": plant_of(summary, path.parent),
+            "friction_gap": summary.get("real", {}).get("friction_gap"),
+        }
         job = str(path.parent.relative_to(root)) if path.parent != root else "."
-        job_rows = [{"friction_gap": gap, **r, "job": job} for r in summary["rows"]]  # swept: own
-        rows += job_rows
+        job_rows = [{**own, **r, "job": job} for r in summary["rows"]]  # a swept gap: its own
+        rows += job_rows + [{**r, "job": job} for r in summary.get("rows_eval_plants", [])]
         runs.append((job, job_rows, summary["history"]))
     keys = settings_of(rows)
     histories = []
@@ -63,21 +79,48 @@ def collect_rows(root: Path) -> tuple[list[dict], list[tuple]]:
         for row, h in plots.histories_by_setting(
             job_rows, history, [*keys, "friction_gap"] if swept_gap else keys
         ):
-            histories.append((plots.label(row, keys), row["friction_gap"], job, h))
+            histories.append((plots.label(row, keys), plant_column(row), job, h))
     return rows, histories
 
 
+def shown_column(columns: set) -> tuple:
+    """The plant whose learning curves a report draws: the one reported at most friction gaps
+    (the friction study's), at its nominal gap where it has one."""
+    count = defaultdict(int)
+    for plant, _ in columns:
+        count[plant] += 1
+    plant = max(sorted(count), key=count.get)
+    gaps = sorted((g for p, g in columns if p == plant), key=lambda g: (g is None, g))
+    return plant, 1.0 if 1.0 in gaps else gaps[-1]
+
+
+def plant_column(row: dict) -> tuple:
+    """A row's plant at its friction gap: the column it is reported in."""
+    return row["plant"], row.get("friction_gap")
+
+
+def column_names(columns: list[tuple]) -> dict:
+    """A heading per (plant, friction gap): the plant's name, with the gap where a plant is
+    reported at several."""
+    gaps = defaultdict(set)
+    for plant, gap in columns:
+        gaps[plant].add(gap)
+    return {(p, g): f"{p} x{g:g}" if len(gaps[p]) > 1 else p for p, g in columns}
+
+
 def aggregate(rows: list[dict]) -> list[dict]:
-    """Mean and 95% interval over seeds of each method at each friction gap and swept setting
-    (`label`: the method and its settings)."""
+    """Mean and 95% interval over seeds of each method on each plant (at its friction gap) and
+    swept setting (`label`: the method and its settings)."""
     keys = settings_of(rows)
     groups = defaultdict(list)
     for r in rows:
-        groups[(plots.label(r, keys), r["friction_gap"])].append(r)
+        groups[(plots.label(r, keys), plant_column(r))].append(r)
     out = []
-    for (name, gap), group in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1] or 0)):
+    order = lambda kv: (kv[0][0], kv[0][1][0], kv[0][1][1] or 0)  # noqa: E731
+    for (name, (plant, gap)), group in sorted(groups.items(), key=order):
         first = group[0]
-        entry = {"method": first["method"], "label": name, "friction_gap": gap, "runs": len(group)}
+        entry = {"method": first["method"], "label": name, "plant": plant, "friction_gap": gap}
+        entry["runs"] = len(group)
         entry |= {k: first[k] for k in keys if k in first}
         for key in ("sim_return", "real_return", "gap"):
             entry[key] = mean_ci([r[key] for r in group])
@@ -95,15 +138,16 @@ def number(x: float) -> str:
 
 def markdown_table(summary: list[dict]) -> str:
     solved = all("solved_sim" in e for e in summary)
+    names = column_names([plant_column(e) for e in summary])
     lines = [
-        "| method | friction gap | runs | sim return | real return | sim2real gap |"
+        "| method | plant | runs | sim return | real return | sim2real gap |"
         + (" solved (sim, real) |" if solved else ""),
-        "| --- | ---: | ---: | ---: | ---: | ---: |" + (" ---: |" if solved else ""),
+        "| --- | --- | ---: | ---: | ---: | ---: |" + (" ---: |" if solved else ""),
     ]
     fmt = lambda m, lo, hi: f"{number(m)} [{number(lo)}, {number(hi)}]"  # noqa: E731
     for e in summary:
         lines.append(
-            f"| {e['label']} | {e['friction_gap']} | {e['runs']} | {fmt(*e['sim_return'])} "
+            f"| {e['label']} | {names[plant_column(e)]} | {e['runs']} | {fmt(*e['sim_return'])} "
             f"| {fmt(*e['real_return'])} | {fmt(*e['gap'])} |"
             + (f" {e['solved_sim']}, {e['solved_real']} |" if solved else "")
         )
@@ -111,42 +155,44 @@ def markdown_table(summary: list[dict]) -> str:
 
 
 def pivot_table(summary: list[dict], key: str) -> str:
-    """One row per method (and setting), one column per friction gap: the mean over seeds."""
-    means = {(e["label"], e["friction_gap"]): e[key][0] for e in summary}
-    return _pivot(summary, lambda label, gap: number(means[(label, gap)]))
+    """One row per method (and setting), one column per plant: the mean over seeds."""
+    means = {(e["label"], plant_column(e)): e[key][0] for e in summary}
+    return _pivot(summary, lambda label, column: number(means[(label, column)]))
 
 
 def relative_cost_table(summary: list[dict], reference: str = "oracle") -> str | None:
-    """Per method and friction gap, its real cost (minus the return) over the `reference`
-    method's at that gap: 1 is as good as the oracle, above 1 worse. None without it."""
-    cost = {(e["label"], e["friction_gap"]): -e["real_return"][0] for e in summary}
+    """Per method and plant, its real cost (minus the return) over the `reference` method's
+    on that plant: 1 is as good as the oracle, above 1 worse. None without it."""
+    cost = {(e["label"], plant_column(e)): -e["real_return"][0] for e in summary}
     if not any(label == reference for label, _ in cost):
         return None
 
-    def cell(label, gap):
-        ref = cost.get((reference, gap))
-        return f"{cost[(label, gap)] / ref:.2f}" if ref else "-"
+    def cell(label, column):
+        ref = cost.get((reference, column))
+        return f"{cost[(label, column)] / ref:.2f}" if ref else "-"
 
     return _pivot(summary, cell)
 
 
 def _pivot(summary: list[dict], cell) -> str:
-    gaps = sorted({e["friction_gap"] for e in summary})
+    columns = sorted({plant_column(e) for e in summary}, key=lambda c: (c[0], c[1] or 0))
+    names = column_names(columns)
     labels = list(dict.fromkeys(e["label"] for e in summary))
-    present = {(e["label"], e["friction_gap"]) for e in summary}
+    present = {(e["label"], plant_column(e)) for e in summary}
     lines = [
-        "| method | " + " | ".join(f"gap x{g:g}" for g in gaps) + " |",
-        "| --- |" + " ---: |" * len(gaps),
+        "| method | " + " | ".join(names[c] for c in columns) + " |",
+        "| --- |" + " ---: |" * len(columns),
     ]
     for m in labels:
-        cells = [cell(m, g) if (m, g) in present else "-" for g in gaps]
+        cells = [cell(m, c) if (m, c) in present else "-" for c in columns]
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 def write_csv(rows: list[dict], path: Path) -> None:
-    """One row per run: method, friction gap, every swept setting, seed, returns, gap, job."""
-    columns = ["method", "friction_gap", *settings_of(rows), *ROW_COLUMNS]
+    """One row per run: method, plant, friction gap, every swept setting, seed, returns, gap,
+    job."""
+    columns = ["method", "plant", "friction_gap", *settings_of(rows), *ROW_COLUMNS]
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore")
     writer.writeheader()
@@ -230,20 +276,20 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
         text += sections
         return atomic_write_bytes(out / "report.md", ("\n".join(text) + "\n").encode())
     summary = aggregate(rows)
-    # learning curves and sim-vs-real bars at one friction gap (the plant's own when swept)
-    gaps = sorted({r["friction_gap"] for r in rows}, key=lambda g: (g is None, g))
-    shown = 1.0 if 1.0 in gaps else gaps[-1]
-    shown_histories = [(m, j, h) for m, g, j, h in histories if g == shown]
+    columns = {plant_column(r) for r in rows}
+    shown = shown_column(columns)
+    swept = [c for c in columns if c[0] == shown[0]]  # the plant reported at several gaps
+    shown_histories = [(m, j, h) for m, c, j, h in histories if c == shown]
     repeated = len({m for m, *_ in shown_histories}) < len(shown_histories)
     figures = {
         "report_learning_curves": plots.learning_curves(
             {f"{m} ({j})" if repeated else m: h for m, j, h in shown_histories}
         ),
-        "report_sim_vs_real": plots.sim_vs_real([r for r in rows if r["friction_gap"] == shown]),
+        "report_sim_vs_real": plots.sim_vs_real([r for r in rows if plant_column(r) == shown]),
     }
-    if len(gaps) > 1:
+    if len(swept) > 1:
         figures["report_gap_vs_friction"] = plots.gap_vs_friction(
-            [{**e, "method": e["label"]} for e in summary]
+            [{**e, "method": e["label"]} for e in summary if e["plant"] == shown[0]]
         )
     for name, fig in figures.items():
         plots.save(fig, out / "plots" / f"{name}.png")
@@ -257,7 +303,8 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
         "",
         *(
             [
-                "Mean real-plant return over seeds, per friction gap (x the plant's nominal):",
+                "Mean real-plant return over seeds, per plant (x: its friction's scale, "
+                "real.friction_gap):",
                 "",
                 pivot_table(summary, "real_return"),
                 "",
@@ -277,14 +324,14 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
                     else []
                 ),
             ]
-            if len({r["friction_gap"] for r in rows}) > 1
+            if len(columns) > 1
             else []
         ),
         "One row per seed: [report.csv](report.csv).",
         "",
     ]
-    if len(gaps) > 1:
-        text += [f"Learning curves and sim-vs-real bars: friction gap x{shown:g}.", ""]
+    if len(columns) > 1:
+        text += [f"Learning curves and sim-vs-real bars: {column_names([shown])[shown]}.", ""]
     text += [f"![{name}](plots/{name}.png)" for name in figures]
     text += [""] + discovery_sections(root, out)
     path = atomic_write_bytes(out / "report.md", ("\n".join(text) + "\n").encode())
@@ -296,7 +343,7 @@ def animate_run(
 ) -> Path:
     """One episode of a finished run's policy (`method`, default the run's own; the
     seed_index-th run of its batch) on the simulator it trained on beside the run's plant,
-    animated into out_dir (default: the run's plots/)."""
+    animated into out_dir (default: the run's plots/), its trajectories plotted beside."""
     from hds.policy import evaluate, load_policy, run_config
 
     run_dir = Path(run_dir)
@@ -305,6 +352,10 @@ def animate_run(
     sim = evaluate(policy, episodes=1, plant=policy.training_plant())
     real = evaluate(policy, episodes=1)
     out = Path(out_dir or run_dir / "plots") / f"{policy.method}_sim_vs_real.gif"
+    figure = plots.trajectories(
+        sim.episodes.obs[0], real.episodes.obs[0], policy.obs_names, policy.dt
+    )
+    plots.save(figure, out.with_name(f"{policy.method}_trajectories.png"))
     return animate_episodes(
         sim.episodes,
         real.episodes,

@@ -268,7 +268,7 @@ def test_hds_report_on_a_sweep(restarted_sweep):
 
     sweep, *_ = restarted_sweep
     report = build(sweep).read_text()
-    assert "| pods | 1.0 | 2 |" in report  # both jobs: same method and friction gap
+    assert "| pods | coulomb_friction@slider | 2 |" in report  # both jobs: same method and plant
     assert (sweep / "report.csv").read_text().count("\n") == 3  # header and one row per job
     assert (sweep / "plots" / "report_sim_vs_real.png").is_file()
 
@@ -338,10 +338,11 @@ def test_other_launchers_run_a_sweep_with_the_vmapped_numbers(tmp_path, launcher
 def test_the_report_counts_solved_runs_and_costs_against_the_oracle():
     from hds.report import aggregate, markdown_table, relative_cost_table
 
-    def row(method, gap, seed, real):
+    def row(method, gap, seed, real, plant="friction"):
         sim = -3.0
         return {
             "method": method,
+            "plant": plant,
             "friction_gap": gap,
             "seed": seed,
             "sim_return": sim,
@@ -354,10 +355,40 @@ def test_the_report_counts_solved_runs_and_costs_against_the_oracle():
     rows = [row("oracle", g, s, -4.0 * (1 + g)) for g in (0.0, 1.0) for s in (0, 1)]
     rows += [row("pods_cl", 0.0, s, -6.0) for s in (0, 1)]
     rows += [row("pods_cl", 1.0, 0, -10.0), row("pods_cl", 1.0, 1, -50.0)]
+    rows += [row(m, 1.0, s, -4.0, "gain") for m in ("oracle", "pods_cl") for s in (0, 1)]
     summary = aggregate(rows)
-    assert "| pods_cl | 1.0 | 2 | -3 [-3, -3] | -30 [" in markdown_table(summary)
-    assert markdown_table(summary).splitlines()[-1].endswith("| 2, 1 |")  # sim, real
+    table = markdown_table(summary)
+    assert "| pods_cl | friction x1 | 2 | -3 [-3, -3] | -30 [" in table  # a plant at two gaps
+    assert "| pods_cl | gain | 2 |" in table  # a plant at one
+    friction_x1 = next(line for line in table.splitlines() if "| pods_cl | friction x1 |" in line)
+    assert friction_x1.endswith("| 2, 1 |")  # solved on the simulator, on the plant
     table = relative_cost_table(summary)
-    assert "| oracle | 1.00 | 1.00 |" in table
-    assert "| pods_cl | 1.50 | 3.75 |" in table  # 6 / 4 and 30 / 8
+    assert "| method | friction x0 | friction x1 | gain |" in table
+    assert "| oracle | 1.00 | 1.00 | 1.00 |" in table
+    assert "| pods_cl | 1.50 | 3.75 | 1.00 |" in table  # 6 / 4 and 30 / 8
     assert relative_cost_table([e for e in summary if e["method"] != "oracle"]) is None
+
+
+def test_a_policy_is_evaluated_on_further_plants_and_reported_per_plant(tmp_path):
+    """eval_plants (conf/real presets placed with `+real@eval_plants.<key>=<preset>`): one row
+    per run and plant, the same simulator return, each plant's own real return; hds.report
+    gives each plant its column."""
+    from hds.report import build
+
+    plants = ("gain", "delay", "friction_gain")
+    cfg = make_config(*TINY, "seeds=2", *(f"+real@eval_plants.{p}={p}" for p in plants))
+    result = experiment.run(cfg, tmp_path)
+    own = {r["seed"]: r for r in result.rows}
+    assert {r["plant"] for r in result.rows} == {"coulomb_friction@slider"}
+    assert sorted((r["plant"], r["seed"]) for r in result.rows_eval_plants) == sorted(
+        ("friction+gain" if p == "friction_gain" else p, s) for p in plants for s in (0, 1)
+    )
+    for r in result.rows_eval_plants:
+        assert r["sim_return"] == own[r["seed"]]["sim_return"]
+    reals = {(r["plant"], r["seed"]): r["real_return"] for r in result.rows_eval_plants}
+    assert len(set(reals.values())) == len(reals)  # each plant its own dynamics
+    alone = experiment.run(make_config(*TINY, "seeds=2", "real=gain"), tmp_path / "gain")
+    for r in alone.rows:  # the same as training there and evaluating on that plant alone
+        assert reals[("gain", r["seed"])] == pytest.approx(r["real_return"], rel=1e-6)
+    report = build(tmp_path).read_text()
+    assert "| method | coulomb_friction@slider | delay | friction+gain | gain |" in report
