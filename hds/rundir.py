@@ -16,12 +16,14 @@ once (two runs writing one directory's checkpoints corrupt them).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fcntl
 import logging
 import os
 import shutil
 import sys
 import tempfile
+import typing
 from pathlib import Path
 
 from omegaconf import MISSING, DictConfig, OmegaConf
@@ -92,7 +94,7 @@ def differences(before: DictConfig, after: DictConfig) -> list[str]:
     setting this version of hds no longer has, or one it added whose value is its default,
     is no difference: a run directory stays resumable across versions."""
     old, new = _flat(before), _flat(after)
-    defaults = _flat(OmegaConf.structured(Config))
+    defaults = _flat(_schema_defaults())
 
     def changed(key):
         if key not in new:
@@ -113,6 +115,16 @@ def print_one_line(err: BaseException) -> None:
     unless HYDRA_FULL_ERROR=1 asks for the traceback. Any other error: return (to re-raise)."""
     if isinstance(err, ONE_LINE) and os.environ.get("HYDRA_FULL_ERROR") != "1":
         sys.exit(f"error: {err}")
+
+
+def _schema_defaults() -> DictConfig:
+    """Every setting's default, those of the groups (env, real, ...: missing in Config until
+    a group option fills them) included."""
+    schema = OmegaConf.structured(Config)
+    for name, kind in typing.get_type_hints(Config).items():
+        if OmegaConf.is_missing(schema, name) and dataclasses.is_dataclass(kind):
+            schema[name] = OmegaConf.structured(kind)
+    return schema
 
 
 def _flat(cfg: DictConfig) -> dict[str, object]:
