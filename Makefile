@@ -46,14 +46,17 @@ sweep: $(STAMP)
 
 # The study of experiments/sim2real_friction: its sweeps (resumable: finished jobs are skipped;
 # delete $(STUDY_RUN) to start over): friction gaps, then the other effects' plants (policies
-# that depend on the plant, then those trained once), then one report of all, its figures and
-# GIF (job 19: closed-loop PODS from the frictionless simulator on the 80 N plant) into
-# experiments/sim2real_friction/results.
+# that depend on the plant, then those trained once), the sim2real loop at 20 and 80 N, then
+# one report of all, its figures and GIF (job 19: closed-loop PODS from the frictionless
+# simulator on the 80 N plant) into experiments/sim2real_friction/results.
 STUDY_RUN := outputs/study/sim2real_friction
+STUDY_LOOP := $(BIN)/python -m hds.loop env.backend=analytic seeds=5 method=pods_cl_effects
 study: $(STAMP)
 	$(BIN)/python -m hds.run +experiment=sim2real_study hydra.sweep.dir=$(STUDY_RUN)
 	$(BIN)/python -m hds.run +experiment=sim2real_study_effects hydra.sweep.dir=$(STUDY_RUN)/effects
 	$(BIN)/python -m hds.run +experiment=sim2real_study_shared hydra.sweep.dir=$(STUDY_RUN)/shared
+	$(STUDY_LOOP) real.friction_gap=1 hydra.run.dir=$(STUDY_RUN)/loop/x1
+	$(STUDY_LOOP) real.friction_gap=4 hydra.run.dir=$(STUDY_RUN)/loop/x4
 	$(BIN)/python -m hds.report $(STUDY_RUN) --out experiments/sim2real_friction/results --gif 19
 
 clean:

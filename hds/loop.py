@@ -126,7 +126,7 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
     atomic_write_json(out_dir / "loop.json", {"rounds": rounds})
     plots.save(plots.loop_rounds(rounds), out_dir / "plots" / "loop_rounds.png")
     if hooks.console:
-        print_table([_round_row(x) for x in rounds], title=f"{cfg.name}: the sim2real loop")
+        print_table([round_row(x) for x in rounds], title=f"{cfg.name}: the sim2real loop")
     return rounds
 
 
@@ -170,7 +170,9 @@ def improved(before: dict, after: dict) -> bool:
     return after["real_return"][0] > before["real_return"][2]
 
 
-def _round_row(report: dict) -> dict:
+def round_row(report: dict) -> dict:
+    """A round of the loop as one row: named effects with their 95% intervals, the real
+    return and its interval, the gap and the episodes of data so far."""
     names = ", ".join(
         f"{e['name']}@{e['target']} "
         + " ".join(

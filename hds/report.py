@@ -22,6 +22,7 @@ from pathlib import Path
 
 from hds import plots
 from hds.animate import animate_episodes
+from hds.config import load_config
 from hds.evaluation import mean_ci
 from hds.utils.io import atomic_write_bytes, read_json
 
@@ -47,8 +48,6 @@ def plant_of(summary: dict, job_dir: Path) -> str:
     before plants had names) its config's."""
     name = summary.get("real", {}).get("name")
     if name is None and (job_dir / "config.yaml").is_file():
-        from hds.config import load_config
-
         name = load_config(job_dir / "config.yaml").real.label()
     return name or "-"
 
@@ -72,6 +71,7 @@ def collect_rows(root: Path) -> tuple[list[dict], list[tuple]]:
         job_rows = [{**own, **r, "job": job} for r in summary["rows"]]  # a swept gap: its own
         rows += job_rows + [{**r, "job": job} for r in summary.get("rows_eval_plants", [])]
         runs.append((job, job_rows, summary["history"]))
+    rows += loop_rows(root)
     keys = settings_of(rows)
     histories = []
     for job, job_rows, history in runs:
@@ -92,6 +92,19 @@ def shown_column(columns: set) -> tuple:
     plant = max(sorted(count), key=count.get)
     gaps = sorted((g for p, g in columns if p == plant), key=lambda g: (g is None, g))
     return plant, 1.0 if 1.0 in gaps else gaps[-1]
+
+
+def loop_rows(root: Path) -> list[dict]:
+    """The rows of every round of every sim2real loop below root (`python -m hds.loop`'s
+    loop.json: methods loop0, loop1, ...), each with the loop's plant."""
+    rows = []
+    for path in sorted(root.rglob("loop.json")):
+        real = load_config(path.parent / "config.yaml").real
+        own = {"plant": real.label(), "friction_gap": real.friction_gap}
+        job = str(path.parent.relative_to(root))
+        for report in read_json(path)["rounds"]:
+            rows += [{**own, **r, "job": job} for r in report["rows"]]
+    return rows
 
 
 def plant_column(row: dict) -> tuple:
@@ -231,6 +244,37 @@ def discovery_sections(root: Path, out: Path) -> list[str]:
     return sections
 
 
+def loop_sections(root: Path, out: Path) -> list[str]:
+    """A section per sim2real loop below root: each round's named effects, real return and
+    gap, and its figure (copied into out/plots/ when the report is written elsewhere)."""
+    from hds.loop import round_row
+
+    sections = []
+    for path in sorted(root.rglob("loop.json")):
+        rel = path.parent.relative_to(root)
+        lines = [
+            f"### Sim2real loop: {rel} ({load_config(path.parent / 'config.yaml').real.label()})",
+            "",
+            "| round | named (95% interval) | real return [95%] | sim2real gap | episodes |",
+            "| ---: | --- | ---: | ---: | ---: |",
+        ]
+        for report in read_json(path)["rounds"]:
+            r = round_row(report)
+            lines.append(
+                f"| {r['round']} | {r['named']} | {number(r['real_return'])} {r['interval']} "
+                f"| {number(r['gap'])} | {r['episodes']} |"
+            )
+        figure = path.parent / "plots" / "loop_rounds.png"
+        if figure.is_file():
+            link = rel / "plots" / figure.name
+            if out != root:
+                link = Path("plots") / "_".join(("loop", *rel.parts, figure.name))
+                atomic_write_bytes(out / link, figure.read_bytes())
+            lines += ["", f"![loop_rounds]({link})"]
+        sections.append("\n".join(lines) + "\n")
+    return sections
+
+
 def discovery_errors(report: dict) -> str:
     """k-step (rollout) RMSE per state variable before and after the named effects were added,
     on each data set of the discovery (identification, held-out, validation)."""
@@ -281,12 +325,12 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
     swept = [c for c in columns if c[0] == shown[0]]  # the plant reported at several gaps
     shown_histories = [(m, j, h) for m, c, j, h in histories if c == shown]
     repeated = len({m for m, *_ in shown_histories}) < len(shown_histories)
-    figures = {
-        "report_learning_curves": plots.learning_curves(
+    figures = {}
+    if shown_histories:  # none where only loops are below root
+        figures["report_learning_curves"] = plots.learning_curves(
             {f"{m} ({j})" if repeated else m: h for m, j, h in shown_histories}
-        ),
-        "report_sim_vs_real": plots.sim_vs_real([r for r in rows if plant_column(r) == shown]),
-    }
+        )
+    figures["report_sim_vs_real"] = plots.sim_vs_real([r for r in rows if plant_column(r) == shown])
     if len(swept) > 1:
         figures["report_gap_vs_friction"] = plots.gap_vs_friction(
             [{**e, "method": e["label"]} for e in summary if e["plant"] == shown[0]]
@@ -333,7 +377,7 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
     if len(columns) > 1:
         text += [f"Learning curves and sim-vs-real bars: {column_names([shown])[shown]}.", ""]
     text += [f"![{name}](plots/{name}.png)" for name in figures]
-    text += [""] + discovery_sections(root, out)
+    text += [""] + loop_sections(root, out) + discovery_sections(root, out)
     path = atomic_write_bytes(out / "report.md", ("\n".join(text) + "\n").encode())
     return path
 

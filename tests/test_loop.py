@@ -108,3 +108,51 @@ def test_the_loop_figure_shows_each_round_s_return_and_gap():
     fig = plots.loop_rounds(rounds)
     returns, gaps = (ax.lines[0].get_ydata() for ax in fig.axes)
     assert list(returns) == [-5.0, -3.0] and list(gaps) == [1.0, 0.1]
+
+
+def test_hds_report_gives_each_loop_round_rows_and_a_section(tmp_path):
+    from omegaconf import OmegaConf
+
+    from hds.report import build
+
+    loop_dir = tmp_path / "loop" / "x4"
+    loop_dir.mkdir(parents=True)
+    OmegaConf.save(
+        OmegaConf.structured(make_config("real.friction_gap=4")), loop_dir / "config.yaml"
+    )
+
+    def round_report(r, real, effects):
+        rows = [
+            {
+                "method": f"loop{r}",
+                "seed": s,
+                "sim_return": -3.0,
+                "real_return": real + s,
+                "gap": -3.0 - real - s,
+                "solved_sim": True,
+                "solved_real": real + s >= -30,
+            }
+            for s in (0, 1)
+        ]
+        return {
+            "round": r,
+            "rows": rows,
+            "real_return": [real + 0.5, real, real + 1],
+            "gap": [1.0, 0.5, 1.5],
+            "effects": effects,
+            "data_episodes": 32 * r,
+        }
+
+    friction = {
+        "name": "coulomb_friction",
+        "target": "slider",
+        "params": {"force": 80.7},
+        "ci95": {"force": [79.0, 82.0]},
+    }
+    rounds = [round_report(0, -40.0, []), round_report(1, -6.0, [friction])]
+    (loop_dir / "loop.json").write_text(json.dumps({"rounds": rounds}))
+    report = build(tmp_path).read_text()
+    assert "| loop0 | coulomb_friction@slider | 2 | -3 [-3, -3] | -39.5 [" in report
+    assert "| loop1 | coulomb_friction@slider | 2 |" in report
+    assert "### Sim2real loop: loop/x4 (coulomb_friction@slider)" in report
+    assert "| 1 | coulomb_friction@slider 80.7 [79, 82] | -5.5 [-6.0, -5.0] |" in report
