@@ -280,3 +280,10 @@ def test_a_friction_gap_sweep_refuses_what_needs_data_at_each_gap():
 def test_closed_loop_improvement_refuses_gauss_newton():
     with pytest.raises(ValueError, match="closed_loop takes first-order steps only"):
         make_config("algo=pods_gn", "algo.improve_in=closed_loop")
+
+
+def test_the_command_line_s_overrides_leave_out_flags_and_their_values():
+    from hds.config import cli_overrides
+
+    argv = ["--cfg", "hydra", "-cn", "config", "method=pods_cl", "-m", "seeds=2"]
+    assert cli_overrides(argv) == ["method=pods_cl", "seeds=2"]
