@@ -38,7 +38,7 @@ class State:
     # identification sum of squared normalized residuals above the measurement noise: what
     # the laws of the selected effects fail to fit (the size of the model's own error)
     misfit: float = 0.0
-    # H [V, M, M] and G [V, E, M] of each view of the residuals (`Engine._views`)
+    # H [V, M, M] and G [V, E, M] of each view of the residuals (`Engine.views`)
     views: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
