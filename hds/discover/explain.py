@@ -38,6 +38,8 @@ class State:
     # identification sum of squared normalized residuals above the measurement noise: what
     # the laws of the selected effects fail to fit (the size of the model's own error)
     misfit: float = 0.0
+    # H [V, M, M] and G [V, E, M] of each view of the residuals (`Engine.views`)
+    views: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def keys(self) -> set[str]:
@@ -225,7 +227,8 @@ def _drop_proxies(fit, states: list[State], cfg):
 
 class Batch(NamedTuple):
     """One batched fit: per row theta [C, N], delay [C, n_act], held-out error [C],
-    identification MSE [C], H [C, M, M], G [C, E, M], slots [C, M], iterations [C]."""
+    identification MSE [C], H [C, M, M], G [C, E, M], slots [C, M], iterations [C], and H
+    [C, V, M, M], G [C, V, E, M] of each view."""
 
     theta: np.ndarray
     delay: np.ndarray
@@ -235,6 +238,8 @@ class Batch(NamedTuple):
     g: np.ndarray
     slots: np.ndarray
     iterations: np.ndarray
+    view_h: np.ndarray
+    view_g: np.ndarray
 
 
 class _Fitter:
@@ -256,11 +261,11 @@ class _Fitter:
 
     def run(self, theta0, slots, delay, rows=None) -> Batch:
         engine = self.engine
-        theta, loss, h, g, its = engine.fit(
+        theta, loss, h, g, its, view_h, view_g = engine.fit(
             theta0, slots, delay, self.ident, self.cfg.iterations, self.estimate, rows
         )
         held = engine.errors(theta, delay, self.heldout)
-        return Batch(theta, delay, held, loss, h, g, slots, its)
+        return Batch(theta, delay, held, loss, h, g, slots, its, view_h, view_g)
 
     def __call__(self, state: State) -> Batch:
         model = self.engine.model
@@ -281,6 +286,7 @@ class _Fitter:
             batch.g[i][:, :m],
             slots,
             misfit,
+            (batch.view_h[i][:, :m, :m], batch.view_g[i][:, :, :m]),
         )
 
     def sets(self, state: State, sets: list[list[Candidate]]) -> list[State]:
@@ -309,9 +315,10 @@ INSEPARABLE = 0.95  # |correlation| above which the data do not separate two par
 
 def intervals(model, state: State, delay_steps: dict | None = None) -> dict:
     """95% intervals of each selected effect's parameters, by effect key (noise and law
-    mismatch, see `confidence_intervals`); a delay's are the steps the data cannot rule out
+    mismatch: what the model fails to fit and how its fit moves between views of the data,
+    see `confidence_intervals`); a delay's are the steps the data cannot rule out
     (`delay_steps`: key -> [lowest, highest], from `delay_range`)."""
-    ci = confidence_intervals(state.theta[state.slots], state.h, state.g, state.misfit)
+    ci = confidence_intervals(state.theta[state.slots], state.h, state.g, state.misfit, state.views)
     where = {s: i for i, s in enumerate(state.slots)}
     out = {}
     for cand in state.selected:
@@ -332,7 +339,7 @@ def correlations(state: State) -> list[dict]:
     `inseparable` where the data cannot tell them apart (|rho| > INSEPARABLE)."""
     if not state.slots:
         return []
-    ci = confidence_intervals(state.theta[state.slots], state.h, state.g, state.misfit)
+    ci = confidence_intervals(state.theta[state.slots], state.h, state.g, state.misfit, state.views)
     names = {s: f"{c.key}.{p}" for c in state.selected for p, s in zip(c.params, c.slots)}
     owner = {s: c.key for c in state.selected for s in c.slots}
     rows = []
