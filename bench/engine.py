@@ -5,6 +5,8 @@ rollout (value_and_grad of a 100-step return w.r.t. the actions, batch 64 via vm
 env steps per second forward (the rollout alone) and forward + backward. MJX runs with
 `opt.iterations=1` (hds.envs.system sets it: its default solver loop rejects reverse mode).
 `random4` is a generated tree of 4 joints (`random_tree_xml(0, 4)`): the issue's 4-DoF model.
+Rows of systems and backends a run does not measure are carried over from the committed
+results (generalized and MJX take an hour), each with a note of when and how it was measured.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bench.common import best_of, block, timed
+from bench.common import best_of, block, load_results, timed
 
 DEFAULT_BUDGET = {
     "systems": ["cartpole", "pendulum", "double_cartpole", "furuta", "acrobot", "random4"],
@@ -122,6 +124,32 @@ def measure(xml: str, backend: str, budget: dict) -> dict:
     }
 
 
+def carried(measured: set[tuple[str, str]]) -> tuple[list[list], dict[str, str]]:
+    """The committed results' rows of the (system, backend) pairs this run does not measure,
+    and where each was measured ('system/backend': 'when, load, command')."""
+    earlier = load_results().get("sections", {}).get("engine", {})
+    if not earlier.get("tables"):
+        return [], {}
+    here = (
+        f"{earlier.get('measured_at')} under load {earlier.get('load_before')} / "
+        f"{earlier.get('load_after')} by `{earlier.get('command')}`"
+    )
+    rows = [r for r in earlier["tables"][0]["rows"] if (r[0], r[1]) not in measured]
+    origins = earlier.get("origins", {})
+    return rows, {f"{r[0]}/{r[1]}": origins.get(f"{r[0]}/{r[1]}", here) for r in rows}
+
+
+def carried_notes(origins: dict[str, str]) -> list[str]:
+    by_origin: dict[str, list[str]] = {}
+    for pair, origin in origins.items():
+        by_origin.setdefault(origin, []).append(pair)
+    return [
+        f"Rows {', '.join(pairs)}: carried over, measured {origin}; compare backends within "
+        "one run's load."
+        for origin, pairs in by_origin.items()
+    ]
+
+
 def run(budget: dict) -> dict:
     rows = []
     with tempfile.TemporaryDirectory() as folder:
@@ -146,6 +174,9 @@ def run(budget: dict) -> dict:
                 )
     b, t = budget["batch"], budget["horizon"]
     four = [r for r in rows if r[:2] == ["random4", "tree"] and r[3] != "-"]
+    earlier, origins = carried({(r[0], r[1]) for r in rows})
+    order = {name: i for i, name in enumerate(DEFAULT_BUDGET["systems"])}
+    rows = sorted(rows + earlier, key=lambda r: order.get(r[0], len(order)))
     return {
         "title": "physics engines: the tree engine vs brax generalized and MJX",
         "tables": [
@@ -171,4 +202,6 @@ def run(budget: dict) -> dict:
                 "met": next((r[3] < 10 for r in four), None),
             }
         ],
+        "origins": origins,
+        "notes": carried_notes(origins),
     }

@@ -43,7 +43,6 @@ from hds.envs.analytic import (
     concrete,
     init,
     limit_terms,
-    put,
     quat_matrix,
     system_geometry,
 )
@@ -314,12 +313,12 @@ def _unrolled_dynamics(sys, q, qd):
 
 
 # -- larger trees: stacked over the bodies ------------------------------------------------
-# Each reduction (a sum over an axis: the core of every small matrix product) ends a fused
-# kernel, and the kernels' count is what the compile time of a gradient rollout follows; so
-# a step is arranged around few of them: one product per body for its whole placement, two
-# for the inertias, two for the dynamics, one for every dot product the matrices need. Sums
-# along the tree (velocities down it, forces and composite inertias up it) are additions of
-# rows, unrolled over the static parent indices.
+# What a gradient rollout's compile time follows is the count of XLA's fused kernels: each
+# reduction ends one, and so does the gradient of each slice (a padded copy). So a step is
+# arranged around few of both: the joints enter every body's placement elementwise, for all
+# bodies at once, and one product per body places it in the world; sums along the tree
+# (velocities down it, forces up it) and the composite inertias are sums over the static
+# ancestor matrix; cross products are sums over a constant basis, not components sliced out.
 
 
 def _stacked_constants(sys) -> dict:
@@ -328,12 +327,11 @@ def _stacked_constants(sys) -> dict:
 
     A body's placement is the [4, 10] matrix `C0 + x1 C1 + x2 C2` with (x1, x2) = (sin q,
     1 - cos q) for a hinge (rotation I + sin K + (1 - cos) K^2 about its axis, K = [axis]x)
-    and (q, 0) for a slide. Its columns, in the parent's frame: the body's rotation (3), its
-    inertia's principal axes (3), the joint axis, the anchor, the origin and the centre of
+    and (q, 0) for a slide. Its columns, in the parent's frame: the body's rotation (3) and
+    origin, its inertia's principal axes (3), the joint axis, the anchor and the centre of
     mass; the last row is homogeneous (1 under the three points), so that one product with
     the parent's [3, 4] world placement [rotation | origin] gives all of them in the world.
-    Columns: the body's rotation (3) and origin, its inertia's principal axes (3), the joint
-    axis, the anchor, the centre of mass."""
+    Stacked over the bodies: C0, C1, C2 [n, 4, 10]."""
     parts, xp = system_geometry(sys)
     hinges = [bool(np.any(np.asarray(a) != 0)) for a in np.asarray(sys.dof.motion.ang)]
     places = []
@@ -367,7 +365,8 @@ def _stacked_constants(sys) -> dict:
                 xp.concatenate([c2, 0 * homogeneous]),
             )
         )
-    return {"hinge": hinges, "places": places, "gravity": parts["gravity"]}
+    c0, c1, c2 = (xp.stack(c) for c in zip(*places, strict=True))
+    return {"hinge": np.asarray(hinges), "places": (c0, c1, c2), "gravity": parts["gravity"]}
 
 
 def _mm(a, b):
@@ -376,47 +375,52 @@ def _mm(a, b):
     return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
 
 
-def _cross_rows(u, v):
-    """Row-wise cross products of [..., 3] arrays, unrolled (jnp.cross is a call of its own)."""
-    x = [
-        u[..., (k + 1) % 3] * v[..., (k + 2) % 3] - u[..., (k + 2) % 3] * v[..., (k + 1) % 3]
-        for k in range(3)
-    ]
-    return jnp.stack(x, axis=-1)
+_CROSS_BASIS = np.cross(np.eye(3)[:, None], np.eye(3)[None]).transpose(0, 2, 1)  # [e_k]x, by k
+
+
+def _cross_last(u, v):
+    """Cross products along the last axis (3) of broadcastable arrays, as one sum over the
+    constant basis [e_k]x: jnp.cross slices out every component, and the gradient of each
+    slice is a padded copy, a kernel of its own."""
+    return jnp.sum(u[..., :, None, None] * _CROSS_BASIS * v[..., None, None, :], axis=(-3, -1))
+
+
+def _blocks(x):
+    """[..., 6] -> [..., 2, 3]: a spatial vector's angular and linear halves."""
+    return x.reshape(x.shape[:-1] + (2, 3))
 
 
 def _cross_motion6(v, m):
-    """Spatial motion cross product v x m of [..., 6] (angular, linear at the origin)."""
-    w, u = v[..., :3], v[..., 3:]
-    return jnp.concatenate(
-        [_cross_rows(w, m[..., :3]), _cross_rows(w, m[..., 3:]) + _cross_rows(u, m[..., :3])], -1
-    )
+    """Spatial motion cross product v x m of [..., 6] (angular, linear at the origin):
+    (w x m_ang, w x m_lin + u x m_ang) for v = (w, u)."""
+    both = _cross_last(v[..., None, :3], _blocks(m)).reshape(m.shape)
+    extra = _cross_last(v[..., 3:], m[..., :3])
+    return both + jnp.concatenate([jnp.zeros_like(extra), extra], axis=-1)
 
 
 def _cross_force6(v, f):
-    """Spatial force cross product v x* f."""
-    w, u = v[..., :3], v[..., 3:]
-    return jnp.concatenate(
-        [_cross_rows(w, f[..., :3]) + _cross_rows(u, f[..., 3:]), _cross_rows(w, f[..., 3:])], -1
-    )
+    """Spatial force cross product v x* f: (w x f_ang + u x f_lin, w x f_lin)."""
+    both = _cross_last(v[..., None, :3], _blocks(f)).reshape(f.shape)
+    extra = _cross_last(v[..., 3:], f[..., 3:])
+    return both + jnp.concatenate([extra, jnp.zeros_like(extra)], axis=-1)
 
 
 def _stacked_kinematics(sys, g, q):
     """World placement of the bodies at q, down the tree (one product per body with a
     parent): principal inertia axes [n, 3, 3], centres of mass [n, 3] and joint motion
     subspaces [n, 6] (angular, linear about the world origin)."""
+    c0, c1, c2 = g["places"]
+    hinge = g["hinge"].astype(np.float32)
+    x1 = jnp.where(g["hinge"], jnp.sin(q), q)
+    x2 = hinge * (1 - jnp.cos(q))
+    local = c0 + x1[:, None, None] * c1 + x2[:, None, None] * c2
     worlds = []
     for i, parent in enumerate(int(p) for p in sys.link_parents):
-        c0, c1, c2 = g["places"][i]
-        if g["hinge"][i]:
-            local = c0 + jnp.sin(q[i]) * c1 + (1 - jnp.cos(q[i])) * c2
-        else:
-            local = c0 + q[i] * c1
-        worlds.append(local[:3] if parent < 0 else _mm(worlds[parent][:, :4], local))
+        worlds.append(local[i, :3] if parent < 0 else _mm(worlds[parent][:, :4], local[i]))
     world = jnp.stack(worlds)
     axis, anchor = world[:, :, 7], world[:, :, 8]
-    hinge = np.asarray(g["hinge"], np.float32)[:, None]
-    s = jnp.concatenate([hinge * axis, hinge * jnp.cross(anchor, axis) + (1 - hinge) * axis], 1)
+    hinge = hinge[:, None]
+    s = jnp.concatenate([hinge * axis, hinge * _cross_last(anchor, axis) + (1 - hinge) * axis], 1)
     return world[:, :, 4:7], world[:, :, 9], s
 
 
@@ -428,16 +432,7 @@ def _spatial_inertias(sys, principal, coms):
     square = coms[:, 0] ** 2 + coms[:, 1] ** 2 + coms[:, 2] ** 2
     eye = jnp.eye(3)
     shifted = rotated + mass * (square[:, None, None] * eye - coms[:, :, None] * coms[:, None, :])
-    h = mass[:, :, 0] * coms
-    zero = jnp.zeros_like(h[:, 0])
-    skew = jnp.stack(
-        [
-            jnp.stack([zero, -h[:, 2], h[:, 1]], -1),
-            jnp.stack([h[:, 2], zero, -h[:, 0]], -1),
-            jnp.stack([-h[:, 1], h[:, 0], zero], -1),
-        ],
-        -2,
-    )
+    skew = jnp.sum((mass * coms[:, :, None])[..., None] * _CROSS_BASIS, axis=1)  # [m c]x
     top = jnp.concatenate([shifted, skew], axis=2)
     bottom = jnp.concatenate([-skew, mass * eye], axis=2)
     return jnp.concatenate([top, bottom], axis=1)
@@ -487,8 +482,9 @@ def _down(above, x):
 
 # Up to this many dofs a step is unrolled over scalars (a few elementwise loops, as fast as
 # the closed forms of `analytic`); beyond, XLA's fuser recomputes the unrolled shared terms in
-# every consumer (a 4-dof tree's gradient rollout took minutes to compile), so larger trees
-# run on [bodies, ...] arrays, summed along the static ancestor matrix.
+# every consumer (the skewed 4-dof tree's gradient rollout unrolled: 37 s to compile and 5 s
+# a call, against 7 s and 0.05 s stacked; no better with optimization barriers between the
+# stages), so larger trees run on [bodies, ...] arrays.
 _UNROLL_MAX_DOFS = 3
 
 
@@ -541,8 +537,8 @@ def _limit_force(sys, q, qd, force, mass, h):
     limits' block of M^-1 (signed by each limit's side), R the regulariser and b the reference
     acceleration less the unconstrained one: MuJoCo's constraint problem, which its solver
     solves exactly. One limited dof: the clipped closed form. Several: a primal-dual active-set
-    method, as many passes as limited dofs plus one (each an unrolled solve). None when the
-    model has no limited joint."""
+    method, as many passes as limited dofs plus one (each an unrolled solve). Per limited dof
+    its force ({dof: force}); None when the model has no limited joint."""
     terms = limit_terms(sys, q, qd, h)
     if terms is None:
         return None
@@ -566,7 +562,8 @@ def _limit_force(sys, q, qd, force, mass, h):
             slack = jnp.sum(a * lam[None, :], axis=1) - b  # >= 0 where a limit is left out
             chosen = active & (lam * jnp.diagonal(a) - slack > 0)
         lam = jnp.maximum(lam, 0.0)
-    return put(jnp.where(active, side * lam, 0.0), dofs, n)
+    forces = jnp.where(active, side * lam, 0.0)
+    return {int(d): forces[i] for i, d in enumerate(dofs)}
 
 
 def step(sys, state: State, act: jax.Array, *args, **kwargs) -> State:
@@ -592,7 +589,7 @@ def _euler_step(sys, state: State, act: jax.Array) -> State:
     ]
     limit = _limit_force(sys, q, qd, force, mass, h)
     if limit is not None:
-        force = [_add(f, limit[i]) for i, f in enumerate(force)]
+        force = [_add(f, limit.get(i, 0.0)) for i, f in enumerate(force)]
     step_h = _values(h)
     damped = [
         [_add(m, _mul(step_h, damping[i])) if i == j else m for j, m in enumerate(row)]
