@@ -135,11 +135,14 @@ def grad_case(name: str, tmp_path_factory):
     return _GRADS[name]
 
 
-@pytest.mark.parametrize("start", ["free", "in_limits"])
-def test_gradient_matches_finite_differences(start, tmp_path_factory):
-    """On the 3-joint random tree (a hinge and two slides, skewed): from rest near the middle,
-    and from inside both limits of its limited joints, so the gradient runs through them."""
-    sim, value_and_grad = grad_case("random3", tmp_path_factory)
+@pytest.mark.parametrize(
+    "name, start", [("random3", "free"), ("random3", "in_limits"), ("random4", "in_limits")]
+)
+def test_gradient_matches_finite_differences(name, start, tmp_path_factory):
+    """On the 3-joint random tree (a hinge and two slides, skewed; unrolled over scalars): from
+    rest near the middle, and from inside both limits of its limited joints, so the gradient
+    runs through them; on the 4-joint tree (stacked over its bodies) from inside its limit."""
+    sim, value_and_grad = grad_case(name, tmp_path_factory)
     rng = np.random.default_rng(1)
     u = jnp.asarray(rng.uniform(-0.8, 0.8, (20, sim.n_act)) * sim.ctrl_range[:, 1], jnp.float32)
     hi = np.nan_to_num(np.asarray(sim.sys.dof.limit[1]), posinf=0.0)

@@ -43,7 +43,6 @@ from hds.envs.analytic import (
     concrete,
     init,
     limit_terms,
-    put,
     quat_matrix,
     system_geometry,
 )
@@ -314,31 +313,154 @@ def _unrolled_dynamics(sys, q, qd):
 
 
 # -- larger trees: stacked over the bodies ------------------------------------------------
+# What a gradient rollout's compile time follows is the count of XLA's fused kernels: each
+# reduction ends one, and so does the gradient of each slice (a padded copy). So a step is
+# arranged around few of both: the joints enter every body's placement elementwise, for all
+# bodies at once, and one product per body places it in the world; sums along the tree
+# (velocities down it, forces up it) and the composite inertias are sums over the static
+# ancestor matrix; cross products are sums over a constant basis, not components sliced out.
 
 
 def _stacked_constants(sys) -> dict:
-    """The geometry (effects never edit it): numpy when known at trace time, else traced."""
+    """Per body, its placement in its parent's frame as constant columns (numpy when known at
+    trace time, else traced), so that the joint enters through elementwise products only.
+
+    A body's placement is the [4, 10] matrix `C0 + x1 C1 + x2 C2` with (x1, x2) = (sin q,
+    1 - cos q) for a hinge (rotation I + sin K + (1 - cos) K^2 about its axis, K = [axis]x)
+    and (q, 0) for a slide. Its columns, in the parent's frame: the body's rotation (3) and
+    origin, its inertia's principal axes (3), the joint axis, the anchor and the centre of
+    mass; the last row is homogeneous (1 under the three points), so that one product with
+    the parent's [3, 4] world placement [rotation | origin] gives all of them in the world.
+    Stacked over the bodies: C0, C1, C2 [n, 4, 10]."""
     parts, xp = system_geometry(sys)
-    rot, pos, irot, ipos = parts["rot"], parts["pos"], parts["irot"], parts["ipos"]
-    jpos, ang, vel, gravity = parts["jpos"], parts["ang"], parts["vel"], parts["gravity"]
-    n = len(sys.link_names)
-    hinge = [bool(np.any(np.asarray(a) != 0)) for a in np.asarray(sys.dof.motion.ang)]
-    axis = xp.where(xp.asarray(hinge)[:, None], ang, vel)
-    axis = axis / xp.linalg.norm(axis, axis=1, keepdims=True)
-    cross = [xp.cross(xp.eye(3), axis[i]) for i in range(n)]  # [k]x, the axis' cross matrix
-    return {
-        "above": _tree_matrix(sys.link_parents),
-        "hinge": hinge,
-        "rot": [quat_matrix(rot[i], xp) for i in range(n)],
-        "pos": pos,
-        "irot": xp.stack([quat_matrix(irot[i], xp) for i in range(n)]),
-        "ipos": ipos,
-        "jpos": jpos,
-        "axis": axis,
-        "k": cross,
-        "k2": [c @ c for c in cross],
-        "gravity": gravity,
-    }
+    hinges = [bool(np.any(np.asarray(a) != 0)) for a in np.asarray(sys.dof.motion.ang)]
+    places = []
+    for i, hinge in enumerate(hinges):
+        axis = parts["ang"][i] if hinge else parts["vel"][i]
+        axis = axis / xp.linalg.norm(axis)
+        rot, pos = quat_matrix(parts["rot"][i], xp), parts["pos"][i]
+        irot, ipos, jpos = quat_matrix(parts["irot"][i], xp), parts["ipos"][i], parts["jpos"][i]
+        zero3, zero = xp.zeros((3, 3)), xp.zeros(3)
+        if hinge:
+            turn = xp.cross(xp.eye(3), axis)  # K
+            terms = [rot @ turn, rot @ turn @ turn]  # the columns times sin and 1 - cos
+            arm = ipos - jpos
+            c1, c2 = (
+                xp.concatenate(
+                    [t, -(t @ jpos)[:, None], t @ irot, xp.stack([zero, zero, t @ arm], 1)], 1
+                )
+                for t in terms
+            )
+        else:
+            moved = rot @ axis
+            c1 = xp.concatenate([zero3, moved[:, None], zero3, xp.stack([zero, zero, moved], 1)], 1)
+            c2 = xp.zeros_like(c1)
+        points = [rot @ axis, pos + rot @ jpos, pos + rot @ ipos]
+        c0 = xp.concatenate([rot, pos[:, None], rot @ irot, xp.stack(points, axis=1)], axis=1)
+        homogeneous = xp.asarray([0.0] * 3 + [1.0] + [0.0] * 4 + [1.0] * 2)[None]
+        places.append(
+            (
+                xp.concatenate([c0, homogeneous]),
+                xp.concatenate([c1, 0 * homogeneous]),
+                xp.concatenate([c2, 0 * homogeneous]),
+            )
+        )
+    c0, c1, c2 = (xp.stack(c) for c in zip(*places, strict=True))
+    return {"hinge": np.asarray(hinges), "places": (c0, c1, c2), "gravity": parts["gravity"]}
+
+
+def _mm(a, b):
+    """a @ b over the last two axes, as a broadcast product and one sum: under vmap a matmul
+    becomes a batched dot, a kernel of its own per product, which costs more than its sum."""
+    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
+
+
+_CROSS_BASIS = np.cross(np.eye(3)[:, None], np.eye(3)[None]).transpose(0, 2, 1)  # [e_k]x, by k
+
+
+def _cross_last(u, v):
+    """Cross products along the last axis (3) of broadcastable arrays, as one sum over the
+    constant basis [e_k]x: jnp.cross slices out every component, and the gradient of each
+    slice is a padded copy, a kernel of its own."""
+    return jnp.sum(u[..., :, None, None] * _CROSS_BASIS * v[..., None, None, :], axis=(-3, -1))
+
+
+def _blocks(x):
+    """[..., 6] -> [..., 2, 3]: a spatial vector's angular and linear halves."""
+    return x.reshape(x.shape[:-1] + (2, 3))
+
+
+def _cross_motion6(v, m):
+    """Spatial motion cross product v x m of [..., 6] (angular, linear at the origin):
+    (w x m_ang, w x m_lin + u x m_ang) for v = (w, u)."""
+    both = _cross_last(v[..., None, :3], _blocks(m)).reshape(m.shape)
+    extra = _cross_last(v[..., 3:], m[..., :3])
+    return both + jnp.concatenate([jnp.zeros_like(extra), extra], axis=-1)
+
+
+def _cross_force6(v, f):
+    """Spatial force cross product v x* f: (w x f_ang + u x f_lin, w x f_lin)."""
+    both = _cross_last(v[..., None, :3], _blocks(f)).reshape(f.shape)
+    extra = _cross_last(v[..., 3:], f[..., 3:])
+    return both + jnp.concatenate([extra, jnp.zeros_like(extra)], axis=-1)
+
+
+def _stacked_kinematics(sys, g, q):
+    """World placement of the bodies at q, down the tree (one product per body with a
+    parent): principal inertia axes [n, 3, 3], centres of mass [n, 3] and joint motion
+    subspaces [n, 6] (angular, linear about the world origin)."""
+    c0, c1, c2 = g["places"]
+    hinge = g["hinge"].astype(np.float32)
+    x1 = jnp.where(g["hinge"], jnp.sin(q), q)
+    x2 = hinge * (1 - jnp.cos(q))
+    local = c0 + x1[:, None, None] * c1 + x2[:, None, None] * c2
+    worlds = []
+    for i, parent in enumerate(int(p) for p in sys.link_parents):
+        worlds.append(local[i, :3] if parent < 0 else _mm(worlds[parent][:, :4], local[i]))
+    world = jnp.stack(worlds)
+    axis, anchor = world[:, :, 7], world[:, :, 8]
+    hinge = hinge[:, None]
+    s = jnp.concatenate([hinge * axis, hinge * _cross_last(anchor, axis) + (1 - hinge) * axis], 1)
+    return world[:, :, 4:7], world[:, :, 9], s
+
+
+def _spatial_inertias(sys, principal, coms):
+    """[n, 6, 6] inertias about the world origin, in world axes: [[J, [h]x], [-[h]x, m]] with
+    h = m c and J = I_c + m (|c|^2 - c c^T)."""
+    mass = sys.link.inertia.mass[:, None, None]
+    rotated = _mm(_mm(principal, sys.link.inertia.i), jnp.swapaxes(principal, 1, 2))
+    square = coms[:, 0] ** 2 + coms[:, 1] ** 2 + coms[:, 2] ** 2
+    eye = jnp.eye(3)
+    shifted = rotated + mass * (square[:, None, None] * eye - coms[:, :, None] * coms[:, None, :])
+    skew = jnp.sum((mass * coms[:, :, None])[..., None] * _CROSS_BASIS, axis=1)  # [m c]x
+    top = jnp.concatenate([shifted, skew], axis=2)
+    bottom = jnp.concatenate([-skew, mass * eye], axis=2)
+    return jnp.concatenate([top, bottom], axis=1)
+
+
+def _stacked_dynamics(sys, q, qd):
+    """Mass matrix M (armature included) and the bias forces (Coriolis, centrifugal, gravity),
+    as nested tuples of scalars.
+
+    Vectorised over the bodies with the static ancestor matrix: velocities and velocity-product
+    accelerations sum down the tree, forces sum up it (recursive Newton-Euler with qdd = 0 and
+    gravity as an upward acceleration of the world); M[j, k] = sum over bodies i below both
+    j and k of s_j . I_i s_k (composite rigid bodies)."""
+    g = _stacked_constants(sys)
+    above = _tree_matrix(sys.link_parents)
+    principal, coms, s = _stacked_kinematics(sys, g, q)
+    inertia = _spatial_inertias(sys, principal, coms)
+    joint = s * qd[:, None]
+    vel = _down(above, joint)
+    base = jnp.concatenate([jnp.zeros(3), -jnp.asarray(g["gravity"], q.dtype)])
+    acc = base + _down(above, _cross_motion6(vel, joint))
+    products = _mm(inertia, jnp.stack([vel, acc], axis=2))  # [n, 6, 2]
+    force = products[:, :, 1] + _cross_force6(vel, products[:, :, 0])
+    bias = jnp.sum(s * _down(above.T, force), axis=1)
+    inertia_s = _mm(inertia, s.T)  # [i, 6, m]: I_i s_m
+    mass = jnp.einsum("ij,im,jr,irm->jm", above, above, s, inertia_s)
+    mass = mass + jnp.diag(sys.dof.armature)
+    return tuple(tuple(row) for row in mass), tuple(bias)
 
 
 def _tree_matrix(parents) -> np.ndarray:
@@ -353,117 +475,16 @@ def _tree_matrix(parents) -> np.ndarray:
     return above
 
 
-# Products of small matrices as broadcast multiplies and sums: under vmap a matmul becomes a
-# batched dot, a kernel of its own per product, which costs more than its arithmetic.
-def _mm(a, b):
-    """a @ b over the last two axes."""
-    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
-
-
-def _mv(a, v):
-    """a @ v, a [..., m, k], v [..., k]."""
-    return jnp.sum(a * v[..., None, :], axis=-1)
-
-
 def _down(above, x):
     """above @ x for the static [n, n] ancestor matrix and x [n, 6]."""
     return jnp.sum(above[:, :, None] * x[None], axis=1)
 
 
-def _skew(v):
-    """[..., 3] -> [..., 3, 3] cross-product matrices."""
-    zero = jnp.zeros_like(v[..., 0])
-    x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    rows = [
-        jnp.stack([zero, -z, y], -1),
-        jnp.stack([z, zero, -x], -1),
-        jnp.stack([-y, x, zero], -1),
-    ]
-    return jnp.stack(rows, -2)
-
-
-def _cross_motion_rows(v, m):
-    """Spatial motion cross products v x m, row by row; [n, 6] (angular, linear at the origin)."""
-    w, u = v[:, :3], v[:, 3:]
-    return jnp.concatenate(
-        [jnp.cross(w, m[:, :3]), jnp.cross(w, m[:, 3:]) + jnp.cross(u, m[:, :3])], axis=1
-    )
-
-
-def _cross_force_rows(v, f):
-    """Spatial force cross products v x* f, row by row."""
-    w, u = v[:, :3], v[:, 3:]
-    return jnp.concatenate(
-        [jnp.cross(w, f[:, :3]) + jnp.cross(u, f[:, 3:]), jnp.cross(w, f[:, 3:])], axis=1
-    )
-
-
-def _stacked_kinematics(sys, g, q):
-    """World frames of the bodies at q, body by body down the tree: rotations [n, 3, 3],
-    centres of mass [n, 3] and joint motion subspaces [n, 6] about the world origin."""
-    rots, origins, coms, subspaces = [], [], [], []
-    for i, parent in enumerate(sys.link_parents):
-        if parent < 0:
-            frame, origin = jnp.asarray(g["rot"][i]), jnp.asarray(g["pos"][i])
-        else:
-            frame = _mm(rots[parent], g["rot"][i])
-            origin = origins[parent] + _mv(rots[parent], g["pos"][i])
-        axis = _mv(frame, g["axis"][i])
-        if g["hinge"][i]:  # rotate about the anchor, which stays put
-            anchor = origin + _mv(frame, g["jpos"][i])
-            turn = jnp.sin(q[i]) * g["k"][i] + (1 - jnp.cos(q[i])) * g["k2"][i]
-            frame = frame + _mm(frame, turn)
-            origin = anchor - _mv(frame, g["jpos"][i])
-            subspaces.append(jnp.concatenate([axis, jnp.cross(anchor, axis)]))
-        else:
-            origin = origin + axis * q[i]
-            subspaces.append(jnp.concatenate([jnp.zeros(3), axis]))
-        rots.append(frame)
-        origins.append(origin)
-        coms.append(origin + _mv(frame, g["ipos"][i]))
-    return jnp.stack(rots), jnp.stack(coms), jnp.stack(subspaces)
-
-
-def _spatial_inertias(sys, g, rots, coms):
-    """[n, 6, 6] inertias about the world origin, in world axes."""
-    mass = sys.link.inertia.mass
-    principal = _mm(rots, g["irot"])
-    inertia = _mm(_mm(principal, sys.link.inertia.i), jnp.swapaxes(principal, 1, 2))
-    c = _skew(coms)
-    m = mass[:, None, None]
-    top = jnp.concatenate([inertia + m * _mm(jnp.swapaxes(c, 1, 2), c), m * c], axis=2)
-    bottom = jnp.concatenate([m * jnp.swapaxes(c, 1, 2), m * jnp.eye(3)], axis=2)
-    return jnp.concatenate([top, bottom], axis=1)
-
-
-def _stacked_dynamics(sys, q, qd):
-    """Mass matrix M (armature included) and the bias forces (Coriolis, centrifugal, gravity).
-
-    Vectorised over the bodies with the static ancestor matrix: velocities and velocity-product
-    accelerations sum down the tree, forces sum up it (recursive Newton-Euler with qdd = 0 and
-    gravity as an upward acceleration of the world); M[j, k] = sum over bodies i below both
-    j and k of s_j . I_i s_k (composite rigid bodies)."""
-    g = _stacked_constants(sys)
-    above = g["above"]
-    rots, coms, s = _stacked_kinematics(sys, g, q)
-    inertia = _spatial_inertias(sys, g, rots, coms)
-    joint = s * qd[:, None]
-    vel = _down(above, joint)
-    base = jnp.concatenate([jnp.zeros(3), -jnp.asarray(g["gravity"], q.dtype)])
-    acc = base + _down(above, _cross_motion_rows(vel, joint))
-    momentum = _mv(inertia, vel)
-    force = _mv(inertia, acc) + _cross_force_rows(vel, momentum)
-    bias = jnp.sum(s * _down(above.T, force), axis=1)
-    sis = jnp.sum(s[None, :, None] * _mv(inertia[:, None], s[None])[:, None], -1)  # s_j . I_i s_m
-    mass = jnp.sum(above[:, :, None] * above[:, None, :] * sis, axis=0)
-    mass = mass + jnp.diag(sys.dof.armature)
-    return tuple(tuple(row) for row in mass), tuple(bias)
-
-
 # Up to this many dofs a step is unrolled over scalars (a few elementwise loops, as fast as
 # the closed forms of `analytic`); beyond, XLA's fuser recomputes the unrolled shared terms in
-# every consumer (a 4-dof tree's gradient rollout took minutes to compile), so larger trees
-# run on [bodies, ...] arrays, summed along the static ancestor matrix.
+# every consumer (the skewed 4-dof tree's gradient rollout unrolled: 37 s to compile and 5 s
+# a call, against 7 s and 0.05 s stacked; no better with optimization barriers between the
+# stages), so larger trees run on [bodies, ...] arrays.
 _UNROLL_MAX_DOFS = 3
 
 
@@ -475,23 +496,28 @@ def _dynamics(sys, q, qd):
 
 
 def _cholesky(a):
-    """Lower factor of a small SPD matrix, unrolled (no LAPACK call per batch element)."""
+    """Lower factor of a small SPD matrix, unrolled (no LAPACK call per batch element), with
+    the reciprocals of its diagonal in place of the diagonal: one rsqrt per column, and every
+    division of the solves a multiplication (each division is a fused kernel of its own)."""
     n = len(a)
     low = [[0.0] * n for _ in range(n)]
     for j in range(n):
-        low[j][j] = jnp.sqrt(_sub(a[j][j], _sum(_mul(low[j][k], low[j][k]) for k in range(j))))
+        low[j][j] = _rsqrt(_sub(a[j][j], _sum(_mul(low[j][k], low[j][k]) for k in range(j))))
         for i in range(j + 1, n):
             rest = _sum(_mul(low[i][k], low[j][k]) for k in range(j))
-            low[i][j] = _sub(a[i][j], rest) / low[j][j]
+            low[i][j] = _mul(_sub(a[i][j], rest), low[j][j])
     return low
+
+
+def _rsqrt(x):
+    return x**-0.5 if isinstance(x, float) else jax.lax.rsqrt(x)
 
 
 def _forward(low, b):
     """y with L y = b (zeros of b that lead stay exact zeros)."""
     y = []
     for i, bi in enumerate(b):
-        rest = _sub(bi, _sum(_mul(low[i][k], y[k]) for k in range(i)))
-        y.append(0.0 if _is(rest, 0.0) else rest / low[i][i])
+        y.append(_mul(_sub(bi, _sum(_mul(low[i][k], y[k]) for k in range(i))), low[i][i]))
     return y
 
 
@@ -499,7 +525,8 @@ def _solve(low, b):
     """x with (L L^T) x = b, L from `_cholesky`."""
     y, x = _forward(low, b), [0.0] * len(b)
     for i in reversed(range(len(b))):
-        x[i] = _sub(y[i], _sum(_mul(low[k][i], x[k]) for k in range(i + 1, len(b)))) / low[i][i]
+        rest = _sum(_mul(low[k][i], x[k]) for k in range(i + 1, len(b)))
+        x[i] = _mul(_sub(y[i], rest), low[i][i])
     return x
 
 
@@ -510,8 +537,8 @@ def _limit_force(sys, q, qd, force, mass, h):
     limits' block of M^-1 (signed by each limit's side), R the regulariser and b the reference
     acceleration less the unconstrained one: MuJoCo's constraint problem, which its solver
     solves exactly. One limited dof: the clipped closed form. Several: a primal-dual active-set
-    method, as many passes as limited dofs plus one (each an unrolled solve). None when the
-    model has no limited joint."""
+    method, as many passes as limited dofs plus one (each an unrolled solve). Per limited dof
+    its force ({dof: force}); None when the model has no limited joint."""
     terms = limit_terms(sys, q, qd, h)
     if terms is None:
         return None
@@ -535,7 +562,8 @@ def _limit_force(sys, q, qd, force, mass, h):
             slack = jnp.sum(a * lam[None, :], axis=1) - b  # >= 0 where a limit is left out
             chosen = active & (lam * jnp.diagonal(a) - slack > 0)
         lam = jnp.maximum(lam, 0.0)
-    return put(jnp.where(active, side * lam, 0.0), dofs, n)
+    forces = jnp.where(active, side * lam, 0.0)
+    return {int(d): forces[i] for i, d in enumerate(dofs)}
 
 
 def step(sys, state: State, act: jax.Array, *args, **kwargs) -> State:
@@ -561,7 +589,7 @@ def _euler_step(sys, state: State, act: jax.Array) -> State:
     ]
     limit = _limit_force(sys, q, qd, force, mass, h)
     if limit is not None:
-        force = [_add(f, limit[i]) for i, f in enumerate(force)]
+        force = [_add(f, limit.get(i, 0.0)) for i, f in enumerate(force)]
     step_h = _values(h)
     damped = [
         [_add(m, _mul(step_h, damping[i])) if i == j else m for j, m in enumerate(row)]
