@@ -375,7 +375,7 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
         "",
     ]
     if len(columns) > 1:
-        text += [f"Learning curves and sim-vs-real bars: {column_names([shown])[shown]}.", ""]
+        text += [f"Learning curves and sim-vs-real bars: {column_names(list(columns))[shown]}.", ""]
     text += [f"![{name}](plots/{name}.png)" for name in figures]
     text += [""] + loop_sections(root, out) + discovery_sections(root, out)
     path = atomic_write_bytes(out / "report.md", ("\n".join(text) + "\n").encode())
