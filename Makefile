@@ -48,10 +48,12 @@ sweep: $(STAMP)
 # delete $(STUDY_RUN) to start over): friction gaps, then the other effects' plants (policies
 # that depend on the plant, then those trained once), the sim2real loop at 20 and 80 N, then
 # one report of all, its figures and GIF (job 19: closed-loop PODS from the frictionless
-# simulator on the 80 N plant) into experiments/sim2real_friction/results; then the swing-up
-# at 20, 40 and 80 N, reported apart (job 0: the frictionless simulator's policy at 20 N).
+# simulator on the 80 N plant) into experiments/sim2real_friction/results; the oracle at the
+# loop's total budget (450 epochs) at 20 and 80 N, and the swing-up at 20, 40 and 80 N, each
+# reported apart (swing-up job 0: the frictionless simulator's policy at 20 N).
 STUDY_RUN := outputs/study/sim2real_friction
 STUDY_SWINGUP := outputs/study/swingup
+STUDY_ORACLE := outputs/study/oracle_budget
 STUDY_LOOP := $(BIN)/python -m hds.loop env.backend=analytic seeds=5 method=pods_cl_effects
 study: $(STAMP)
 	$(BIN)/python -m hds.run +experiment=sim2real_study hydra.sweep.dir=$(STUDY_RUN)
@@ -60,6 +62,9 @@ study: $(STAMP)
 	$(STUDY_LOOP) real.friction_gap=1 hydra.run.dir=$(STUDY_RUN)/loop/x1
 	$(STUDY_LOOP) real.friction_gap=4 hydra.run.dir=$(STUDY_RUN)/loop/x4
 	$(BIN)/python -m hds.report $(STUDY_RUN) --out experiments/sim2real_friction/results --gif 19
+	$(BIN)/python -m hds.run +experiment=sim2real_study method=oracle algo.epochs=450 \
+		real.friction_gap=1,4 hydra.sweep.dir=$(STUDY_ORACLE)
+	$(BIN)/python -m hds.report $(STUDY_ORACLE) --out experiments/sim2real_friction/results/oracle_450
 	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup hydra.sweep.dir=$(STUDY_SWINGUP)
 	$(BIN)/python -m hds.report $(STUDY_SWINGUP) --out experiments/sim2real_friction/results/swingup --gif 0
 
