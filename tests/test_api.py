@@ -57,8 +57,8 @@ def test_a_sweep_of_two_step_sizes_is_labelled_everywhere(sweep_run, tmp_path):
     proc = cli("hds.report", str(out), "--out", str(tmp_path))
     assert proc.returncode == 0, proc.stderr[-2000:]
     report = (tmp_path / "report.md").read_text()
-    assert "| pods step_size=0.01 | 1.0 | 2 |" in report
-    assert "| pods step_size=0.04 | 1.0 | 2 |" in report
+    assert "| pods step_size=0.01 | coulomb_friction@slider | 2 |" in report
+    assert "| pods step_size=0.04 | coulomb_friction@slider | 2 |" in report
     with open(tmp_path / "report.csv") as f:
         table = list(csv.DictReader(f))
     assert {(r["seed"], r["step_size"]) for r in table} == {
