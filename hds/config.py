@@ -532,8 +532,10 @@ def _check_all(node) -> None:
         node.check()
     if isinstance(node, dict):
         children = node.values()
+    elif isinstance(node, list):
+        children = node
     else:
-        children = node if isinstance(node, list) else getattr(node, "__dict__", {}).values()
+        children = getattr(node, "__dict__", {}).values()
     for child in children:
         if isinstance(child, list | dict) or hasattr(child, "__dataclass_fields__"):
             _check_all(child)

@@ -69,7 +69,7 @@ class Evaluator:
     def real_returns(self, params, plant=None) -> np.ndarray:
         """[n_runs, episodes] on the evaluation's plant(s), or on `plant` (one, or one per run)."""
         n_runs = jax.tree.leaves(params)[0].shape[0]
-        plant = plant or self.plant
+        plant = self.plant if plant is None else plant
         plants = plant if isinstance(plant, list) else [plant] * n_runs
         return np.stack(
             [

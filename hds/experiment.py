@@ -393,21 +393,21 @@ def evaluate_training(cfg: Config, training: Training, plants) -> tuple[list, li
         training.env, training.trainer.policy, plants, cfg.eval_episodes, cfg.eval_seed
     )
     sim = evaluator.sim_returns(training.params, training.effects)
-    own = [{"plant": cfg.real.label(), **r} for r in cfg.runs()]
-    others = [
-        (
-            plant,
-            [{"plant": real.label(), "friction_gap": real.friction_gap, **r} for r in cfg.runs()],
-        )
-        for real, plant in eval_plants(cfg)
-    ]
-    rows = []
-    for plant, runs in [(plants, own), *others]:
+
+    def rows_on(plant, label: dict) -> list[dict]:
+        runs = [{**label, **r} for r in cfg.runs()]
         real = evaluator.real_returns(training.params, plant)
         for line in diverged(training.method, runs, sim, real, training.history.get("return")):
             log.warning(line)
-        rows.append(gap_rows(training.method, runs, sim, real, cfg.env.task.solved_at))
-    return rows[0], [row for more in rows[1:] for row in more]
+        return gap_rows(training.method, runs, sim, real, cfg.env.task.solved_at)
+
+    own = rows_on(plants, {"plant": cfg.real.label()})
+    others = [
+        row
+        for real, plant in eval_plants(cfg)
+        for row in rows_on(plant, {"plant": real.label(), "friction_gap": real.friction_gap})
+    ]
+    return own, others
 
 
 def eval_plants(cfg: Config) -> list[tuple]:

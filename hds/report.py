@@ -52,12 +52,12 @@ def plant_of(summary: dict, job_dir: Path) -> str:
     return name or "-"
 
 
-def collect_rows(root: Path) -> tuple[list[dict], list[tuple]]:
+def collect_rows(root: Path, found_loops: list[tuple] = ()) -> tuple[list[dict], list[tuple]]:
     """Every row of every run summary below root (a sweep's gathered summary is skipped: its
     jobs are read directly), each with its plant and friction gap, also the rows of the
-    further plants a job evaluated its policies on (`eval_plants`); and every (label: method
-    and swept setting, (plant, friction gap), job, history of those runs). Both empty when
-    root holds no run."""
+    further plants a job evaluated its policies on (`eval_plants`) and of the rounds of
+    `found_loops` (`loops`); and every (label: method and swept setting, (plant, friction
+    gap), job, history of those runs). Both empty when root holds no run."""
     rows, runs = [], []
     for path in sorted(root.rglob("summary.json")):
         summary = read_json(path)
@@ -71,7 +71,7 @@ def collect_rows(root: Path) -> tuple[list[dict], list[tuple]]:
         job_rows = [{**own, **r, "job": job} for r in summary["rows"]]  # a swept gap: its own
         rows += job_rows + [{**r, "job": job} for r in summary.get("rows_eval_plants", [])]
         runs.append((job, job_rows, summary["history"]))
-    rows += loop_rows(root)
+    rows += loop_rows(found_loops, root)
     keys = settings_of(rows)
     histories = []
     for job, job_rows, history in runs:
@@ -94,15 +94,23 @@ def shown_column(columns: set) -> tuple:
     return plant, 1.0 if 1.0 in gaps else gaps[-1]
 
 
-def loop_rows(root: Path) -> list[dict]:
-    """The rows of every round of every sim2real loop below root (`python -m hds.loop`'s
-    loop.json: methods loop0, loop1, ...), each with the loop's plant."""
+def loops(root: Path) -> list[tuple]:
+    """(directory, plant config, round reports) of every sim2real loop below root
+    (`python -m hds.loop`'s loop.json)."""
+    return [
+        (path.parent, load_config(path.parent / "config.yaml").real, read_json(path)["rounds"])
+        for path in sorted(root.rglob("loop.json"))
+    ]
+
+
+def loop_rows(found: list[tuple], root: Path) -> list[dict]:
+    """The rows of every round of the `loops` found below root (methods loop0, loop1, ...),
+    each with its loop's plant."""
     rows = []
-    for path in sorted(root.rglob("loop.json")):
-        real = load_config(path.parent / "config.yaml").real
+    for loop_dir, real, rounds in found:
         own = {"plant": real.label(), "friction_gap": real.friction_gap}
-        job = str(path.parent.relative_to(root))
-        for report in read_json(path)["rounds"]:
+        job = str(loop_dir.relative_to(root))
+        for report in rounds:
             rows += [{**own, **r, "job": job} for r in report["rows"]]
     return rows
 
@@ -244,27 +252,27 @@ def discovery_sections(root: Path, out: Path) -> list[str]:
     return sections
 
 
-def loop_sections(root: Path, out: Path) -> list[str]:
-    """A section per sim2real loop below root: each round's named effects, real return and
+def loop_sections(found: list[tuple], root: Path, out: Path) -> list[str]:
+    """A section per loop `found` below root: each round's named effects, real return and
     gap, and its figure (copied into out/plots/ when the report is written elsewhere)."""
     from hds.loop import round_row
 
     sections = []
-    for path in sorted(root.rglob("loop.json")):
-        rel = path.parent.relative_to(root)
+    for loop_dir, real, rounds in found:
+        rel = loop_dir.relative_to(root)
         lines = [
-            f"### Sim2real loop: {rel} ({load_config(path.parent / 'config.yaml').real.label()})",
+            f"### Sim2real loop: {rel} ({real.label()})",
             "",
             "| round | named (95% interval) | real return [95%] | sim2real gap | episodes |",
             "| ---: | --- | ---: | ---: | ---: |",
         ]
-        for report in read_json(path)["rounds"]:
+        for report in rounds:
             r = round_row(report)
             lines.append(
                 f"| {r['round']} | {r['named']} | {number(r['real_return'])} {r['interval']} "
                 f"| {number(r['gap'])} | {r['episodes']} |"
             )
-        figure = path.parent / "plots" / "loop_rounds.png"
+        figure = loop_dir / "plots" / "loop_rounds.png"
         if figure.is_file():
             link = rel / "plots" / figure.name
             if out != root:
@@ -307,7 +315,8 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
     if out is None:  # a discovery directory has a report.md of its own: leave it be
         out = root / "report" if (root / "report.json").is_file() else root
     out = Path(out)
-    rows, histories = collect_rows(root)
+    found_loops = loops(root)
+    rows, histories = collect_rows(root, found_loops)
     if not rows:
         sections = discovery_sections(root, out)
         if not sections:
@@ -377,7 +386,7 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
     if len(columns) > 1:
         text += [f"Learning curves and sim-vs-real bars: {column_names(list(columns))[shown]}.", ""]
     text += [f"![{name}](plots/{name}.png)" for name in figures]
-    text += [""] + loop_sections(root, out) + discovery_sections(root, out)
+    text += [""] + loop_sections(found_loops, root, out) + discovery_sections(root, out)
     path = atomic_write_bytes(out / "report.md", ("\n".join(text) + "\n").encode())
     return path
 
