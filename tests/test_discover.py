@@ -207,6 +207,27 @@ def test_friction_larger_than_the_excitation_is_unidentifiable_and_not_named(pla
     assert any("not identifiable" in w and "coulomb_friction@slider" in w for w in result.warnings)
 
 
+def test_a_cart_friction_holds_still_creeps_and_is_not_taken_for_motion(plants, task, env_cfg):
+    """The pole hanging at rest and 60 N of MuJoCo friction against +-45 N: the cart only
+    creeps (MuJoCo's soft friction constraint), at speeds whose own 99th percentile a
+    relative threshold would take for motion. Creep is slower than a tenth of what one
+    control step of the force gives the free cart, so the friction is not identifiable and
+    the excitation to raise is the actuator's."""
+    rng = np.random.default_rng(3)
+    q0 = np.c_[rng.uniform(-0.5, 0.5, E), np.pi + rng.uniform(-0.3, 0.3, E)]
+    qd0 = rng.uniform(-0.1, 0.1, (E, 2))
+    plant = plants("mujoco", [effect("coulomb_friction", "slider", force=60.0)])
+    u = random_steps(4, E, T, plant.dt, plant.ctrl_range, min_hold=0.1, max_hold=0.5, scale=0.15)
+    data = collect(plant, task, q0, qd0, u)
+    assert np.mean(np.abs(data.obs[..., 2]) > 1e-3) > 0.5  # it creeps most of the time
+    rows = {r.key: r for r in identifiability(data, env_cfg)}
+    row = rows["coulomb_friction@slider"]
+    assert not row.identifiable and "slider moves in only" in row.reason
+    assert row.excitation["amplitude_at_joint"] == pytest.approx(300.0)
+    free = {r.key: r for r in identifiability(record(plants("mujoco"), task), env_cfg)}
+    assert free["coulomb_friction@slider"].identifiable  # a cart that slides is not creep
+
+
 def test_a_free_carts_position_bias_is_structurally_unidentifiable(plants, task, env_cfg):
     rows = {r.key: r for r in identifiability(record(plants("mujoco"), task), env_cfg)}
     assert rows["sensor_bias@q_slider"].structural

@@ -34,6 +34,12 @@ from hds.envs.system import load_spec, one_dof_joints, state_names
 
 MIN_SPAN = 0.05  # share of the actuator's range the control must span to show a gain
 MIN_CHANGES = 0.01  # share of steps in which the control must change to show a lag or delay
+# A joint held by friction still creeps (MuJoCo's soft friction constraint, a real axis's
+# pre-sliding) at speeds proportional to the force, far below what that force gives it free:
+# below this share of the speed one control step of the applied force would give the free
+# joint from rest, it creeps; above, it slides.
+CREEP = 0.1
+JOINT_TRANSMISSIONS = (int(mujoco.mjtTrn.mjTRN_JOINT), int(mujoco.mjtTrn.mjTRN_JOINTINPARENT))
 
 
 @dataclass
@@ -64,17 +70,37 @@ class Identifiability:
         }
 
 
-def moving_share(obs: np.ndarray, noise: np.ndarray, names, joint: str) -> float | None:
+def moving_share(
+    obs: np.ndarray, noise: np.ndarray, names, joint: str, creep: float = 0.0
+) -> float | None:
     """Share of the samples in which `joint` moves: |velocity| above a tenth of its 99th
-    percentile (a stuck joint still creeps, e.g. under MuJoCo's soft friction) and above
-    three times its measurement noise; None without a measured velocity."""
+    percentile, above three times its measurement noise and above `creep` (the speed below
+    which it creeps: `creep_speeds`); None without a measured velocity."""
     name = f"qd_{joint}"
     if name not in names:
         return None
     i = list(names).index(name)
     speed = np.abs(np.asarray(obs)[..., i])
-    threshold = max(0.1 * float(np.percentile(speed, 99)), 3.0 * float(noise[i]), 1e-9)
+    threshold = max(0.1 * float(np.percentile(speed, 99)), 3.0 * float(noise[i]), creep, 1e-9)
     return float(np.mean(speed > threshold))
+
+
+def creep_speeds(model: mujoco.MjModel, actions: np.ndarray, dt: float) -> dict[str, float]:
+    """{joint: speed} for each joint a motor drives: CREEP x the speed one control step (dt) of
+    the motor's force (its 99th percentile in `actions`) gives the joint, free and from rest
+    (the joint's inertia at qpos0, armature included). Without it, a joint friction holds
+    still for a whole recording looks as if it moved: its creep is its own 99th percentile."""
+    speeds = {}
+    for a in range(model.nu):
+        if model.actuator_biastype[a] or model.actuator_trntype[a] not in JOINT_TRANSMISSIONS:
+            continue  # a servo's force is not its control times a gain
+        joint = int(model.actuator_trnid[a, 0])
+        gain = abs(float(model.actuator_gear[a, 0] * model.actuator_gainprm[a, 0]))
+        force = gain * float(np.percentile(np.abs(actions[..., a]), 99))
+        speed = CREEP * force * dt / float(model.dof_M0[model.jnt_dofadr[joint]])
+        name = model.joint(joint).name
+        speeds[name] = max(speeds.get(name, 0.0), speed)
+    return speeds
 
 
 def identifiability(
@@ -105,8 +131,11 @@ class _Facts:
         self.names = list(state_names(model))
         noise = noise_level(obs)
         self.joints = one_dof_joints(model)
-        self.moving = {j: moving_share(obs, noise, self.names, j) for j in self.joints}
         self.actions = np.asarray(dataset.actions, dtype=np.float64)
+        creep = creep_speeds(model, self.actions, dataset.dt)
+        self.moving = {
+            j: moving_share(obs, noise, self.names, j, creep.get(j, 0.0)) for j in self.joints
+        }
         self.obs = obs
         self.targets = {
             JOINT: list(self.joints),
