@@ -49,7 +49,8 @@ sweep: $(STAMP)
 # that depend on the plant, then those trained once), the sim2real loop at 20 and 80 N, then
 # one report of all, its figures and GIF (job 19: closed-loop PODS from the frictionless
 # simulator on the 80 N plant) into experiments/sim2real_friction/results; the oracle at the
-# loop's total budget (450 epochs) at 20 and 80 N, and the swing-up at 20, 40 and 80 N, each
+# loop's total budget (450 epochs) at 20, 80 and 40 N (40 N added last, so finished jobs keep
+# their numbers), and the swing-up at 20, 40 and 80 N, each
 # reported apart (swing-up job 0: the frictionless simulator's policy at 20 N).
 STUDY_RUN := outputs/study/sim2real_friction
 STUDY_SWINGUP := outputs/study/swingup
@@ -63,7 +64,7 @@ study: $(STAMP)
 	$(STUDY_LOOP) real.friction_gap=4 hydra.run.dir=$(STUDY_RUN)/loop/x4
 	$(BIN)/python -m hds.report $(STUDY_RUN) --out experiments/sim2real_friction/results --gif 19
 	$(BIN)/python -m hds.run +experiment=sim2real_study method=oracle algo.epochs=450 \
-		real.friction_gap=1,4 hydra.sweep.dir=$(STUDY_ORACLE)
+		real.friction_gap=1,4,2 hydra.sweep.dir=$(STUDY_ORACLE)
 	$(BIN)/python -m hds.report $(STUDY_ORACLE) --out experiments/sim2real_friction/results/oracle_450
 	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup hydra.sweep.dir=$(STUDY_SWINGUP)
 	$(BIN)/python -m hds.report $(STUDY_SWINGUP) --out experiments/sim2real_friction/results/swingup --gif 0
