@@ -14,7 +14,9 @@ process with no persistent compilation cache; then, each in a fresh process
 (`python -m bench.discovery SPEC OUT`), cold on an empty persistent cache directory and warm, a
 second process on the same directory (hds.utils.runtime.enable_compilation_cache, as
 `python -m hds.discover` enables it). JAX's own compile events (jax.monitoring) split each
-row's time into tracing, lowering, XLA compile (or persistent-cache load) and the rest.
+row's time into tracing, lowering, XLA compile (or persistent-cache load) and the rest; the
+Engine's entry points (fit, errors, predictions) are counted and timed, and the process's CPU
+seconds recorded beside the wall seconds (the machine may be shared).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -96,6 +99,40 @@ class CompileLog:
         jax.monitoring.unregister_event_duration_listener(self._record)
 
 
+ENGINE_CALLS = ("fit", "errors", "predictions")  # discovery's compiled work, by entry point
+
+
+class EngineLog:
+    """Calls and wall seconds of each host-side entry point of discovery's Engine while open.
+    Each returns numpy arrays, so a call's seconds hold its run and, on the first call of a
+    program, its tracing and compile."""
+
+    def __enter__(self):
+        from hds.discover.fit import Engine
+
+        self.calls, self.seconds = defaultdict(int), defaultdict(float)
+        self._originals = {name: getattr(Engine, name) for name in ENGINE_CALLS}
+        for name, method in self._originals.items():
+            setattr(Engine, name, self._timed(name, method))
+        return self
+
+    def _timed(self, name: str, method):
+        def timed_call(*args, **kwargs):
+            start = time.perf_counter()
+            out = method(*args, **kwargs)
+            self.calls[name] += 1
+            self.seconds[name] += time.perf_counter() - start
+            return out
+
+        return timed_call
+
+    def __exit__(self, *exc):
+        from hds.discover.fit import Engine
+
+        for name, method in self._originals.items():
+            setattr(Engine, name, method)
+
+
 def in_process(spec: dict) -> dict:
     """One row in a fresh process (`python -m bench.discovery SPEC OUT`), with the persistent
     compilation cache of spec["cache"]."""
@@ -154,6 +191,35 @@ def run(budget: dict) -> dict:
                         *[r["timing"].get(k) for k in stages],
                         r["report_s"],
                         r["collect_s"] + r["discover_s"] + r["report_s"],
+                    ]
+                    for r in runs
+                ],
+            },
+            {
+                "caption": "discover() + write_report(): CPU seconds (user + sys, all threads of "
+                "the process: the machine is shared, wall seconds are inflated by its load) and "
+                "discovery's compiled work by entry point (calls, wall seconds including the "
+                "first call's tracing and compile; fit: the batched Levenberg-Marquardt fits, "
+                "errors: held-out and identification k-step errors, predictions: compare's "
+                "residuals)",
+                "columns": [
+                    "backend",
+                    "persistent cache",
+                    "wall s",
+                    "CPU s",
+                    *[f"Engine.{k} {u}" for k in ENGINE_CALLS for u in ("calls", "s")],
+                    "outside Engine s",
+                ],
+                "rows": [
+                    [
+                        r["backend"],
+                        r["cache"],
+                        r["discover_s"] + r["report_s"],
+                        r["cpu_s"],
+                        *[r["engine"][k][i] for k in ENGINE_CALLS for i in (0, 1)],
+                        r["discover_s"]
+                        + r["report_s"]
+                        - sum(r["engine"][k][1] for k in ENGINE_CALLS),
                     ]
                     for r in runs
                 ],
@@ -239,13 +305,15 @@ def measure(backend: str, budget: dict) -> dict:
         plant = make_plant(cfg.real, cfg.env)
     with timed() as data_t:
         dataset = record(plant, env.task, budget["episodes"], budget["steps"], budget["seed"])
-    with CompileLog() as jax_log:
+    cpu_start = time.process_time()
+    with CompileLog() as jax_log, EngineLog() as engine_log:
         with timed() as found:
             result = discover(dataset, cfg.env, discover_config(cfg, backend, budget["stride"]))
         if result.backend != backend:  # the row is labelled by the backend the fits ran on
             raise RuntimeError(f"discovery fitted on {result.backend}, not on {backend}")
         with tempfile.TemporaryDirectory(prefix="hds-bench-report-") as out, timed() as written:
             write_report(result, cfg.env, out)
+    cpu_s = time.process_time() - cpu_start
     named = [
         f"{e.name} on {e.target}: "
         + ", ".join(f"{k} {v:.3g} {e.units.get(k, '')}".strip() for k, v in e.params.items())
@@ -260,6 +328,8 @@ def measure(backend: str, budget: dict) -> dict:
         "collect_s": data_t.s,
         "discover_s": found.s,
         "report_s": written.s,
+        "cpu_s": cpu_s,
+        "engine": {k: [engine_log.calls[k], engine_log.seconds[k]] for k in ENGINE_CALLS},
         "timing": dict(result.timing),
         "named": named,
         "stopped": result.stopped,

@@ -26,6 +26,26 @@ def test_discovery_rows_start_without_compiled_engines():
     assert not fit._ENGINES
 
 
+def test_the_engine_log_counts_and_times_each_entry_point_then_restores_it():
+    """bench/discovery.py's EngineLog counts the Engine's host-side calls while open, and leaves
+    the Engine as it found it."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from bench.discovery import ENGINE_CALLS, EngineLog
+
+    originals = {name: getattr(fit.Engine, name) for name in ENGINE_CALLS}
+    engine = SimpleNamespace(predict=lambda theta, delay, data: theta * 2)
+    with EngineLog() as log:
+        for _ in range(3):
+            out = fit.Engine.predictions(engine, np.ones(2), np.zeros(1), None)
+    np.testing.assert_array_equal(out, [2.0, 2.0])
+    assert (log.calls["predictions"], log.calls["fit"]) == (3, 0)
+    assert log.seconds["predictions"] > 0
+    assert {name: getattr(fit.Engine, name) for name in ENGINE_CALLS} == originals
+
+
 def test_gpu_results_go_beside_the_cpu_ones(tmp_path, monkeypatch):
     """A GPU's benchmark run writes its own files: the committed CPU results stay as they are."""
     import bench.common as common
