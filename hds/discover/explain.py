@@ -56,6 +56,9 @@ class Selection:
     dropped: list[Candidate] = field(default_factory=list)  # proxies replaced by a later effect
     # a candidate refused as law mismatch: the state it would have made (its last effect)
     mismatch: list[State] = field(default_factory=list)
+    # a candidate the data cannot identify that explains more than any they can: selection
+    # stopped before naming a compensation for it
+    unidentified: str = ""
 
     @property
     def final(self) -> State:
@@ -113,8 +116,8 @@ def forward_selection(
         misfit=fit.misfit(base_error**2),
     )
     states, rounds, dropped, mismatch = [state], [], [], []
-    stopped = f"reached discover.max_effects = {cfg.max_effects}"
-    banned = set(banned)
+    stopped, unidentified = f"reached discover.max_effects = {cfg.max_effects}", ""
+    unidentifiable, banned = set(banned), set(banned)
     if not any(c.key not in banned for c in model.candidates):
         return Selection(states, rounds, "the library has no candidate the data can identify")
     # each round adds one effect, and may drop one: at most twice max_effects rounds
@@ -170,6 +173,15 @@ def forward_selection(
                 f"{max(drop, 0.0):.3g} (normalized RMSE), less than the margin {needed:.3g}"
             )
             break
+        unidentified = _unidentifiable_explains_more(model, unidentifiable, held, best)
+        if unidentified:
+            stopped = (
+                f"the best remaining candidate, {unidentified}, is one the data cannot "
+                f"identify (see identifiability): {label}, the best the data can identify, "
+                f"would only compensate for it, so it is not named; record data that "
+                f"identify {unidentified}"
+            )
+            break
         grown = fit.state(state.selected + [model.candidates[best]], batch, best)
         # what is left once the best candidate is no effect is the named laws' mismatch,
         # which further candidates would only compensate
@@ -185,7 +197,21 @@ def forward_selection(
             banned.add(gone.key)
             state = states[-1]
     states = _refuse_law_mismatch(fit, states, mismatch)
-    return Selection(states, rounds, stopped, dropped, mismatch)
+    return Selection(states, rounds, stopped, dropped, mismatch, unidentified)
+
+
+def _unidentifiable_explains_more(model, keys: set[str], held, best: int) -> str:
+    """The label of a candidate the data cannot identify (`keys`) whose fit predicts the
+    held-out episodes better than the best identifiable one (`best`), or ''. Its value is
+    not determined (a cart friction holds still fits at any force above the excitation's),
+    but that it explains more of the residual is: an identifiable effect elsewhere (a damped
+    pole for a stuck cart) would only compensate for it."""
+    rows = [
+        i
+        for i, c in enumerate(model.candidates)
+        if c.key in keys and np.isfinite(held[i]) and held[i] < held[best]
+    ]
+    return model.candidates[min(rows, key=lambda i: held[i])].label if rows else ""
 
 
 def _within_mismatch(model, state: State, cand: Candidate, min_scale_change: float) -> bool:
