@@ -97,7 +97,7 @@ def forward_selection(
     """Select effects; `ident` and `heldout` are `Data.arrays(...)` of the two episode sets;
     `estimate`: fit each window's initial state too (noisy data); `floor`: the held-out
     normalized RMSE measurement noise alone leaves; `banned`: keys of candidates the data
-    cannot identify (never fitted)."""
+    cannot identify (fitted, never selected)."""
     model = engine.model
     sw = _slot_width(model)
     sizes = sorted(
