@@ -190,7 +190,9 @@ def test_friction_larger_than_the_excitation_is_unidentifiable_and_not_named(pla
     """Coulomb friction above every force of the excitation (+-45 N) holds the cart still:
     any friction law fits that. Before fitting, identifiability says so, with the excitation
     that would identify it (the actuator's whole range, +-300 N); discovery names nothing on
-    the cart and says why."""
+    the cart and says why. Nor does it name what would only compensate elsewhere (a damped
+    pole, 50 N m s/rad, for the stuck cart): a friction on the slider, though its value is
+    not identified, explains more than anything the data can identify."""
     stuck = effect("coulomb_friction", "slider", force=100.0)
     data = record(plants("mujoco", [stuck]), task)
     rows = {r.key: r for r in identifiability(data, env_cfg)}
@@ -203,8 +205,9 @@ def test_friction_larger_than_the_excitation_is_unidentifiable_and_not_named(pla
     assert not rows["actuator_gain@slide"].identifiable  # its joint never moves either
     assert rows["viscous_damping@hinge"].identifiable  # the pole still swings
     result = discover(data, env_cfg, CFG)
-    assert not any(target in ("slider", "slide", "cart") for _, target in named(result))
+    assert named(result) == [] and result.tentative == []
     assert any("not identifiable" in w and "coulomb_friction@slider" in w for w in result.warnings)
+    assert any("would only compensate" in w for w in result.warnings), result.warnings
 
 
 def test_a_cart_friction_holds_still_creeps_and_is_not_taken_for_motion(plants, task, env_cfg):
@@ -290,6 +293,55 @@ def test_mujocos_own_filter_is_named_a_lag_and_nothing_else(filter_cfg, task, en
     assert named(result) == [("actuator_lag", "slide")]
     assert_intervals_hold(result, [effect("actuator_lag", "slide", time_constant=0.08)])
     assert result.missing_effects[0].explained_fraction > 0.95
+
+
+def test_a_lag_standing_in_for_mujocos_soft_friction_is_law_mismatch(plants, task, env_cfg):
+    """20 N of MuJoCo's frictionloss (a soft constraint, not the library's law) and no lag:
+    a 0.013 s actuator lag lowers the held-out error beside the fitted friction by more than
+    the margin, but by less than the friction still fails to fit after it. It is reported as
+    law mismatch, not named (a real lag, the library's or MuJoCo's filter, is named above)."""
+    hidden = effect("coulomb_friction", "slider", force=20.0)
+    result = discover(record(plants("mujoco", [hidden]), task), env_cfg, CFG)
+    assert named(result) == [("coulomb_friction", "slider")]
+    assert [(e.name, e.target) for e in result.law_mismatch] == [("actuator_lag", "slide")]
+    assert_recovered(result, [hidden], rtol=0.05)
+    assert any("actuator_lag@slide" in w and "law mismatch" in w for w in result.warnings)
+
+
+def test_an_effect_selected_first_is_refused_when_it_only_compensates_the_next():
+    """The 80 N loop's data (C MuJoCo friction only): a 20x heavier cart wins the first round
+    (the friction's fit stalls from its start), the friction the second, and the cart, refitted
+    to 1.28, still lowers the held-out error beside it by more than the drop margin. Judged by
+    what it adds beside the friction (the misfit rises from 1389 to 2113 without it, by less
+    than the 1389 left), not by its first-round share, it is law mismatch, and the friction,
+    refitted alone, is named. Effects that each earn more than the misfit left all stay."""
+    from hds.discover.explain import State, _refuse_law_mismatch
+    from hds.discover.model import Candidate
+
+    mass = Candidate("mass_scale", "cart", (0,), ("scale",))
+    friction = Candidate("coulomb_friction", "slider", (1,), ("force",))
+
+    def state(selected, misfit):
+        return State(selected, np.array([1.0, 0.0]), np.zeros(1, np.int32), 0.1, 0.1, misfit=misfit)
+
+    class Refits:  # the others refitted: the misfit each set of effects leaves
+        def __init__(self, misfits):
+            self.misfits = misfits
+
+        def sets(self, _, sets):
+            return [state(s, self.misfits[tuple(c.key for c in s)]) for s in sets]
+
+    base = state([], 903558.0)
+    chain = [base, state([mass], 17047.0), state([mass, friction], 1389.0)]
+    refused = []
+    fit = Refits({("coulomb_friction@slider",): 2113.0, ("mass_scale@cart",): 17047.0})
+    kept = _refuse_law_mismatch(fit, chain, refused)
+    assert [s.keys for s in kept] == [set(), {"coulomb_friction@slider"}]
+    assert kept[-1].misfit == 2113.0
+    assert [s.selected[-1].key for s in refused] == ["mass_scale@cart"]
+    # a cart 1.28 heavy that the data need: without it the misfit would more than double
+    fit = Refits({("coulomb_friction@slider",): 3000.0, ("mass_scale@cart",): 17047.0})
+    assert _refuse_law_mismatch(fit, chain, []) == chain
 
 
 @pytest.mark.parametrize("kind", KINDS)

@@ -8,11 +8,13 @@ own). The candidate whose fitted model predicts the HELD-OUT episodes best is ad
 lowers their error by a meaningful margin (`stop_margin`, relative, and `min_improvement`,
 absolute); otherwise selection stops. A spurious effect fitted to noise lowers the
 identification error a little but not the held-out one, so with nothing missing nothing is
-named.
+named. Once selection ends, an effect that removes less of the identification misfit than
+the final model still leaves is law mismatch, not named (`_refuse_law_mismatch`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -54,6 +56,9 @@ class Selection:
     dropped: list[Candidate] = field(default_factory=list)  # proxies replaced by a later effect
     # a candidate refused as law mismatch: the state it would have made (its last effect)
     mismatch: list[State] = field(default_factory=list)
+    # a candidate the data cannot identify that explains more than any they can: selection
+    # stopped before naming a compensation for it
+    unidentified: str = ""
 
     @property
     def final(self) -> State:
@@ -92,7 +97,7 @@ def forward_selection(
     """Select effects; `ident` and `heldout` are `Data.arrays(...)` of the two episode sets;
     `estimate`: fit each window's initial state too (noisy data); `floor`: the held-out
     normalized RMSE measurement noise alone leaves; `banned`: keys of candidates the data
-    cannot identify (never fitted)."""
+    cannot identify (fitted, never selected)."""
     model = engine.model
     sw = _slot_width(model)
     sizes = sorted(
@@ -100,19 +105,21 @@ def forward_selection(
     )
     n_act = len(model.sim.action_names)
     base_theta, base_delay = model.nominal.copy(), np.zeros(n_act, np.int32)
+    fit = _Fitter(engine, ident, heldout, cfg, estimate, sizes, sw, floor)
+    base_error = float(engine.errors(base_theta[None], base_delay[None], ident)[0])
     state = State(
         [],
         base_theta,
         base_delay,
         float(engine.errors(base_theta[None], base_delay[None], heldout)[0]),
-        float(engine.errors(base_theta[None], base_delay[None], ident)[0]),
+        base_error,
+        misfit=fit.misfit(base_error**2),
     )
     states, rounds, dropped, mismatch = [state], [], [], []
-    stopped = f"reached discover.max_effects = {cfg.max_effects}"
-    banned = set(banned)
+    stopped, unidentified = f"reached discover.max_effects = {cfg.max_effects}", ""
+    unidentifiable, banned = set(banned), set(banned)
     if not any(c.key not in banned for c in model.candidates):
         return Selection(states, rounds, "the library has no candidate the data can identify")
-    fit = _Fitter(engine, ident, heldout, cfg, estimate, sizes, sw, floor)
     # each round adds one effect, and may drop one: at most twice max_effects rounds
     for round_index in range(1, 2 * cfg.max_effects + 1):
         if len(state.selected) >= cfg.max_effects:
@@ -166,6 +173,15 @@ def forward_selection(
                 f"{max(drop, 0.0):.3g} (normalized RMSE), less than the margin {needed:.3g}"
             )
             break
+        unidentified = _unidentifiable_explains_more(model, unidentifiable, held, best)
+        if unidentified:
+            stopped = (
+                f"the best remaining candidate, {unidentified}, is one the data cannot "
+                f"identify (see identifiability): {label}, the best the data can identify, "
+                f"would only compensate for it, so it is not named; record data that "
+                f"identify {unidentified}"
+            )
+            break
         grown = fit.state(state.selected + [model.candidates[best]], batch, best)
         # what is left once the best candidate is no effect is the named laws' mismatch,
         # which further candidates would only compensate
@@ -180,7 +196,22 @@ def forward_selection(
             dropped.append(gone)
             banned.add(gone.key)
             state = states[-1]
-    return Selection(states, rounds, stopped, dropped, mismatch)
+    states = _refuse_law_mismatch(fit, states, mismatch)
+    return Selection(states, rounds, stopped, dropped, mismatch, unidentified)
+
+
+def _unidentifiable_explains_more(model, keys: set[str], held, best: int) -> str:
+    """The label of a candidate the data cannot identify (`keys`) whose fit predicts the
+    held-out episodes better than the best identifiable one (`best`), or ''. Its value is
+    not determined (a cart friction holds still fits at any force above the excitation's),
+    but that it explains more of the residual is: an identifiable effect elsewhere (a damped
+    pole for a stuck cart) would only compensate for it."""
+    rows = [
+        i
+        for i, c in enumerate(model.candidates)
+        if c.key in keys and np.isfinite(held[i]) and held[i] < held[best]
+    ]
+    return model.candidates[min(rows, key=lambda i: held[i])].label if rows else ""
 
 
 def _within_mismatch(model, state: State, cand: Candidate, min_scale_change: float) -> bool:
@@ -219,10 +250,40 @@ def _drop_proxies(fit, states: list[State], cfg):
     rise = reduced[j].heldout_error - state.heldout_error
     if rise >= max(cfg.stop_margin * reduced[j].heldout_error, cfg.min_improvement):
         return states, None
-    # the chain after the dropped effect: prefixes of the remaining order, refitted
-    kept = sets[j]
+    return _chain_without(fit, states, j, reduced[j]), state.selected[j]
+
+
+def _chain_without(fit, states: list[State], j: int, reduced: State) -> list[State]:
+    """The chain of states with the j-th selected effect taken out: the states before it,
+    then the prefixes of the remaining order refitted, then `reduced` (all but it)."""
+    kept = reduced.selected
     prefixes = [kept[:n] for n in range(j + 1, len(kept))]
-    return states[: j + 1] + fit.sets(state, prefixes) + [reduced[j]], state.selected[j]
+    before = states[: min(j, len(kept) - 1) + 1]  # the last effect out: reduced is its prefix
+    return before + fit.sets(states[-1], prefixes) + [reduced]
+
+
+def _refuse_law_mismatch(fit, states: list[State], refused: list[State]) -> list[State]:
+    """Once selection has ended, what the final model still fails to fit above the
+    measurement noise (its `misfit`) is the named laws' mismatch with the plant's (or
+    structure outside the library). An effect that earns less than that, i.e. dropping it
+    alone (the others refitted) raises the misfit by less than the misfit itself, is a
+    compensation for that mismatch, not a finding: a lag standing in for MuJoCo's soft
+    friction, a heavier cart for its stiction. Judged by what each effect adds beside all the
+    others, not by its order of selection (an effect chosen first takes the largest share,
+    even one that only compensates the one chosen next). The weakest is taken out, the rest
+    refitted, until every effect earns more; each refused state (its effect last) is
+    appended to `refused`. Returns the rebuilt chain."""
+    while states[-1].selected:
+        state = states[-1]
+        sets = [[c for c in state.selected if c is not out] for out in state.selected]
+        reduced = fit.sets(state, sets) if len(sets) > 1 else [states[0]]
+        rises = [r.misfit - state.misfit for r in reduced]
+        j = int(np.argmin(rises))
+        if rises[j] >= state.misfit:
+            break
+        refused.append(dataclasses.replace(state, selected=sets[j] + [state.selected[j]]))
+        states = _chain_without(fit, states, j, reduced[j])
+    return states
 
 
 class Batch(NamedTuple):
@@ -256,6 +317,10 @@ class _Fitter:
         # (n_obs unknowns per window of k * n_obs residuals) absorb 1/k of it
         self.noise_mse = floor**2 * ((1.0 - 1.0 / engine.horizon) if estimate else 1.0)
 
+    def misfit(self, mse: float) -> float:
+        """The identification sum of squared normalized residuals above the noise."""
+        return max(mse - self.noise_mse, 0.0) * self.count
+
     def width(self, n_slots: int) -> int:
         return next(w for w in self.sizes if w >= n_slots)
 
@@ -275,7 +340,6 @@ class _Fitter:
     def state(self, selected, batch: Batch, i: int) -> State:
         slots = [int(s) for s in batch.slots[i] if s >= 0]
         m = len(slots)
-        misfit = max(float(batch.loss[i]) - self.noise_mse, 0.0) * self.count
         return State(
             list(selected),
             np.asarray(batch.theta[i]),
@@ -285,7 +349,7 @@ class _Fitter:
             batch.h[i][:m, :m],
             batch.g[i][:, :m],
             slots,
-            misfit,
+            self.misfit(float(batch.loss[i])),
             (batch.view_h[i][:, :m, :m], batch.view_g[i][:, :, :m]),
         )
 

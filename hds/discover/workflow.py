@@ -446,6 +446,12 @@ def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
                 "separate them, and the later one is not named; record data that excite "
                 "them differently"
             )
+    if result.selection.unidentified:
+        out.append(
+            f"{result.selection.unidentified} explains more of the gap than any effect the "
+            "data can identify, but these data cannot identify it: nothing that would only "
+            "compensate for it is named; record data that identify it"
+        )
     by_reason: dict[str, list[str]] = {}
     for r in result.identifiability:
         if not (r.identifiable or r.structural):
