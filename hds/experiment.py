@@ -341,7 +341,7 @@ def train(
             log.info("resuming %s from epoch %d", method, int(state.epoch[0]))
         if logger:
             logger.start(int(state.epoch[0]))
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         while int(state.epoch[0]) < cfg.algo.epochs:
             t0 = time.perf_counter()
             epoch0 = int(state.epoch[0])
@@ -358,6 +358,9 @@ def train(
             if hooks.policy_params_fn:
                 hooks.policy_params_fn(int(state.epoch[0]), state.policy)
         timing["train_s"] = time.perf_counter() - start
+        # CPU seconds of the whole process (all its threads): on a shared machine the wall
+        # clock measures the neighbours too
+        timing["train_cpu_s"] = time.process_time() - cpu_start
     finally:
         ckpt.close()
     return Training(method, state.policy, history, timing, trainer, env, effects)

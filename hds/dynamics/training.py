@@ -34,6 +34,7 @@ from hds.dynamics.model import (
     wrap_angles,
     zero_residual,
 )
+from hds.utils.shuffle import permutation
 
 log = logging.getLogger(__name__)
 
@@ -130,7 +131,7 @@ def train_members(
 
         def body(c):
             key, k = jax.random.split(c["key"])
-            perm = jax.random.permutation(k, n)[: n_batches * batch].reshape(n_batches, batch)
+            perm = permutation(k, n)[: n_batches * batch].reshape(n_batches, batch)
             (p, o), losses = jax.lax.scan(sgd, (c["params"], c["opt"]), perm)
             val = loss_fn(p, x_val, y_val)
             val = jnp.where(jnp.isfinite(val), val, jnp.inf)
