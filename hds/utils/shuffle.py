@@ -40,7 +40,7 @@ def stable_argsort(keys: jax.Array) -> jax.Array:
 def permutation(key: jax.Array, n: int) -> jax.Array:
     """`jax.random.permutation(key, n)`: its rounds of sorts by fresh random keys (enough
     rounds that all n elements' keys are distinct in one of them, with high probability),
-    each key drawn as jax draws it (tests/test_shuffle.py checks that the two agree)."""
+    each key drawn as jax draws it (tests/test_regress.py checks that the two agree)."""
     order = jnp.arange(n)
     rounds = int(np.ceil(3 * np.log(max(1, n)) / np.log(np.iinfo(np.uint32).max)))
     for _ in range(rounds):
