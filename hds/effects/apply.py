@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import jax
 import jax.numpy as jnp
 
-from hds.effects.base import COMMAND, OBSERVE, SUBSTEP, SYSTEM
+from hds.effects.base import COMMAND, JOINT, OBSERVE, SUBSTEP, SYSTEM
 from hds.effects.library import check_params, effect_type
 
 EffectParams = tuple  # one {param: array} dict per placed effect, aligned with EffectSet.sites
@@ -44,6 +44,9 @@ class Site:
     target: str
     index: int  # dof for joints, actuator, brax link (body id - 1), observation index
     discrete: tuple[tuple[str, int], ...] = ()  # static: they set shapes (a delay's buffer)
+    # a joint's inverse inertia at the model's reference pose (MuJoCo's dof_invweight0): the
+    # speed one unit of impulse on its dof gives it; 0 where unknown or not a joint
+    mobility: float = 0.0
 
     def static(self, param: str) -> int:
         return dict(self.discrete)[param]
@@ -138,10 +141,11 @@ def check(specs, names: dict[str, dict[str, int]]) -> list[tuple[EffectSpec, dic
 
 
 def place(
-    specs, names: dict[str, dict[str, int]], friction_gap: float = 1.0
+    specs, names: dict[str, dict[str, int]], friction_gap: float = 1.0, dof_mobility=None
 ) -> tuple[EffectSet, EffectParams]:
     """Resolve effect specs against a model's names (checked by `check`); `friction_gap`
-    scales the friction effects' magnitudes."""
+    scales the friction effects' magnitudes; `dof_mobility`: each dof's inverse inertia
+    (`Site.mobility`), if known."""
     sites, params = [], []
     for spec, values in check(specs, names):
         effect = effect_type(spec.name)
@@ -149,6 +153,9 @@ def place(
             values[effect.friction] *= friction_gap
         index = names[effect.target_kind][spec.target]
         discrete = tuple((p.name, int(values.pop(p.name))) for p in effect.params if p.discrete)
-        sites.append(Site(spec.name, spec.target, index, discrete))
+        mobility = 0.0
+        if effect.target_kind == JOINT and dof_mobility is not None:
+            mobility = float(dof_mobility[index])
+        sites.append(Site(spec.name, spec.target, index, discrete, mobility))
         params.append({k: jnp.asarray(v, jnp.float32) for k, v in values.items()})
     return EffectSet(tuple(sites)), tuple(params)

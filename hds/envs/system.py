@@ -173,7 +173,7 @@ def make_simulator(
     spec = load_spec(xml, timestep)
     model = spec.compile()
     targets = target_names(model)
-    effect_set, params = place(effects, targets, friction_gap)
+    effect_set, params = place(effects, targets, friction_gap, model.dof_invweight0)
 
     for joint in targets["joint"]:  # effect forces enter as unlimited motors, on every backend
         spec.add_actuator(
