@@ -124,6 +124,7 @@ def bench_sections(tmp_path, *argv) -> dict:
     return sections
 
 
+@pytest.mark.slow  # make test-slow: keeps make test under 10 min cold
 def test_bench_run_writes_its_sections_where_told(tmp_path):
     """`python -m bench.run compile --out DIR` end to end on a small budget: each point a worker
     process, the results in DIR (the committed ones untouched), the warm process compiling from

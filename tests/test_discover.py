@@ -539,6 +539,7 @@ def test_intervals_hold_mujocos_soft_friction_through_its_law_mismatch(plants, t
 EMPS = SHARED / "data" / "emps"
 
 
+@pytest.mark.slow  # make test-slow: keeps make test under 10 min cold
 @pytest.mark.skipif(not (EMPS / "DATA_EMPS.mat").is_file(), reason="no ../shared/data/emps")
 def test_emps_names_coulomb_viscous_and_offset_within_ten_percent():
     from hydra import compose, initialize_config_dir
@@ -693,6 +694,7 @@ def test_write_report_from_the_api(plants, task, env_cfg, tmp_path):
     assert (tmp_path / "corrected.xml").read_text().startswith("<!-- Corrected by hds.discover")
 
 
+@pytest.mark.slow  # make test-slow: keeps make test under 10 min cold
 def test_retrain_shrinks_the_policys_sim2real_gap(plants, task, env_cfg, tmp_path):
     """retrain=true: PODS on the original and on the corrected simulator (a tiny budget),
     both evaluated on the plant that produced the data. The correction closes the gap."""

@@ -311,6 +311,7 @@ def test_residual_step_has_a_finite_jacobian(setup, fitted):
     assert np.all(np.isfinite(jac)) and np.all(np.abs(jac).max(0) > 0)
 
 
+@pytest.mark.slow  # make test-slow: keeps make test under 10 min cold
 def test_a_vmapped_beta_sweep_gives_the_numbers_of_separate_runs(setup, fitted, tmp_path):
     """sweep.beta trains every share of model rollouts in one program (the widest split, each
     run using its own share): the numbers of one run per beta, beta = 0 being plain PODS."""
@@ -331,6 +332,7 @@ def test_a_vmapped_beta_sweep_gives_the_numbers_of_separate_runs(setup, fitted, 
     assert not np.allclose(first[1], first[2])  # the share matters
 
 
+@pytest.mark.slow  # make test-slow: keeps make test under 10 min cold
 def test_the_model_share_grows_in_with_the_effect_ramp(setup, fitted, tmp_path):
     """anneal.effect_ramp=[0.5, 0.75] of 4 epochs: no rollout through the model in epochs 0
     and 1 (the run without a model, to the bit), then dynamics.beta of them."""

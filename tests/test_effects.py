@@ -125,6 +125,7 @@ def test_the_mujoco_plant_applies_it_and_agrees_with_the_simulator(cfg):
     assert np.all(toy[:, -1, 0] - plant_trajectory(MujocoPlant(cfg.env))[:, -1, 0] > 0.01)
 
 
+@pytest.mark.slow  # make test-slow: keeps make test under 10 min cold
 def test_pods_trains_with_it_and_the_policy_holds_on_the_plant():
     """Trained on the analytic simulator carrying the toy effect, evaluated on the C MuJoCo
     plant carrying it too (and nothing else): the policy improves on both."""

@@ -71,7 +71,13 @@ def wandb_groups(run_dir: Path) -> list[str]:
     "swept, setting, metric, base",
     [
         ("step_size", "algo.step_size", "step_size", ()),
-        ("noise_decay", "noise.decay", "noise", ("noise=exponential", "noise.scale=0.3")),
+        pytest.param(
+            "noise_decay",
+            "noise.decay",
+            "noise",
+            ("noise=exponential", "noise.scale=0.3"),
+            marks=pytest.mark.slow,  # make test-slow: step_size covers the vmapped path
+        ),
     ],
 )
 def test_a_vmapped_sweep_gives_the_numbers_of_separate_runs(tmp_path, swept, setting, metric, base):
@@ -142,6 +148,7 @@ def test_runs_map_as_vmap_runs_says(setting, vmapped):
         np.testing.assert_allclose(out[1][i], alone[1], rtol=1e-6)
 
 
+@pytest.mark.slow  # make test-slow: keeps make test under 10 min cold
 def test_the_batch_is_sharded_across_two_host_devices(tmp_path):
     code = (
         "import jax, json, sys; from tests.conftest import make_config, trained;"

@@ -55,6 +55,7 @@ def test_pods_improves_the_return(setup):
     assert int(np.sum(metrics["skipped"])) == 0
 
 
+@pytest.mark.slow  # make test-slow: keeps make test under 10 min cold
 def test_more_improvement_steps_reach_better_targets(setup):
     """algo.improve_steps: further line-searched steps from the improved actions. The first
     epoch starts from the same rollouts, and the line search accepts only improvements, so
