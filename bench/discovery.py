@@ -270,8 +270,8 @@ def run(budget: dict) -> dict:
             "in-memory caches are emptied before each row; the in-process rows share one "
             "process, so only its start-up (imports, JAX's initialisation) falls on the first. "
             "A warm row still traces and lowers (Python work); only XLA's compile comes from "
-            "the persistent cache, and only for programs that took over 0.5 s to compile "
-            "(jax_persistent_cache_min_compile_time_secs)."
+            "the persistent cache (every program: hds.utils.runtime sets "
+            "jax_persistent_cache_min_compile_time_secs to 0)."
         ],
         "data": runs,
     }
