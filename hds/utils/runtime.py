@@ -11,6 +11,12 @@ DEFAULT_CACHE = Path(os.environ.get("HDS_JAX_CACHE", Path.home() / ".cache" / "h
 
 
 def enable_compilation_cache(path: str | Path | None = None) -> Path:
+    """Turn on JAX's persistent compilation cache at `path` (default: $HDS_JAX_CACHE or
+    ~/.cache/hds/jax). Without a path, a cache this process already set up is kept as it is
+    (its settings included)."""
+    configured = jax.config.jax_compilation_cache_dir
+    if path is None and configured:
+        return Path(configured)
     path = Path(path or DEFAULT_CACHE).expanduser()
     path.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(path))
