@@ -534,6 +534,23 @@ def test_intervals_hold_mujocos_soft_friction_through_its_law_mismatch(plants, t
     assert hi - lo < 0.15 * 12.0
 
 
+def test_an_exact_fit_has_a_zero_width_interval_and_no_data_an_infinite_one():
+    """Noise-free data and the plant's own law leave a residual of exactly zero, so no episode
+    pulls on the fit: the data determine it exactly (it was taken for "no data", an infinite
+    interval, and a true effect refused as law mismatch). Without curvature, or with one
+    episode, nothing is determined."""
+    h = np.array([[4.0, 1.0], [1.0, 3.0]])
+    theta = np.array([0.1, 1.5])
+    exact = confidence_intervals(theta, h, np.zeros((6, 2)))
+    assert np.array_equal(exact.half, [0.0, 0.0])
+    assert np.all(np.isinf(confidence_intervals(theta, np.zeros((2, 2)), np.zeros((6, 2))).half))
+    one = np.zeros((6, 2))
+    one[2] = [0.3, -0.1]
+    assert np.all(np.isinf(confidence_intervals(theta, h, one).half))
+    noisy = confidence_intervals(theta, h, np.random.default_rng(0).normal(size=(6, 2)))
+    assert np.all((noisy.half > 0) & np.isfinite(noisy.half))
+
+
 # Real data: EMPS ------------------------------------------------------------------------------
 
 EMPS = SHARED / "data" / "emps"

@@ -297,11 +297,14 @@ def confidence_intervals(
     participated = np.any(g != 0, axis=1)  # the episodes that took part
     g = g[participated]
     n, m = len(g), len(theta)
-    inf = np.full(m, np.inf)
-    if n < 2 or m == 0:
-        return Intervals(inf, inf, inf, np.full((m, m), np.nan))
     inv, weak = _inverse(h)
-    cov = inv @ (g.T @ g * n / (n - 1)) @ inv
+    # no episode pulls on a fit the data determine: its residual is exactly zero (noise-free
+    # data, an exact law), and so is the noise part of its intervals
+    exact = n == 0 and not weak.all()
+    inf = np.full(m, np.inf)
+    if (n < 2 and not exact) or m == 0:
+        return Intervals(inf, inf, inf, np.full((m, m), np.nan))
+    cov = inv @ (g.T @ g * n / max(n - 1, 1)) @ inv
     se = np.sqrt(np.maximum(np.diag(cov), 0.0))
     bias = np.sqrt(max(misfit, 0.0) * np.maximum(np.diag(inv), 0.0))
     if views is not None:
@@ -310,7 +313,8 @@ def confidence_intervals(
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(se, se)
     corr[weak, :] = corr[:, weak] = np.nan
-    return Intervals(stats.t.ppf(0.5 + level / 2, n - 1) * se + bias, se, bias, corr)
+    t = stats.t.ppf(0.5 + level / 2, n - 1) if n > 1 else 0.0
+    return Intervals(t * se + bias, se, bias, corr)
 
 
 def _inverse(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
