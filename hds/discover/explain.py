@@ -54,8 +54,9 @@ class Selection:
     rounds: list[list[dict]]  # every candidate's fit, per round
     stopped: str  # why selection ended
     dropped: list[Candidate] = field(default_factory=list)  # proxies replaced by a later effect
-    # a candidate refused as law mismatch: the state it would have made (its last effect)
-    mismatch: list[State] = field(default_factory=list)
+    # each candidate refused as law mismatch: the state it would have made (its effect last)
+    # and the state without it
+    mismatch: list[tuple[State, State]] = field(default_factory=list)
     # a candidate the data cannot identify that explains more than any they can: selection
     # stopped before naming a compensation for it
     unidentified: str = ""
@@ -186,7 +187,7 @@ def forward_selection(
         # what is left once the best candidate is no effect is the named laws' mismatch,
         # which further candidates would only compensate
         if _within_mismatch(model, grown, model.candidates[best], cfg.min_scale_change):
-            mismatch.append(grown)
+            mismatch.append((grown, state))
             stopped = f"the best remaining candidate, {label}, is law mismatch, not an effect"
             break
         state = grown
@@ -262,7 +263,9 @@ def _chain_without(fit, states: list[State], j: int, reduced: State) -> list[Sta
     return before + fit.sets(states[-1], prefixes) + [reduced]
 
 
-def _refuse_law_mismatch(fit, states: list[State], refused: list[State]) -> list[State]:
+def _refuse_law_mismatch(
+    fit, states: list[State], refused: list[tuple[State, State]]
+) -> list[State]:
     """Once selection has ended, what the final model still fails to fit above the
     measurement noise (its `misfit`) is the named laws' mismatch with the plant's (or
     structure outside the library). An effect that earns less than that, i.e. dropping it
@@ -272,7 +275,7 @@ def _refuse_law_mismatch(fit, states: list[State], refused: list[State]) -> list
     others, not by its order of selection (an effect chosen first takes the largest share,
     even one that only compensates the one chosen next). The weakest is taken out, the rest
     refitted, until every effect earns more; each refused state (its effect last) is
-    appended to `refused`. Returns the rebuilt chain."""
+    appended to `refused` with the state without it. Returns the rebuilt chain."""
     while states[-1].selected:
         state = states[-1]
         sets = [[c for c in state.selected if c is not out] for out in state.selected]
@@ -281,7 +284,9 @@ def _refuse_law_mismatch(fit, states: list[State], refused: list[State]) -> list
         j = int(np.argmin(rises))
         if rises[j] >= state.misfit:
             break
-        refused.append(dataclasses.replace(state, selected=sets[j] + [state.selected[j]]))
+        refused.append(
+            (dataclasses.replace(state, selected=sets[j] + [state.selected[j]]), reduced[j])
+        )
         states = _chain_without(fit, states, j, reduced[j])
     return states
 

@@ -264,7 +264,10 @@ def discover(
         [_effect_dict(e) for e in model.env_effects],
         timing,
     )
-    refused = [name_effects(model, [m], [0.0] * len(m.selected))[-1] for m in selection.mismatch]
+    refused = [
+        name_effects(model, [m], [0.0] * (len(m.selected) - 1) + [share])[-1]
+        for m, share in refused_shares(selection)
+    ]
     result.tentative, result.law_mismatch = tentative, law_mismatch + refused
     result.identifiability = checks
     if unexplained > cfg.unexplained_warning:  # the library leaves much: look beyond it
@@ -349,6 +352,16 @@ def explained_shares(selection: Selection) -> list[float]:
     if base <= 0:
         return [0.0] * (len(mse) - 1) + [0.0]
     return [(mse[i] - mse[i + 1]) / base for i in range(len(mse) - 1)] + [mse[-1] / base]
+
+
+def refused_shares(selection: Selection) -> list[tuple[State, float]]:
+    """Each state refused as law mismatch with its effect's share of the base model's
+    held-out k-step MSE: what it removed beside the others (none if it removed nothing)."""
+    base = selection.states[0].heldout_error ** 2
+    return [
+        (m, max(without.heldout_error**2 - m.heldout_error**2, 0.0) / base if base > 0 else 0.0)
+        for m, without in selection.mismatch
+    ]
 
 
 def name_effects(model, states, shares, delay_steps=None) -> list[NamedEffect]:
