@@ -20,8 +20,9 @@ install: $(STAMP)
 run: $(STAMP)
 	$(BIN)/python -m hds.run +experiment=sim2real_friction
 
-# Two workers, a test file each (its session's compiled fixtures stay in one process). The
-# longest end-to-end tests (marked slow: a whole sim2real loop and its resume, domain
+# Two workers, a test file each (its session's compiled fixtures stay in one process), the
+# longest files first (tests/conftest.py: LONGEST_FIRST). The longest end-to-end tests
+# (marked slow: a whole sim2real loop and its resume, domain
 # randomization against fixed values, a training on the tree engine, the corrected simulator's
 # active excitation, the mjx backend, a sweep on joblib's launcher, the bench's scaling and
 # sections runs, a discovery on each tree-engine system and on EMPS, retraining on a corrected
@@ -31,10 +32,10 @@ run: $(STAMP)
 # TEST_WORKERS=0 runs them in this process.
 TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not slow"
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not slow"
 
 test-slow: $(STAMP)
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m slow
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m slow
 
 bench: $(STAMP)
 	$(BIN)/python -m bench.run

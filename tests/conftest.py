@@ -34,6 +34,25 @@ CONF = ROOT / "conf"
 SHARED = ROOT.parent / "shared"
 
 
+# make test runs on two workers, a file each at a time (--dist loadfile), in collection order
+# (--no-loadscope-reorder: xdist would put the files with most tests first). The files that
+# take longest (cold run, 2026-11-24: 209, 202, 144, 137, 125 and 92 s of 1201) start first,
+# so the workers finish together instead of one idling while the other runs a long file.
+LONGEST_FIRST = (
+    "test_sweeps.py",
+    "test_train.py",
+    "test_api.py",
+    "test_discover.py",
+    "test_envs.py",
+    "test_dynamics.py",
+)
+
+
+def pytest_collection_modifyitems(items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: rest as collected
+
+
 def make_config(*overrides: str, config_name: str = "config"):
     """Compose a primary config (conf/config.yaml: `python -m hds.run`; conf/discover.yaml:
     `python -m hds.discover`) with overrides and validate it, as the command does."""
