@@ -19,6 +19,10 @@ if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
 os.environ.setdefault("WANDB_MODE", "offline")
 os.environ.setdefault("WANDB_SILENT", "true")
 
+# hds first: it quiets XLA's C++ log before jax loads, as in the runs
+import hds  # noqa: E402, F401
+
+# isort: split
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
