@@ -42,15 +42,16 @@ def candidates(kind: str, line_search: int) -> int:
     return 1 if kind == "fixed" else line_search
 
 
-def ramp_share(epoch, begin: float, end: float):
-    """How far the continuation has gone at `epoch`: 0 until epoch `begin`, then linearly to 1
-    at epoch `end` (begin = end = 0: 1 from the start)."""
+def ramp_share(epoch, begin: float, end: float, delay=0):
+    """How far the continuation has gone at `epoch`: 0 until epoch `begin` (+ `delay`, which
+    may be traced), then linearly to 1 at epoch `end` (+ `delay`); begin = end = 0: 1 from the
+    start."""
     if not end:
         return jnp.float32(1.0)
-    return jnp.clip((epoch + 1 - begin) / max(end - begin, 1.0), 0.0, 1.0)
+    return jnp.clip((epoch + 1 - begin - delay) / max(end - begin, 1.0), 0.0, 1.0)
 
 
-def effect_ramp(params, sites, epoch, begin: float, end: float):
+def effect_ramp(params, sites, epoch, begin: float, end: float, delay=0):
     """A continuation: the effects' parameters stay at their nominal values (the effect does
     nothing) until epoch `begin`, then move linearly to their own, reached at epoch `end`
     (begin = end = 0: their own from the start). A policy first learned without the effect
@@ -58,7 +59,7 @@ def effect_ramp(params, sites, epoch, begin: float, end: float):
     strength from the start holds the cart still and leaves the policy little to learn from."""
     if not end:
         return params
-    share = ramp_share(epoch, begin, end)
+    share = ramp_share(epoch, begin, end, delay)
     nominal = [
         {k: effect_type(site.name).param(k).nominal for k in values}
         for site, values in zip(sites, params)

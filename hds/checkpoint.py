@@ -55,13 +55,7 @@ class Checkpoints:
         for i, step in enumerate(epochs):
             try:
                 self._check_structure(step, abstract)
-                restored = self.manager.restore(
-                    step,
-                    args=ocp.args.Composite(
-                        state=ocp.args.StandardRestore(abstract), meta=ocp.args.JsonRestore()
-                    ),
-                )
-                return restored.state, restored.meta
+                return self._restore_by_name(step, abstract)
             except StructureError:
                 raise
             except Exception as err:  # TensorStore and Orbax raise many types for a bad file
@@ -79,6 +73,23 @@ class Checkpoints:
                 epochs[i + 1],
             )
             self.manager.delete(step)  # training saves this epoch again
+
+    def _restore_by_name(self, step: int, abstract):
+        """Restore into the stored tree's own containers, then move each array to the leaf of
+        `abstract` of the same name (_check_structure: the names match), so a field that holds
+        no arrays (an unused TrainState.progress) does not make older checkpoints unreadable."""
+        by_name = {_name(path): x for path, x in jax.tree.leaves_with_path(abstract)}
+        stored = self.manager.item_metadata(step)["state"].tree
+        target = jax.tree.map(lambda leaf: by_name[leaf.name], stored)
+        restored = self.manager.restore(
+            step,
+            args=ocp.args.Composite(
+                state=ocp.args.StandardRestore(target), meta=ocp.args.JsonRestore()
+            ),
+        )
+        arrays = {_name(path): x for path, x in jax.tree.leaves_with_path(restored.state)}
+        leaves = [arrays[name] for name in by_name]
+        return jax.tree.unflatten(jax.tree.structure(abstract), leaves), restored.meta
 
     def _check_structure(self, step: int, abstract) -> None:
         """Refuse a checkpoint whose arrays are not the state's: another configuration's."""

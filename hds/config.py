@@ -144,9 +144,13 @@ class AlgoConfig:
     early_stop: float = 0.0  # stop regressing once the loss improves less than this
     hidden: list[int] = field(default_factory=lambda: [64, 64])
     chunk: int = 5  # epochs per compiled chunk, between host-side logs and checkpoints
+    # the policy a run returns: the last iterate, or the one whose simulator return was best
+    # once the continuation (anneal.effect_ramp) had reached its end
+    keep: str = "last"
 
     def check(self):
         _one_of("algo.order", self.order, ("first", "second"))
+        _one_of("algo.keep", self.keep, ("last", "best"))
         _check_widths("algo.hidden", self.hidden, fewest=0)
         _one_of("algo.improve_in", self.improve_in, ("open_loop", "closed_loop"))
         if self.improve_in == "closed_loop" and self.order != "first":
@@ -193,6 +197,10 @@ class AnnealConfig:
     # rollout runs through a learned model before begin; both grow linearly to their values
     # (effects, dynamics.beta) at end (a continuation); [0, 0]: off
     effect_ramp: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    # the ramp waits (at most until it would end on the last epoch) for the policy to solve
+    # the task without the effects (a training return >= env.task.solved_at): a seed still
+    # learning at `begin` would otherwise meet them unready and may never learn
+    ramp_when_solved: bool = True
 
     def check(self):
         _one_of("anneal.kind", self.kind, ("line_search", "simulated", "fixed"))

@@ -363,7 +363,7 @@ def train(
         timing["train_cpu_s"] = time.process_time() - cpu_start
     finally:
         ckpt.close()
-    return Training(method, state.policy, history, timing, trainer, env, effects)
+    return Training(method, trainer.final_policy(state), history, timing, trainer, env, effects)
 
 
 def _report_chunk(hooks: Hooks, logger, method: str, epoch0: int, metrics: dict, seconds: float):

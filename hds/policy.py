@@ -157,7 +157,7 @@ def load_policy(run_dir: str | Path, method: str | None = None, seed: int | None
         log.warning(
             "%s: %s is at epoch %d of %d (unfinished)", run_dir, method, epoch, cfg.algo.epochs
         )
-    params = jax.tree.map(lambda x: x[index], state.policy)
+    params = jax.tree.map(lambda x: x[index], trainer.final_policy(state))
     return Policy(trainer.policy, params, cfg.env, method, cfg.runs()[index], epoch, cfg, run_dir)
 
 

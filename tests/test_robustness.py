@@ -13,6 +13,7 @@ import subprocess
 import sys
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
@@ -268,3 +269,20 @@ def test_a_launcher_timeout_of_zero_is_refused_before_the_sweep(tmp_path):
     )
     with pytest.raises(SystemExit, match="hydra.launcher.timeout_min = 0 gives every job no time"):
         StartChecks().on_multirun_start(config)
+
+
+def test_a_checkpoint_written_before_a_field_without_arrays_existed_restores(tmp_path):
+    """TrainState.progress is None where a configuration tracks nothing: checkpoints written
+    before the field existed (the same arrays, without it) restore into today's state."""
+    from hds.algo.pods import TrainState
+
+    state = TrainState({"w": jnp.arange(3.0)}, (jnp.zeros(2),), jnp.array(4), jax.random.PRNGKey(1))
+    before = {"policy": state.policy, "opt_state": state.opt_state, "epoch": state.epoch}
+    ckpt = Checkpoints(tmp_path / "ckpt")
+    ckpt.save(4, before | {"key": state.key}, {"history": {}})
+    restored, meta = ckpt.restore(state)
+    ckpt.close()
+    assert isinstance(restored, TrainState) and restored.progress is None
+    assert meta == {"history": {}}
+    for a, b in zip(jax.tree.leaves(restored), jax.tree.leaves(state), strict=True):
+        np.testing.assert_array_equal(a, b)

@@ -303,3 +303,41 @@ def test_the_effect_ramp_grows_effects_from_nominal_to_their_values(cartpole_cfg
     late = [float(at(epoch, 10, 14)[0]["force"]) for epoch in (0, 9, 10, 13, 20)]
     assert late == pytest.approx([0.0, 0.0, 5.0, 20.0, 20.0])  # off until epoch 10
     assert at(0, 0, 0) is env.params  # no ramp: the values from the start
+
+
+def _ramped_training(*overrides):
+    """A tiny training whose effects grow in over epochs 2-4 of 10, one epoch per chunk: the
+    trainer, its final state, the state at the start of each epoch, and the metrics."""
+    cfg = make_config(
+        *TINY, "algo.epochs=10", "algo.chunk=1", "anneal.effect_ramp=[0.2,0.4]", *overrides
+    )
+    trainer = make_train(cfg, make_env(cfg.env))
+    run = jax.jit(trainer.run_chunk)
+    state = trainer.init(jax.random.PRNGKey(0), trainer.default_hparams)
+    states, chunks = [], []
+    for _ in range(cfg.algo.epochs):
+        states.append(state)
+        state, metrics = run(state, trainer.default_hparams)
+        chunks.append(metrics)
+    metrics = {k: np.concatenate([np.asarray(m[k]) for m in chunks]) for k in chunks[0]}
+    return trainer, state, states, metrics
+
+
+def test_the_ramp_waits_for_the_policy_to_solve_the_task():
+    """anneal.ramp_when_solved: a policy that solves the task from the first epoch meets the
+    effects on the configured ramp (epochs 2-4); one that never does, as late as the ramp can
+    start and still end on the last epoch (7-9)."""
+    *_, at_once = _ramped_training("env.task.solved_at=-1e9")
+    *_, never = _ramped_training("env.task.solved_at=1e9")
+    np.testing.assert_allclose(at_once["ramp"], [0, 0, 0.5, 1, 1, 1, 1, 1, 1, 1])
+    np.testing.assert_allclose(never["ramp"], [0, 0, 0, 0, 0, 0, 0, 0, 0.5, 1])
+
+
+def test_keep_best_returns_the_best_policy_once_the_ramp_has_ended():
+    trainer, state, states, metrics = _ramped_training("env.task.solved_at=-1e9", "algo.keep=best")
+    done = np.nonzero(metrics["ramp"] >= 1)[0]
+    best = done[np.argmax(metrics["return"][done])]
+    kept, last = trainer.final_policy(state), state.policy  # last: after the final update
+    for a, b in zip(jax.tree.leaves(kept), jax.tree.leaves(states[best].policy), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(jax.tree.leaves(kept)[0], jax.tree.leaves(last)[0])

@@ -41,6 +41,9 @@ class TrainState:
     opt_state: optax.OptState
     epoch: jax.Array
     key: jax.Array
+    # what the configuration tracks across epochs: "solved", the first epoch the policy solved
+    # the task (anneal.ramp_when_solved); "best" and "best_return", the kept policy (algo.keep)
+    progress: dict | None = None
 
 
 @dataclass(frozen=True)
@@ -64,6 +67,7 @@ class Trainer:
     init: Callable
     run_chunk: Callable
     train: Callable
+    final_policy: Callable  # state -> the policy the run returns (algo.keep); batched or not
     chunk: int  # epochs per chunk
     policy: object  # the flax module; apply with TrainState.policy
     default_hparams: dict
@@ -96,6 +100,16 @@ def make_train(cfg, env, model=None) -> Trainer:
     )
 
     ramp = [share * algo.epochs for share in cfg.anneal.effect_ramp]  # [begin, end] epochs
+    solved_at = cfg.env.task.solved_at
+    gated = bool(ramp[1]) and cfg.anneal.ramp_when_solved and solved_at is not None
+    keep_best = algo.keep == "best"
+
+    def ramp_delay(state):
+        """Epochs the ramp waits for the policy to solve the task: until the epoch after it
+        first did, at most until the ramp ends on the last epoch."""
+        if not gated:
+            return 0
+        return jnp.clip(state.progress["solved"] + 1 - ramp[0], 0, algo.epochs - ramp[1])
 
     # The split of the batch is static: a swept beta (sweep.beta) runs the widest split, and
     # each run uses its own share of it (`shares`), so every run sees the rollouts a run with
@@ -113,10 +127,10 @@ def make_train(cfg, env, model=None) -> Trainer:
     if n_model_max:
         parts.append((model, n_model_max, None))
 
-    def shares(hparams, epoch):
+    def shares(hparams, epoch, delay):
         """Per part, which of its rollouts this run uses at `epoch`, and the regression's row
         order."""
-        beta = hparams["beta"] * anneal.ramp_share(epoch, *ramp)
+        beta = hparams["beta"] * anneal.ramp_share(epoch, *ramp, delay)
         n_model = model_count(beta) if n_model_max else 0
         n_sim = algo.rollouts - n_model
         i = jnp.arange(algo.rollouts)
@@ -127,7 +141,39 @@ def make_train(cfg, env, model=None) -> Trainer:
     def init(key, hparams) -> TrainState:
         key, init_key = jax.random.split(key)
         params = policy.init(init_key, jnp.zeros(sim.n_obs))
-        return TrainState(params, optimizer.init(params), jnp.array(0, jnp.int32), key)
+        progress = {}
+        if gated:
+            progress["solved"] = jnp.array(algo.epochs, jnp.int32)  # not yet
+        if keep_best:
+            progress |= {"best": params, "best_return": jnp.float32(-jnp.inf)}
+        state = TrainState(params, optimizer.init(params), jnp.array(0, jnp.int32), key)
+        return state.replace(progress=progress or None)  # None: a checkpoint as before
+
+    def track(state, sim_return):
+        """The next epoch's `progress`, after the policy's return on the simulator."""
+        progress = dict(state.progress or {})
+        if gated:
+            first = (state.progress["solved"] == algo.epochs) & (sim_return >= solved_at)
+            progress["solved"] = jnp.where(first, state.epoch, state.progress["solved"])
+        if keep_best:  # among the epochs with the continuation at its end
+            done = anneal.ramp_share(state.epoch, *ramp, ramp_delay(state)) >= 1
+            better = done & (sim_return > state.progress["best_return"])
+            progress["best_return"] = jnp.where(better, sim_return, state.progress["best_return"])
+            progress["best"] = jax.tree.map(
+                lambda kept, now: jnp.where(better, now, kept), state.progress["best"], state.policy
+            )
+        return progress
+
+    def final_policy(state):
+        if not keep_best:
+            return state.policy
+        found = state.progress["best_return"] > -jnp.inf  # [] or one per run of a batch
+
+        def pick(kept, last):
+            where = found.reshape(found.shape + (1,) * (kept.ndim - found.ndim))
+            return jnp.where(where, kept, last)
+
+        return jax.tree.map(pick, state.progress["best"], state.policy)
 
     randomized = cfg.simulator == "randomized"
 
@@ -223,7 +269,9 @@ def make_train(cfg, env, model=None) -> Trainer:
         if drawn:
             params = sample_effects(jax.random.fold_in(key, 1), *hparams["effect_ranges"], count)
         if params_key == "effects":
-            params = anneal.effect_ramp(params, sim.effects.sites, state.epoch, *ramp)
+            params = anneal.effect_ramp(
+                params, sim.effects.sites, state.epoch, *ramp, ramp_delay(state)
+            )
         starts, obs, actions, rewards, k_improve = collect(
             engine, params, count, state.policy, hparams, state.epoch, key, drawn
         )
@@ -249,7 +297,7 @@ def make_train(cfg, env, model=None) -> Trainer:
             collect_and_improve(e, pk, n, state, hparams, k)
             for (e, n, pk), k in zip(parts, (sim_key, model_key))
         ]
-        masks, rows = shares(hparams, state.epoch)
+        masks, rows = shares(hparams, state.epoch, ramp_delay(state))
         obs = jnp.concatenate([o[0] for o in outs])[rows].reshape(-1, sim.n_obs)
         targets = jnp.concatenate([o[1].actions for o in outs])[rows].reshape(-1, sim.n_act)
         params, opt_state, loss = regress_batch(
@@ -272,7 +320,10 @@ def make_train(cfg, env, model=None) -> Trainer:
             "accepted": jnp.nanmean(used_all(lambda o: o[1].accepted)),
             "skipped": jnp.nansum(used_all(lambda o: o[1].skipped)),
         }
-        return TrainState(params, opt_state, state.epoch + 1, key), metrics
+        if ramp[1]:  # how far the continuation has gone: 0 before it, 1 at its end
+            metrics["ramp"] = anneal.ramp_share(state.epoch, *ramp, ramp_delay(state))
+        progress = track(state, metrics["return"])
+        return TrainState(params, opt_state, state.epoch + 1, key, progress or None), metrics
 
     chunk = chunk_length(algo.epochs, algo.chunk)
 
@@ -295,4 +346,4 @@ def make_train(cfg, env, model=None) -> Trainer:
     stages = Stages(
         functools.partial(collect, env), functools.partial(improve_batch, env), regress_batch
     )
-    return Trainer(init, run_chunk, train, chunk, policy, hparams, stages)
+    return Trainer(init, run_chunk, train, final_policy, chunk, policy, hparams, stages)
