@@ -105,10 +105,10 @@ class Checkpoints:
                 if stored.get(k) != wanted.get(k)
             )
             raise StructureError(
-                f"checkpoint {self.directory}/{step} comes from another configuration: its "
-                f"arrays differ from this run's ({'; '.join(differ[:4])}"
-                f"{'; ...' if len(differ) > 4 else ''}): resume with the configuration that "
-                "wrote it, or start a new run in another directory"
+                f"checkpoint {self.directory}/{step} comes from another configuration or "
+                f"version of hds: its arrays differ from this run's ({'; '.join(differ[:4])}"
+                f"{'; ...' if len(differ) > 4 else ''}): resume with the configuration and "
+                "version that wrote it, or start a new run in another directory"
             )
 
     def close(self) -> None:
