@@ -53,8 +53,9 @@ sweep: $(STAMP)
 # one report of all, its figures and GIF (job 19: closed-loop PODS from the frictionless
 # simulator on the 80 N plant) into experiments/sim2real_friction/results; the oracle at the
 # loop's total budget (450 epochs) at 20, 80 and 40 N (40 N added last, so finished jobs keep
-# their numbers), and the swing-up at 20, 40 and 80 N, each
-# reported apart (swing-up job 0: the frictionless simulator's policy at 20 N).
+# their numbers), and the swing-up at 20, 40 and 80 N (three simulators, then HDS and domain
+# randomization), each reported apart (swing-up job 0: the frictionless simulator's policy at
+# 20 N).
 STUDY_RUN := outputs/study/sim2real_friction
 STUDY_SWINGUP := outputs/study/swingup
 STUDY_ORACLE := outputs/study/oracle_budget
@@ -70,6 +71,8 @@ study: $(STAMP)
 		real.friction_gap=1,4,2 hydra.sweep.dir=$(STUDY_ORACLE)
 	$(BIN)/python -m hds.report $(STUDY_ORACLE) --out experiments/sim2real_friction/results/oracle_450
 	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup hydra.sweep.dir=$(STUDY_SWINGUP)
+	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup_hds hydra.sweep.dir=$(STUDY_SWINGUP)/hds
+	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup_dr hydra.sweep.dir=$(STUDY_SWINGUP)/dr
 	$(BIN)/python -m hds.report $(STUDY_SWINGUP) --out experiments/sim2real_friction/results/swingup --gif 0
 
 clean:
