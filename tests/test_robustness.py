@@ -128,6 +128,9 @@ def uninterrupted(tmp_path_factory):
     return cfg, env, out, params, history
 
 
+# Orbax's asyncio loop may be collected before a callback of the failed read: "Event loop is
+# closed", printed as an unraisable exception in some runs (the restore itself is checked below)
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
 def test_a_corrupt_latest_checkpoint_falls_back_and_ends_identical(uninterrupted, tmp_path, caplog):
     cfg, env, out, params, history = uninterrupted
     shutil.copytree(out / "checkpoints", tmp_path / "checkpoints")

@@ -58,7 +58,8 @@ def as_arrays(data, actions=None, sim=None) -> tuple[np.ndarray, np.ndarray]:
                     "or resample the data"
                 )
         data, actions = data.obs, data.actions
-    obs, actions = np.asarray(data, np.float32), np.asarray(actions, np.float32)
+    with np.errstate(over="ignore"):  # beyond float32: inf, dropped below as non-finite
+        obs, actions = np.asarray(data, np.float32), np.asarray(actions, np.float32)
     if (
         obs.ndim != 3
         or actions.ndim != 3
