@@ -198,8 +198,9 @@ class AnnealConfig:
     # (effects, dynamics.beta) at end (a continuation); [0, 0]: off
     effect_ramp: list[float] = field(default_factory=lambda: [0.0, 0.0])
     # the ramp waits (at most until it would end on the last epoch) for the policy to solve
-    # the task without the effects (a training return >= env.task.solved_at): a seed still
-    # learning at `begin` would otherwise meet them unready and may never learn
+    # the task without the effects (a training return >= env.task.solved_at; a task without
+    # one ramps on time): a seed still learning at `begin` would otherwise meet them unready
+    # and may never learn
     ramp_when_solved: bool = True
 
     def check(self):
