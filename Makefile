@@ -49,7 +49,8 @@ sweep: $(STAMP)
 
 # The study of experiments/sim2real_friction: its sweeps (resumable: finished jobs are skipped;
 # delete $(STUDY_RUN) to start over): friction gaps, then the other effects' plants (policies
-# that depend on the plant, then those trained once), the sim2real loop at 20 and 80 N, then
+# that depend on the plant, then those trained once), the sim2real loop at 20 and 80 N
+# (closed-loop PODS, then HDS with its model refitted on each round's deployments), then
 # one report of all, its figures and GIF (job 19: closed-loop PODS from the frictionless
 # simulator on the 80 N plant) into experiments/sim2real_friction/results; the oracle at the
 # loop's total budget (450 epochs) at 20, 80 and 40 N (40 N added last, so finished jobs keep
@@ -60,12 +61,15 @@ STUDY_RUN := outputs/study/sim2real_friction
 STUDY_SWINGUP := outputs/study/swingup
 STUDY_ORACLE := outputs/study/oracle_budget
 STUDY_LOOP := $(BIN)/python -m hds.loop env.backend=analytic seeds=5 method=pods_cl_effects
+STUDY_HDS_LOOP := $(BIN)/python -m hds.loop env.backend=analytic seeds=5 method=hds
 study: $(STAMP)
 	$(BIN)/python -m hds.run +experiment=sim2real_study hydra.sweep.dir=$(STUDY_RUN)
 	$(BIN)/python -m hds.run +experiment=sim2real_study_effects hydra.sweep.dir=$(STUDY_RUN)/effects
 	$(BIN)/python -m hds.run +experiment=sim2real_study_shared hydra.sweep.dir=$(STUDY_RUN)/shared
 	$(STUDY_LOOP) real.friction_gap=1 hydra.run.dir=$(STUDY_RUN)/loop/x1
 	$(STUDY_LOOP) real.friction_gap=4 hydra.run.dir=$(STUDY_RUN)/loop/x4
+	$(STUDY_HDS_LOOP) real.friction_gap=1 hydra.run.dir=$(STUDY_RUN)/loop/hds_x1
+	$(STUDY_HDS_LOOP) real.friction_gap=4 hydra.run.dir=$(STUDY_RUN)/loop/hds_x4
 	$(BIN)/python -m hds.report $(STUDY_RUN) --out experiments/sim2real_friction/results --gif 19
 	$(BIN)/python -m hds.run +experiment=sim2real_study method=oracle algo.epochs=450 \
 		real.friction_gap=1,4,2 hydra.sweep.dir=$(STUDY_ORACLE)

@@ -2,7 +2,9 @@
 the metric history so far, so a run started again on the same directory resumes exactly.
 
 A checkpoint that cannot be read (a file truncated by a full disk or a crash outside Orbax's
-atomic write) is deleted with a warning naming it and why, and the one before it restored.
+atomic write) is skipped with a warning naming it and why, and the one before it restored;
+training, which writes that epoch again, deletes it (a reader, such as `load_policy`, does
+not).
 A checkpoint whose arrays do not fit the state (another network, batch or optimizer) is not
 damaged: restoring it is refused, naming the arrays that differ."""
 
@@ -42,9 +44,10 @@ class Checkpoints:
         )
         self.manager.wait_until_finished()
 
-    def restore(self, like, epoch: int | None = None):
+    def restore(self, like, epoch: int | None = None, resuming: bool = False):
         """(state, meta) of `epoch` (default: the latest readable one); `like` gives the
-        state's structure."""
+        state's structure. `resuming` (training): an unreadable checkpoint is deleted, as
+        training writes that epoch again; otherwise (reading a policy) it is left in place."""
         epochs = sorted(self.manager.all_steps(), reverse=True) if epoch is None else [epoch]
         if not epochs:
             raise FileNotFoundError(
@@ -66,13 +69,15 @@ class Checkpoints:
                         "delete the folder to train from the start"
                     ) from err
             log.warning(
-                "checkpoint %s/%d cannot be read (%s): deleted, resuming from checkpoint %d",
+                "checkpoint %s/%d cannot be read (%s): %s checkpoint %d",
                 self.directory,
                 step,
                 reason,
+                "deleted, resuming from" if resuming else "reading",
                 epochs[i + 1],
             )
-            self.manager.delete(step)  # training saves this epoch again
+            if resuming:
+                self.manager.delete(step)
 
     def _restore_by_name(self, step: int, abstract):
         """Restore into the stored tree's own containers, then move each array to the leaf of

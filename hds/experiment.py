@@ -336,7 +336,7 @@ def train(
     try:
         history: dict[str, list] = {}
         if ckpt.latest() is not None:
-            state, meta = ckpt.restore(state)
+            state, meta = ckpt.restore(state, resuming=True)
             history = {k: [list(map(float, row)) for row in v] for k, v in meta["history"].items()}
             log.info("resuming %s from epoch %d", method, int(state.epoch[0]))
         if logger:

@@ -95,23 +95,29 @@ def shown_column(columns: set) -> tuple:
 
 
 def loops(root: Path) -> list[tuple]:
-    """(directory, plant config, round reports) of every sim2real loop below root
+    """(directory, config, round reports) of every sim2real loop below root
     (`python -m hds.loop`'s loop.json)."""
     return [
-        (path.parent, load_config(path.parent / "config.yaml").real, read_json(path)["rounds"])
+        (path.parent, load_config(path.parent / "config.yaml"), read_json(path)["rounds"])
         for path in sorted(root.rglob("loop.json"))
     ]
 
 
 def loop_rows(found: list[tuple], root: Path) -> list[dict]:
-    """The rows of every round of the `loops` found below root (methods loop0, loop1, ...),
-    each with its loop's plant."""
+    """The rows of every round of the `loops` found below root, each with its loop's plant,
+    labelled by the loop's method and round (pods_cl+loop1, hds+mlp+loop1): loops of two
+    methods on one plant stay apart."""
+    from hds.experiment import method_name
+
     rows = []
-    for loop_dir, real, rounds in found:
-        own = {"plant": real.label(), "friction_gap": real.friction_gap}
+    for loop_dir, cfg, rounds in found:
+        own = {"plant": cfg.real.label(), "friction_gap": cfg.real.friction_gap}
         job = str(loop_dir.relative_to(root))
         for report in rounds:
-            rows += [{**own, **r, "job": job} for r in report["rows"]]
+            rows += [
+                {**own, **r, "job": job, "method": f"{method_name(cfg)}+{r['method']}"}
+                for r in report["rows"]
+            ]
     return rows
 
 
@@ -258,10 +264,10 @@ def loop_sections(found: list[tuple], root: Path, out: Path) -> list[str]:
     from hds.loop import round_row
 
     sections = []
-    for loop_dir, real, rounds in found:
+    for loop_dir, cfg, rounds in found:
         rel = loop_dir.relative_to(root)
         lines = [
-            f"### Sim2real loop: {rel} ({real.label()})",
+            f"### Sim2real loop: {rel} ({cfg.real.label()})",
             "",
             "| round | named (95% interval) | real return [95%] | sim2real gap | episodes |",
             "| ---: | --- | ---: | ---: | ---: |",

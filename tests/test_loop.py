@@ -115,11 +115,11 @@ def test_hds_report_gives_each_loop_round_rows_and_a_section(tmp_path):
 
     from hds.report import build
 
-    loop_dir = tmp_path / "loop" / "x4"
-    loop_dir.mkdir(parents=True)
-    OmegaConf.save(
-        OmegaConf.structured(make_config("real.friction_gap=4")), loop_dir / "config.yaml"
-    )
+    loop_dir, hds_dir = tmp_path / "loop" / "x4", tmp_path / "loop" / "hds_x4"
+    for directory, method in ((loop_dir, "pods_cl_effects"), (hds_dir, "hds")):
+        directory.mkdir(parents=True)
+        cfg = make_config("real.friction_gap=4", f"method={method}")
+        OmegaConf.save(OmegaConf.structured(cfg), directory / "config.yaml")
 
     def round_report(r, real, effects):
         rows = [
@@ -151,8 +151,26 @@ def test_hds_report_gives_each_loop_round_rows_and_a_section(tmp_path):
     }
     rounds = [round_report(0, -40.0, []), round_report(1, -6.0, [friction])]
     (loop_dir / "loop.json").write_text(json.dumps({"rounds": rounds}))
+    hds_rounds = [round_report(0, -200.0, []), round_report(1, -8.0, [friction])]
+    (hds_dir / "loop.json").write_text(json.dumps({"rounds": hds_rounds}))
     report = build(tmp_path).read_text()
-    assert "| loop0 | coulomb_friction@slider | 2 | -3 [-3, -3] | -39.5 [" in report
-    assert "| loop1 | coulomb_friction@slider | 2 |" in report
+    # each loop's rounds apart, labelled by its method: 2 runs a row, not 4
+    assert "| pods_cl+loop0 | coulomb_friction@slider | 2 | -3 [-3, -3] | -39.5 [" in report
+    assert "| pods_cl+loop1 | coulomb_friction@slider | 2 |" in report
+    assert "| hds+mlp+loop0 | coulomb_friction@slider | 2 | -3 [-3, -3] | -200 [" in report
     assert "### Sim2real loop: loop/x4 (coulomb_friction@slider)" in report
+    assert "### Sim2real loop: loop/hds_x4 (coulomb_friction@slider)" in report
     assert "| 1 | coulomb_friction@slider 80.7 [79, 82] | -5.5 [-6.0, -5.0] |" in report
+
+
+@pytest.mark.parametrize(
+    "before, after, rose",
+    [
+        ([-11.6, -12.8, -10.5], [-6.2, -6.5, -5.9], True),  # clear of both intervals
+        ([-209.5, -712.6, 293.6], [-8.2, -8.7, -7.8], True),  # one failing seed widened round 0
+        ([-3.05, -3.11, -2.99], [-3.04, -3.10, -2.98], False),  # within both
+        ([-3.05, -3.11, -2.99], [-4.0, -4.5, -3.5], False),  # worse
+    ],
+)
+def test_the_loop_goes_on_while_the_real_return_rises_beyond_the_intervals(before, after, rose):
+    assert loop.improved({"real_return": before}, {"real_return": after}) is rose

@@ -145,6 +145,23 @@ def test_a_corrupt_latest_checkpoint_falls_back_and_ends_identical(uninterrupted
     assert resumed_history == history
 
 
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # as above
+def test_reading_past_a_corrupt_checkpoint_leaves_it_in_place(uninterrupted, tmp_path, caplog):
+    """A reader (load_policy, the report's GIF) falls back as training does, but deletes
+    nothing: only training writes that epoch again."""
+    cfg, env, out, *_ = uninterrupted
+    shutil.copytree(out / "checkpoints", tmp_path / "checkpoints")
+    directory = tmp_path / "checkpoints" / "pods"
+    for data in (directory / str(cfg.algo.epochs)).glob("state/**/d/*"):
+        os.truncate(data, data.stat().st_size // 2)
+    checkpoints = Checkpoints(directory)
+    like = experiment.abstract_state(cfg, make_train(cfg, env))
+    state, _ = checkpoints.restore(like)
+    assert int(state.epoch[0]) == 2 and "reading checkpoint 2" in caplog.text
+    assert checkpoints.latest() == cfg.algo.epochs  # still there
+    checkpoints.close()
+
+
 def test_a_checkpoint_of_another_network_is_named_as_such(uninterrupted):
     _, env, out, *_ = uninterrupted
     other = make_config(*S, "algo.hidden=[32]")
