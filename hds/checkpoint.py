@@ -57,8 +57,9 @@ class Checkpoints:
         abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, like)
         for i, step in enumerate(epochs):
             try:
-                self._check_structure(step, abstract)
-                return self._restore_by_name(step, abstract)
+                stored = self.manager.item_metadata(step)["state"]
+                self._check_structure(step, stored, abstract)
+                return self._restore_by_name(step, stored, abstract)
             except StructureError:
                 raise
             except Exception as err:  # TensorStore and Orbax raise many types for a bad file
@@ -79,13 +80,13 @@ class Checkpoints:
             if resuming:
                 self.manager.delete(step)
 
-    def _restore_by_name(self, step: int, abstract):
-        """Restore into the stored tree's own containers, then move each array to the leaf of
-        `abstract` of the same name (_check_structure: the names match), so a field that holds
-        no arrays (an unused TrainState.progress) does not make older checkpoints unreadable."""
+    def _restore_by_name(self, step: int, stored, abstract):
+        """Restore into the stored tree's own containers (`stored`: its metadata), then move
+        each array to the leaf of `abstract` of the same name (_check_structure: the names
+        match), so a field that holds no arrays (an unused TrainState.progress) does not make
+        older checkpoints unreadable."""
         by_name = {_name(path): x for path, x in jax.tree.leaves_with_path(abstract)}
-        stored = self.manager.item_metadata(step)["state"].tree
-        target = jax.tree.map(lambda leaf: by_name[leaf.name], stored)
+        target = jax.tree.map(lambda leaf: by_name[leaf.name], stored.tree)
         restored = self.manager.restore(
             step,
             args=ocp.args.Composite(
@@ -96,12 +97,10 @@ class Checkpoints:
         leaves = [arrays[name] for name in by_name]
         return jax.tree.unflatten(jax.tree.structure(abstract), leaves), restored.meta
 
-    def _check_structure(self, step: int, abstract) -> None:
-        """Refuse a checkpoint whose arrays are not the state's: another configuration's."""
-        stored = {
-            leaf.name: tuple(leaf.shape)
-            for leaf in jax.tree.leaves(self.manager.item_metadata(step)["state"])
-        }
+    def _check_structure(self, step: int, stored, abstract) -> None:
+        """Refuse a checkpoint whose arrays (`stored`: its metadata) are not the state's:
+        another configuration's."""
+        stored = {leaf.name: tuple(leaf.shape) for leaf in jax.tree.leaves(stored)}
         wanted = {_name(path): tuple(x.shape) for path, x in jax.tree.leaves_with_path(abstract)}
         if stored != wanted:
             differ = sorted(

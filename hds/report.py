@@ -112,10 +112,10 @@ def loop_rows(found: list[tuple], root: Path) -> list[dict]:
     rows = []
     for loop_dir, cfg, rounds in found:
         own = {"plant": cfg.real.label(), "friction_gap": cfg.real.friction_gap}
-        job = str(loop_dir.relative_to(root))
+        job, method = str(loop_dir.relative_to(root)), method_name(cfg)
         for report in rounds:
             rows += [
-                {**own, **r, "job": job, "method": f"{method_name(cfg)}+{r['method']}"}
+                {**own, **r, "job": job, "method": f"{method}+{r['method']}"}
                 for r in report["rows"]
             ]
     return rows

@@ -292,7 +292,7 @@ def test_a_launcher_timeout_of_zero_is_refused_before_the_sweep(tmp_path):
 
 
 def test_a_checkpoint_written_before_a_field_without_arrays_existed_restores(tmp_path):
-    """TrainState.progress is None where a configuration tracks nothing: checkpoints written
+    """TrainState.progress is empty where a configuration tracks nothing: checkpoints written
     before the field existed (the same arrays, without it) restore into today's state."""
     from hds.algo.pods import TrainState
 
@@ -302,7 +302,7 @@ def test_a_checkpoint_written_before_a_field_without_arrays_existed_restores(tmp
     ckpt.save(4, before | {"key": state.key}, {"history": {}})
     restored, meta = ckpt.restore(state)
     ckpt.close()
-    assert isinstance(restored, TrainState) and restored.progress is None
+    assert isinstance(restored, TrainState) and restored.progress == {}
     assert meta == {"history": {}}
     for a, b in zip(jax.tree.leaves(restored), jax.tree.leaves(state), strict=True):
         np.testing.assert_array_equal(a, b)

@@ -43,7 +43,7 @@ class TrainState:
     key: jax.Array
     # what the configuration tracks across epochs: "solved", the first epoch the policy solved
     # the task (anneal.ramp_when_solved); "best" and "best_return", the kept policy (algo.keep)
-    progress: dict | None = None
+    progress: dict = struct.field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -127,10 +127,10 @@ def make_train(cfg, env, model=None) -> Trainer:
     if n_model_max:
         parts.append((model, n_model_max, None))
 
-    def shares(hparams, epoch, delay):
-        """Per part, which of its rollouts this run uses at `epoch`, and the regression's row
-        order."""
-        beta = hparams["beta"] * anneal.ramp_share(epoch, *ramp, delay)
+    def shares(hparams, ramp_share):
+        """Per part, which of its rollouts this run uses where the continuation stands at
+        `ramp_share`, and the regression's row order."""
+        beta = hparams["beta"] * ramp_share
         n_model = model_count(beta) if n_model_max else 0
         n_sim = algo.rollouts - n_model
         i = jnp.arange(algo.rollouts)
@@ -146,18 +146,17 @@ def make_train(cfg, env, model=None) -> Trainer:
             progress["solved"] = jnp.array(algo.epochs, jnp.int32)  # not yet
         if keep_best:
             progress |= {"best": params, "best_return": jnp.float32(-jnp.inf)}
-        state = TrainState(params, optimizer.init(params), jnp.array(0, jnp.int32), key)
-        return state.replace(progress=progress or None)  # None: a checkpoint as before
+        return TrainState(params, optimizer.init(params), jnp.array(0, jnp.int32), key, progress)
 
-    def track(state, sim_return):
-        """The next epoch's `progress`, after the policy's return on the simulator."""
-        progress = dict(state.progress or {})
+    def track(state, sim_return, ramp_share):
+        """The next epoch's `progress`, after the policy's return on the simulator at the
+        continuation's `ramp_share`."""
+        progress = dict(state.progress)
         if gated:
             first = (state.progress["solved"] == algo.epochs) & (sim_return >= solved_at)
             progress["solved"] = jnp.where(first, state.epoch, state.progress["solved"])
         if keep_best:  # among the epochs with the continuation at its end
-            done = anneal.ramp_share(state.epoch, *ramp, ramp_delay(state)) >= 1
-            better = done & (sim_return > state.progress["best_return"])
+            better = (ramp_share >= 1) & (sim_return > state.progress["best_return"])
             progress["best_return"] = jnp.where(better, sim_return, state.progress["best_return"])
             progress["best"] = jax.tree.map(
                 lambda kept, now: jnp.where(better, now, kept), state.progress["best"], state.policy
@@ -261,7 +260,7 @@ def make_train(cfg, env, model=None) -> Trainer:
             tol=tol,
         )
 
-    def collect_and_improve(engine, params_key, count, state, hparams, key):
+    def collect_and_improve(engine, params_key, count, state, hparams, key, delay):
         params = hparams[params_key] if params_key else None
         # domain randomization: each rollout its own draw (params batched on axis 0); the key
         # is folded in, so a range of no width trains exactly as that value alone
@@ -269,9 +268,7 @@ def make_train(cfg, env, model=None) -> Trainer:
         if drawn:
             params = sample_effects(jax.random.fold_in(key, 1), *hparams["effect_ranges"], count)
         if params_key == "effects":
-            params = anneal.effect_ramp(
-                params, sim.effects.sites, state.epoch, *ramp, ramp_delay(state)
-            )
+            params = anneal.effect_ramp(params, sim.effects.sites, state.epoch, *ramp, delay)
         starts, obs, actions, rewards, k_improve = collect(
             engine, params, count, state.policy, hparams, state.epoch, key, drawn
         )
@@ -293,11 +290,13 @@ def make_train(cfg, env, model=None) -> Trainer:
         # the same keys whether or not a model takes part: a run with beta = 0 in a beta sweep
         # is the run without a model
         key, sim_key, regress_key, model_key = jax.random.split(state.key, 4)
+        delay = ramp_delay(state)
+        ramp_share = anneal.ramp_share(state.epoch, *ramp, delay)
         outs = [
-            collect_and_improve(e, pk, n, state, hparams, k)
+            collect_and_improve(e, pk, n, state, hparams, k, delay)
             for (e, n, pk), k in zip(parts, (sim_key, model_key))
         ]
-        masks, rows = shares(hparams, state.epoch, ramp_delay(state))
+        masks, rows = shares(hparams, ramp_share)
         obs = jnp.concatenate([o[0] for o in outs])[rows].reshape(-1, sim.n_obs)
         targets = jnp.concatenate([o[1].actions for o in outs])[rows].reshape(-1, sim.n_act)
         params, opt_state, loss = regress_batch(
@@ -321,9 +320,9 @@ def make_train(cfg, env, model=None) -> Trainer:
             "skipped": jnp.nansum(used_all(lambda o: o[1].skipped)),
         }
         if ramp[1]:  # how far the continuation has gone: 0 before it, 1 at its end
-            metrics["ramp"] = anneal.ramp_share(state.epoch, *ramp, ramp_delay(state))
-        progress = track(state, metrics["return"])
-        return TrainState(params, opt_state, state.epoch + 1, key, progress or None), metrics
+            metrics["ramp"] = ramp_share
+        progress = track(state, metrics["return"], ramp_share)
+        return TrainState(params, opt_state, state.epoch + 1, key, progress), metrics
 
     chunk = chunk_length(algo.epochs, algo.chunk)
 
