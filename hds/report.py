@@ -69,8 +69,13 @@ def collect_rows(root: Path, found_loops: list[tuple] = ()) -> tuple[list[dict],
         }
         job = str(path.parent.relative_to(root)) if path.parent != root else "."
         job_rows = [{**own, **r, "job": job} for r in summary["rows"]]  # a swept gap: its own
-        rows += job_rows + [{**r, "job": job} for r in summary.get("rows_eval_plants", [])]
+        eval_rows = [{**r, "job": job} for r in summary.get("rows_eval_plants", [])]
+        rows += job_rows + eval_rows
         runs.append((job, job_rows, summary["history"]))
+        for column in dict.fromkeys(map(plant_column, eval_rows)):  # the same policies' curves
+            runs.append(
+                (job, [r for r in eval_rows if plant_column(r) == column], summary["history"])
+            )
     rows += loop_rows(found_loops, root)
     keys = settings_of(rows)
     histories = []
@@ -398,18 +403,29 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
 
 
 def animate_run(
-    run_dir: Path, method: str | None = None, seed_index: int = 0, out_dir: Path | None = None
+    run_dir: Path,
+    method: str | None = None,
+    seed_index: int = 0,
+    out_dir: Path | None = None,
+    eval_plant: str | None = None,
 ) -> Path:
     """One episode of a finished run's policy (`method`, default the run's own; the
-    seed_index-th run of its batch) on the simulator it trained on beside the run's plant,
-    animated into out_dir (default: the run's plots/), its trajectories plotted beside."""
+    seed_index-th run of its batch) on the simulator it trained on beside the run's plant (or
+    its eval_plants entry `eval_plant`), animated into out_dir (default: the run's plots/), its
+    trajectories plotted beside."""
     from hds.policy import evaluate, load_policy, run_config
 
     run_dir = Path(run_dir)
-    run = run_config(run_dir).runs()[seed_index]
-    policy = load_policy(run_dir, method, **run)
+    cfg = run_config(run_dir)
+    if eval_plant is not None and eval_plant not in cfg.eval_plants:
+        raise ValueError(
+            f"--gif-plant {eval_plant}: {run_dir} has no such eval_plants entry; choose one of "
+            f"{sorted(cfg.eval_plants)}, or leave --gif-plant out for the run's own plant"
+        )
+    real_cfg = cfg.eval_plants[eval_plant] if eval_plant else cfg.real
+    policy = load_policy(run_dir, method, **cfg.runs()[seed_index])
     sim = evaluate(policy, episodes=1, plant=policy.training_plant())
-    real = evaluate(policy, episodes=1)
+    real = evaluate(policy, real_cfg, episodes=1)
     out = Path(out_dir or run_dir / "plots") / f"{policy.method}_sim_vs_real.gif"
     figure = plots.trajectories(
         sim.episodes.obs[0], real.episodes.obs[0], policy.obs_names, policy.dt
@@ -419,7 +435,7 @@ def animate_run(
         sim.episodes,
         real.episodes,
         policy.obs_names,
-        policy.config.real.plant,
+        real_cfg.plant,
         policy.dt,
         out,
         policy.env.xml,
@@ -443,6 +459,11 @@ def main(argv=None) -> None:
         "JOB, default its first job)",
     )
     parser.add_argument(
+        "--gif-plant",
+        metavar="KEY",
+        help="animate the run on this plant of its eval_plants instead of its own",
+    )
+    parser.add_argument(
         "--out", help="write the report here instead of into the directory (figures copied)"
     )
     args = parser.parse_args(argv)
@@ -460,7 +481,7 @@ def main(argv=None) -> None:
         if not runs:
             raise FileNotFoundError(f"no run directory (with config.yaml) in {root} to animate")
         out = Path(args.out) / "plots" if args.out else None
-        print(f"wrote {animate_run(runs[0], out_dir=out)}")
+        print(f"wrote {animate_run(runs[0], out_dir=out, eval_plant=args.gif_plant)}")
 
 
 if __name__ == "__main__":
