@@ -5,7 +5,7 @@ It reads every summary.json below DIR (one per run or job) and writes, into DIR:
   report.csv     one row per method, friction gap and seed, for people who plot their own
   plots/report_*.png
 and, with --gif, an animation of the same policy on the simulator and on the real plant (of the
-run, or of a sweep's first job).
+run, or of a sweep's first job; --gif-plant: on one of its eval_plants instead).
 A gap-discovery run's report (report.json) is linked with its before/after errors and figures;
 DIR may also be a `python -m hds.discover` output directory alone, whose report then goes to
 DIR/report/ (discovery's own report.md stays as it is).
@@ -57,7 +57,8 @@ def collect_rows(root: Path, found_loops: list[tuple] = ()) -> tuple[list[dict],
     jobs are read directly), each with its plant and friction gap, also the rows of the
     further plants a job evaluated its policies on (`eval_plants`) and of the rounds of
     `found_loops` (`loops`); and every (label: method and swept setting, (plant, friction
-    gap), job, history of those runs). Both empty when root holds no run."""
+    gap), job, history of those runs), on each plant the runs were evaluated on. Both empty
+    when root holds no run."""
     rows, runs = [], []
     for path in sorted(root.rglob("summary.json")):
         summary = read_json(path)
