@@ -17,6 +17,7 @@ import argparse
 import csv
 import io
 import os
+import sys
 from collections import defaultdict
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from hds import plots
 from hds.animate import animate_episodes
 from hds.config import load_config
 from hds.evaluation import mean_ci
+from hds.utils import cli
 from hds.utils.io import atomic_write_bytes, read_json
 
 ROW_COLUMNS = (
@@ -486,4 +488,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    cli.one_line_errors(main, sys.argv[1:])
