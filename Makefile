@@ -48,15 +48,17 @@ sweep: $(STAMP)
 	$(BIN)/python -m hds.run -m +experiment=sim2real_friction real.friction_gap=0,0.5,1,2
 
 # The study of experiments/sim2real_friction: its sweeps (resumable: finished jobs are skipped;
-# delete $(STUDY_RUN) to start over): friction gaps, then the other effects' plants (policies
-# that depend on the plant, then those trained once), the sim2real loop at 20 and 80 N
-# (closed-loop PODS, then HDS with its model refitted on each round's deployments), then
-# one report of all, its figures and GIF (job 19: closed-loop PODS from the frictionless
-# simulator on the 80 N plant) into experiments/sim2real_friction/results; the oracle at the
-# loop's total budget (450 epochs) at 20, 80 and 40 N (40 N added last, so finished jobs keep
-# their numbers), and the swing-up at 20, 40 and 80 N (three simulators, then HDS and domain
-# randomization), each reported apart (swing-up job 0: the frictionless simulator's policy at
-# 20 N).
+# delete $(STUDY_RUN) to start over): friction gaps (the methods whose training reads the plant,
+# then those trained once and evaluated on every friction plant: plant_free/), then the other
+# effects' plants (policies that depend on the plant, then those trained once), the sim2real
+# loop at 20 and 80 N (closed-loop PODS, then HDS with its model refitted on each round's
+# deployments), then one report of all, its figures and GIF (closed-loop PODS from the
+# frictionless simulator, plant_free/1, on the 80 N plant, its eval plant x4) into
+# experiments/sim2real_friction/results; the oracle at the loop's total budget (450 epochs) at
+# 20, 80 and 40 N (40 N added last, so finished jobs keep their numbers), and the swing-up at
+# 20, 40 and 80 N (the corrected simulator and the oracle at each, the frictionless simulator
+# and domain randomization once: plant_free/, then HDS), each reported apart (GIF: the
+# frictionless simulator's policy, plant_free/0, at 20 N).
 STUDY_RUN := outputs/study/sim2real_friction
 STUDY_SWINGUP := outputs/study/swingup
 STUDY_ORACLE := outputs/study/oracle_budget
@@ -64,20 +66,24 @@ STUDY_LOOP := $(BIN)/python -m hds.loop env.backend=analytic seeds=5 method=pods
 STUDY_HDS_LOOP := $(BIN)/python -m hds.loop env.backend=analytic seeds=5 method=hds
 study: $(STAMP)
 	$(BIN)/python -m hds.run +experiment=sim2real_study hydra.sweep.dir=$(STUDY_RUN)
+	$(BIN)/python -m hds.run +experiment=sim2real_study_friction_shared \
+		hydra.sweep.dir=$(STUDY_RUN)/plant_free
 	$(BIN)/python -m hds.run +experiment=sim2real_study_effects hydra.sweep.dir=$(STUDY_RUN)/effects
 	$(BIN)/python -m hds.run +experiment=sim2real_study_shared hydra.sweep.dir=$(STUDY_RUN)/shared
 	$(STUDY_LOOP) real.friction_gap=1 hydra.run.dir=$(STUDY_RUN)/loop/x1
 	$(STUDY_LOOP) real.friction_gap=4 hydra.run.dir=$(STUDY_RUN)/loop/x4
 	$(STUDY_HDS_LOOP) real.friction_gap=1 hydra.run.dir=$(STUDY_RUN)/loop/hds_x1
 	$(STUDY_HDS_LOOP) real.friction_gap=4 hydra.run.dir=$(STUDY_RUN)/loop/hds_x4
-	$(BIN)/python -m hds.report $(STUDY_RUN) --out experiments/sim2real_friction/results --gif 19
+	$(BIN)/python -m hds.report $(STUDY_RUN) --out experiments/sim2real_friction/results \
+		--gif plant_free/1 --gif-plant x4
 	$(BIN)/python -m hds.run +experiment=sim2real_study method=oracle algo.epochs=450 \
 		real.friction_gap=1,4,2 hydra.sweep.dir=$(STUDY_ORACLE)
 	$(BIN)/python -m hds.report $(STUDY_ORACLE) --out experiments/sim2real_friction/results/oracle_450
 	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup hydra.sweep.dir=$(STUDY_SWINGUP)
+	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup_shared \
+		hydra.sweep.dir=$(STUDY_SWINGUP)/plant_free
 	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup_hds hydra.sweep.dir=$(STUDY_SWINGUP)/hds
-	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup_dr hydra.sweep.dir=$(STUDY_SWINGUP)/dr
-	$(BIN)/python -m hds.report $(STUDY_SWINGUP) --out experiments/sim2real_friction/results/swingup --gif 0
+	$(BIN)/python -m hds.report $(STUDY_SWINGUP) --out experiments/sim2real_friction/results/swingup --gif plant_free/0
 
 clean:
 	rm -rf $(VENV) outputs/runs outputs/multiruns

@@ -5,7 +5,7 @@ It reads every summary.json below DIR (one per run or job) and writes, into DIR:
   report.csv     one row per method, friction gap and seed, for people who plot their own
   plots/report_*.png
 and, with --gif, an animation of the same policy on the simulator and on the real plant (of the
-run, or of a sweep's first job).
+run, or of a sweep's first job; --gif-plant: on one of its eval_plants instead).
 A gap-discovery run's report (report.json) is linked with its before/after errors and figures;
 DIR may also be a `python -m hds.discover` output directory alone, whose report then goes to
 DIR/report/ (discovery's own report.md stays as it is).
@@ -17,6 +17,7 @@ import argparse
 import csv
 import io
 import os
+import sys
 from collections import defaultdict
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from hds import plots
 from hds.animate import animate_episodes
 from hds.config import load_config
 from hds.evaluation import mean_ci
+from hds.utils import cli
 from hds.utils.io import atomic_write_bytes, read_json
 
 ROW_COLUMNS = (
@@ -57,7 +59,8 @@ def collect_rows(root: Path, found_loops: list[tuple] = ()) -> tuple[list[dict],
     jobs are read directly), each with its plant and friction gap, also the rows of the
     further plants a job evaluated its policies on (`eval_plants`) and of the rounds of
     `found_loops` (`loops`); and every (label: method and swept setting, (plant, friction
-    gap), job, history of those runs). Both empty when root holds no run."""
+    gap), job, history of those runs), on each plant the runs were evaluated on. Both empty
+    when root holds no run."""
     rows, runs = [], []
     for path in sorted(root.rglob("summary.json")):
         summary = read_json(path)
@@ -69,8 +72,13 @@ def collect_rows(root: Path, found_loops: list[tuple] = ()) -> tuple[list[dict],
         }
         job = str(path.parent.relative_to(root)) if path.parent != root else "."
         job_rows = [{**own, **r, "job": job} for r in summary["rows"]]  # a swept gap: its own
-        rows += job_rows + [{**r, "job": job} for r in summary.get("rows_eval_plants", [])]
+        eval_rows = [{**r, "job": job} for r in summary.get("rows_eval_plants", [])]
+        rows += job_rows + eval_rows
         runs.append((job, job_rows, summary["history"]))
+        for column in dict.fromkeys(map(plant_column, eval_rows)):  # the same policies' curves
+            runs.append(
+                (job, [r for r in eval_rows if plant_column(r) == column], summary["history"])
+            )
     rows += loop_rows(found_loops, root)
     keys = settings_of(rows)
     histories = []
@@ -398,18 +406,29 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
 
 
 def animate_run(
-    run_dir: Path, method: str | None = None, seed_index: int = 0, out_dir: Path | None = None
+    run_dir: Path,
+    method: str | None = None,
+    seed_index: int = 0,
+    out_dir: Path | None = None,
+    eval_plant: str | None = None,
 ) -> Path:
     """One episode of a finished run's policy (`method`, default the run's own; the
-    seed_index-th run of its batch) on the simulator it trained on beside the run's plant,
-    animated into out_dir (default: the run's plots/), its trajectories plotted beside."""
+    seed_index-th run of its batch) on the simulator it trained on beside the run's plant (or
+    its eval_plants entry `eval_plant`), animated into out_dir (default: the run's plots/), its
+    trajectories plotted beside."""
     from hds.policy import evaluate, load_policy, run_config
 
     run_dir = Path(run_dir)
-    run = run_config(run_dir).runs()[seed_index]
-    policy = load_policy(run_dir, method, **run)
+    cfg = run_config(run_dir)
+    if eval_plant is not None and eval_plant not in cfg.eval_plants:
+        raise ValueError(
+            f"--gif-plant {eval_plant}: {run_dir} has no such eval_plants entry; choose one of "
+            f"{sorted(cfg.eval_plants)}, or leave --gif-plant out for the run's own plant"
+        )
+    real_cfg = cfg.eval_plants[eval_plant] if eval_plant else cfg.real
+    policy = load_policy(run_dir, method, **cfg.runs()[seed_index])
     sim = evaluate(policy, episodes=1, plant=policy.training_plant())
-    real = evaluate(policy, episodes=1)
+    real = evaluate(policy, real_cfg, episodes=1)
     out = Path(out_dir or run_dir / "plots") / f"{policy.method}_sim_vs_real.gif"
     figure = plots.trajectories(
         sim.episodes.obs[0], real.episodes.obs[0], policy.obs_names, policy.dt
@@ -419,7 +438,7 @@ def animate_run(
         sim.episodes,
         real.episodes,
         policy.obs_names,
-        policy.config.real.plant,
+        real_cfg.plant,
         policy.dt,
         out,
         policy.env.xml,
@@ -443,6 +462,11 @@ def main(argv=None) -> None:
         "JOB, default its first job)",
     )
     parser.add_argument(
+        "--gif-plant",
+        metavar="KEY",
+        help="animate the run on this plant of its eval_plants instead of its own",
+    )
+    parser.add_argument(
         "--out", help="write the report here instead of into the directory (figures copied)"
     )
     args = parser.parse_args(argv)
@@ -460,8 +484,8 @@ def main(argv=None) -> None:
         if not runs:
             raise FileNotFoundError(f"no run directory (with config.yaml) in {root} to animate")
         out = Path(args.out) / "plots" if args.out else None
-        print(f"wrote {animate_run(runs[0], out_dir=out)}")
+        print(f"wrote {animate_run(runs[0], out_dir=out, eval_plant=args.gif_plant)}")
 
 
 if __name__ == "__main__":
-    main()
+    cli.one_line_errors(main, sys.argv[1:])

@@ -377,25 +377,49 @@ def test_the_report_counts_solved_runs_and_costs_against_the_oracle():
 
 
 def test_a_policy_is_evaluated_on_further_plants_and_reported_per_plant(tmp_path):
-    """eval_plants (conf/real presets placed with `+real@eval_plants.<key>=<preset>`): one row
-    per run and plant, the same simulator return, each plant's own real return; hds.report
-    gives each plant its column."""
-    from hds.report import build
+    """eval_plants (conf/real presets placed with `+real@eval_plants.<key>=<preset>`, at their
+    own friction gap): one row per run and plant, the same simulator return, each plant's own
+    real return; hds.report gives each plant its column, and a friction plant's rows the
+    label, numbers and learning curves of a job swept over that gap."""
+    from omegaconf import OmegaConf
+
+    from hds.report import aggregate, animate_run, build, collect_rows, markdown_table
 
     plants = ("gain", "delay", "friction_gain")
-    cfg = make_config(*TINY, "seeds=2", *(f"+real@eval_plants.{p}={p}" for p in plants))
-    result = experiment.run(cfg, tmp_path)
+    at_gap_3 = ("+real@eval_plants.x3=mujoco", "eval_plants.x3.friction_gap=3")
+    cfg = make_config(*TINY, "seeds=2", *(f"+real@eval_plants.{p}={p}" for p in plants), *at_gap_3)
+    result = experiment.run(cfg, tmp_path / "once")
     own = {r["seed"]: r for r in result.rows}
     assert {r["plant"] for r in result.rows} == {"coulomb_friction@slider"}
-    assert sorted((r["plant"], r["seed"]) for r in result.rows_eval_plants) == sorted(
-        ("friction+gain" if p == "friction_gain" else p, s) for p in plants for s in (0, 1)
+    names = {"friction_gain": "friction+gain", "x3": "coulomb_friction@slider"}
+    assert sorted((r["plant"], r["friction_gap"], r["seed"]) for r in result.rows_eval_plants) == (
+        sorted(
+            (names.get(p, p), 3.0 if p == "x3" else 1.0, s) for p in (*plants, "x3") for s in (0, 1)
+        )
     )
     for r in result.rows_eval_plants:
         assert r["sim_return"] == own[r["seed"]]["sim_return"]
     reals = {(r["plant"], r["seed"]): r["real_return"] for r in result.rows_eval_plants}
     assert len(set(reals.values())) == len(reals)  # each plant its own dynamics
-    alone = experiment.run(make_config(*TINY, "seeds=2", "real=gain"), tmp_path / "gain")
+    report = build(tmp_path / "once").read_text()
+    header = "| method | coulomb_friction@slider x1 | coulomb_friction@slider x3 | delay |"
+    assert header in report
+    # a sweep over the gap: the job at gap 1 (the same training, without eval_plants) and one at 3
+    swept = tmp_path / "swept"
+    (swept / "1").mkdir(parents=True)
+    summary = json.loads((tmp_path / "once" / "summary.json").read_text())
+    (swept / "1" / "summary.json").write_text(json.dumps({**summary, "rows_eval_plants": []}))
+    alone = experiment.run(make_config(*TINY, "seeds=2", "real.friction_gap=3"), swept / "3")
     for r in alone.rows:  # the same as training there and evaluating on that plant alone
-        assert reals[("gain", r["seed"])] == pytest.approx(r["real_return"], rel=1e-6)
-    report = build(tmp_path).read_text()
-    assert "| method | coulomb_friction@slider | delay | friction+gain | gain |" in report
+        assert reals[("coulomb_friction@slider", r["seed"])] == r["real_return"]
+    friction_lines = lambda text: [  # noqa: E731
+        line for line in text.splitlines() if line.startswith("| pods | coulomb_friction@slider")
+    ]
+    assert len(friction_lines(report)) == 2  # at gaps 1 and 3, mean and interval of 2 seeds
+    swept_table = markdown_table(aggregate(collect_rows(swept)[0]))
+    assert friction_lines(report) == friction_lines(swept_table)
+    _, curves = collect_rows(tmp_path / "once")
+    assert {column for _, column, _, _ in curves} >= {("coulomb_friction@slider", 3.0)}
+    OmegaConf.save(OmegaConf.structured(cfg), tmp_path / "once" / "config.yaml")
+    with pytest.raises(ValueError, match=r"--gif-plant x9: .* choose one of \['delay'"):
+        animate_run(tmp_path / "once", eval_plant="x9")
