@@ -81,11 +81,19 @@ def excite_until_identifiable(cfg: Config, env, plant, params, key, data_so_far)
     )
 
 
-def round_budget(cfg: Config, r: int) -> Config:
-    """Round 0 trains for algo.epochs; each later round loop.epochs more, warm-started."""
-    if r == 0 or not cfg.loop.epochs:
+def round_config(cfg: Config, r: int) -> Config:
+    """Round 0 trains as configured. Each later round trains loop.epochs more (0: algo.epochs),
+    warm-started from a policy that already solves the task, so its continuation
+    (anneal.effect_ramp) begins at once and lasts as long as configured: waiting first, as a
+    policy learning from scratch must, would spend the round's first epochs on the simulator
+    without the effects it was corrected with. The ramp still waits for a warm-started policy
+    that does not solve the task (anneal.ramp_when_solved)."""
+    if r == 0:
         return cfg
-    return dataclasses.replace(cfg, algo=dataclasses.replace(cfg.algo, epochs=cfg.loop.epochs))
+    begin, end = cfg.anneal.effect_ramp
+    anneal = dataclasses.replace(cfg.anneal, effect_ramp=[0.0, end - begin])
+    algo = dataclasses.replace(cfg.algo, epochs=cfg.loop.epochs or cfg.algo.epochs)
+    return dataclasses.replace(cfg, algo=algo, anneal=anneal)
 
 
 def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) -> list[dict]:
@@ -143,7 +151,7 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
     """Train (warm-started from `params` after round 0) on the round's simulator and, for HDS,
     a model refitted on the loop's data; evaluate on `plants` (the runs' plants). A round
     trained before is restored from its checkpoints; its report is written to round.json."""
-    round_cfg = round_budget(cfg, r)
+    round_cfg = round_config(cfg, r)
     env = make_env(env_cfg)
     model = None
     if r > 0 and cfg.uses_model():

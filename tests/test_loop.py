@@ -174,3 +174,15 @@ def test_hds_report_gives_each_loop_round_rows_and_a_section(tmp_path):
 )
 def test_the_loop_goes_on_while_the_real_return_rises_beyond_the_intervals(before, after, rose):
     assert loop.improved({"real_return": before}, {"real_return": after}) is rose
+
+
+def test_a_warm_started_round_ramps_its_effects_in_at_once():
+    """Round 0 trains as configured; a later round starts from a policy that solves the task,
+    so its continuation begins at epoch 0 and lasts as long as configured, over loop.epochs."""
+    cfg = make_config("method=pods_cl_effects", "loop.epochs=40")
+    assert loop.round_config(cfg, 0) is cfg
+    later = loop.round_config(cfg, 1)
+    assert later.anneal.effect_ramp == pytest.approx([0.0, 0.2])  # [0.5, 0.7] shifted to 0
+    assert later.algo.epochs == 40 and later.anneal.ramp_when_solved
+    assert cfg.anneal.effect_ramp == [0.5, 0.7] and cfg.algo.epochs == 150  # not modified
+    assert loop.round_config(make_config("method=pods_cl_effects"), 2).algo.epochs == 150
