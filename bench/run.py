@@ -43,6 +43,7 @@ SECTIONS = {
     "reference": "bench.reference",
     "overhead": "bench.overhead",
     "peers": "bench.peers",
+    "peers_systems": "bench.peers_systems",
     "scaling": "bench.scaling",
     "compile": "bench.compilation",
     "engine": "bench.engine",
