@@ -72,6 +72,7 @@ DEFAULT_BUDGET = {
     },
     # each method runs once per seed (a list, or {task: list}); the table gives medians over them
     "seeds": [0],
+    "overrides": [],  # config overrides for every task and method
     "eval_episodes": 50,
     "eval_seed": 1,
 }
@@ -93,10 +94,16 @@ class Clock:
         return value
 
 
-def task_env(task: str, backend: str):
+def task_config(task: str, budget: dict, *overrides: str):
+    return compose(
+        f"env={task}", f"env.backend={budget['backend']}", *budget["overrides"], *overrides
+    )
+
+
+def task_env(task: str, budget: dict):
     from hds.envs import make_env
 
-    cfg = compose(f"env={task}", f"env.backend={backend}")
+    cfg = task_config(task, budget)
     return cfg, make_env(cfg.env)
 
 
@@ -107,9 +114,9 @@ def pods_curve(method: str, task: str, budget: dict, seed: int) -> dict:
     from hds.envs import make_env
 
     clock = Clock()
-    cfg = compose(
-        f"env={task}",
-        f"env.backend={budget['backend']}",
+    cfg = task_config(
+        task,
+        budget,
         *budget["variants"].get(method, [f"method={method}"]),
         f"algo.epochs={budget['pods_epochs']}",
         "algo.chunk=1",
@@ -170,7 +177,7 @@ def ppo_curve(task: str, budget: dict, seed: int) -> dict:
     from bench.brax_env import ProjectEnv
 
     clock = Clock()
-    cfg, env = task_env(task, budget["backend"])
+    cfg, env = task_env(task, budget)
     wrapped = ProjectEnv(env)
     evaluator = FixedStates(env, budget["eval_episodes"], budget["eval_seed"])
     points, cache = [], {}
@@ -212,7 +219,7 @@ def apg_curve(task: str, budget: dict, seed: int) -> dict:
 
     settings = dict(budget["apg"])
     clock = Clock()
-    cfg, env = task_env(task, budget["backend"])
+    cfg, env = task_env(task, budget)
     wrapped = ProjectEnv(env)
     evals_after_init = max(settings["num_evals"] - 1, 1)
     updates_per_eval = round(settings["policy_updates"] / evals_after_init)
@@ -253,7 +260,7 @@ def time_to(points: list, threshold: float) -> list | None:
 
 
 def zero_action(task: str, budget: dict) -> dict:
-    _, env = task_env(task, budget["backend"])
+    _, env = task_env(task, budget)
     return summary(FixedStates(env, budget["eval_episodes"], budget["eval_seed"]).zero_action())
 
 
@@ -282,7 +289,7 @@ def seeds_of(budget: dict, task: str) -> list:
 def thresholds(budget: dict) -> dict:
     """Each task's threshold: the budget's, else the task's env.task.solved_at."""
     return {
-        t: budget["thresholds"].get(t, task_env(t, budget["backend"])[0].env.task.solved_at)
+        t: budget["thresholds"].get(t, task_config(t, budget).env.task.solved_at)
         for t in budget["tasks"]
     }
 
