@@ -273,6 +273,12 @@ def run(budget: dict) -> dict:
         "ppo": lambda t, s: ppo_curve(t, budget, s),
         "apg": lambda t, s: apg_curve(t, budget, s),
     }
+    missing = [t for t, v in thresholds(budget).items() if v is None]
+    if missing:
+        raise ValueError(
+            f"peers: no threshold for {missing}; set env.task.solved_at in their conf/env "
+            "files or the budget's thresholds"
+        )
     results, zero = [], {}
     for task in budget["tasks"]:
         zero[task] = zero_action(task, budget)
