@@ -70,7 +70,9 @@ DEFAULT_BUDGET = {
         "learning_rate": 1e-3,
         "normalize_observations": True,
     },
-    "seed": 0,
+    # each method runs once per seed (a list, or {task: list}); the table gives medians over them
+    "seeds": [0],
+    "overrides": [],  # config overrides for every task and method
     "eval_episodes": 50,
     "eval_seed": 1,
 }
@@ -92,23 +94,29 @@ class Clock:
         return value
 
 
-def task_env(task: str, backend: str):
+def task_config(task: str, budget: dict, *overrides: str):
+    return compose(
+        f"env={task}", f"env.backend={budget['backend']}", *budget["overrides"], *overrides
+    )
+
+
+def task_env(task: str, budget: dict):
     from hds.envs import make_env
 
-    cfg = compose(f"env={task}", f"env.backend={backend}")
+    cfg = task_config(task, budget)
     return cfg, make_env(cfg.env)
 
 
 # ------------------------------------------------------------------------------------ PODS, HDS
-def pods_curve(method: str, task: str, budget: dict) -> dict:
+def pods_curve(method: str, task: str, budget: dict, seed: int) -> dict:
     """PODS or HDS (the method presets), one compiled epoch at a time, evaluated after each."""
     from hds.algo.pods import make_train
     from hds.envs import make_env
 
     clock = Clock()
-    cfg = compose(
-        f"env={task}",
-        f"env.backend={budget['backend']}",
+    cfg = task_config(
+        task,
+        budget,
         *budget["variants"].get(method, [f"method={method}"]),
         f"algo.epochs={budget['pods_epochs']}",
         "algo.chunk=1",
@@ -116,7 +124,7 @@ def pods_curve(method: str, task: str, budget: dict) -> dict:
     env = make_env(cfg.env)
     trainer = make_train(cfg, env)
     hparams = trainer.default_hparams
-    state = jax.jit(trainer.init)(jax.random.PRNGKey(budget["seed"]), hparams)
+    state = jax.jit(trainer.init)(jax.random.PRNGKey(seed), hparams)
     epoch = jax.jit(trainer.run_chunk).lower(state, hparams).compile()
     compile_s = clock.now()
     evaluator = FixedStates(env, budget["eval_episodes"], budget["eval_seed"])
@@ -134,6 +142,7 @@ def pods_curve(method: str, task: str, budget: dict) -> dict:
     return {
         "method": method,
         "task": task,
+        "seed": seed,
         "compile_s": compile_s,
         "points": points,
         "final": summary(final),
@@ -162,13 +171,13 @@ def brax_apply(wrapped, make_policy):
     return apply
 
 
-def ppo_curve(task: str, budget: dict) -> dict:
+def ppo_curve(task: str, budget: dict, seed: int) -> dict:
     from brax.training.agents.ppo import train as ppo
 
     from bench.brax_env import ProjectEnv
 
     clock = Clock()
-    cfg, env = task_env(task, budget["backend"])
+    cfg, env = task_env(task, budget)
     wrapped = ProjectEnv(env)
     evaluator = FixedStates(env, budget["eval_episodes"], budget["eval_seed"])
     points, cache = [], {}
@@ -183,7 +192,7 @@ def ppo_curve(task: str, budget: dict) -> dict:
     ppo.train(
         environment=wrapped,
         episode_length=cfg.env.task.horizon,
-        seed=budget["seed"],
+        seed=seed,
         policy_params_fn=on_params,
         run_evals=False,
         num_timesteps=budget["ppo_timesteps"][task],
@@ -193,6 +202,7 @@ def ppo_curve(task: str, budget: dict) -> dict:
     return {
         "method": "ppo",
         "task": task,
+        "seed": seed,
         "compile_s": None,
         "points": points,
         "final": summary(final),
@@ -202,14 +212,14 @@ def ppo_curve(task: str, budget: dict) -> dict:
 
 
 # -------------------------------------------------------------------------------------- brax APG
-def apg_curve(task: str, budget: dict) -> dict:
+def apg_curve(task: str, budget: dict, seed: int) -> dict:
     from brax.training.agents.apg import train as apg
 
     from bench.brax_env import ProjectEnv
 
     settings = dict(budget["apg"])
     clock = Clock()
-    cfg, env = task_env(task, budget["backend"])
+    cfg, env = task_env(task, budget)
     wrapped = ProjectEnv(env)
     evals_after_init = max(settings["num_evals"] - 1, 1)
     updates_per_eval = round(settings["policy_updates"] / evals_after_init)
@@ -224,7 +234,7 @@ def apg_curve(task: str, budget: dict) -> dict:
     make_policy, params, _ = apg.train(
         environment=wrapped,
         episode_length=cfg.env.task.horizon,
-        seed=budget["seed"],
+        seed=seed,
         deterministic_eval=True,
         progress_fn=progress,
         **settings,
@@ -234,6 +244,7 @@ def apg_curve(task: str, budget: dict) -> dict:
     return {
         "method": "apg",
         "task": task,
+        "seed": seed,
         "compile_s": None,
         "points": points,
         "final": summary(final),
@@ -249,68 +260,112 @@ def time_to(points: list, threshold: float) -> list | None:
 
 
 def zero_action(task: str, budget: dict) -> dict:
-    _, env = task_env(task, budget["backend"])
+    _, env = task_env(task, budget)
     return summary(FixedStates(env, budget["eval_episodes"], budget["eval_seed"]).zero_action())
 
 
 def run(budget: dict) -> dict:
     curves = {
-        "pods": lambda t: pods_curve("pods", t, budget),
-        "pods_cl": lambda t: pods_curve("pods_cl", t, budget),
-        "pods_cl_swingup": lambda t: pods_curve("pods_cl_swingup", t, budget),
-        "hds": lambda t: pods_curve("hds", t, budget),
-        "ppo": lambda t: ppo_curve(t, budget),
-        "apg": lambda t: apg_curve(t, budget),
+        "pods": lambda t, s: pods_curve("pods", t, budget, s),
+        "pods_cl": lambda t, s: pods_curve("pods_cl", t, budget, s),
+        "pods_cl_swingup": lambda t, s: pods_curve("pods_cl_swingup", t, budget, s),
+        "hds": lambda t, s: pods_curve("hds", t, budget, s),
+        "ppo": lambda t, s: ppo_curve(t, budget, s),
+        "apg": lambda t, s: apg_curve(t, budget, s),
     }
+    missing = [t for t, v in thresholds(budget).items() if v is None]
+    if missing:
+        raise ValueError(
+            f"peers: no threshold for {missing}; set env.task.solved_at in their conf/env "
+            "files or the budget's thresholds"
+        )
     results, zero = [], {}
     for task in budget["tasks"]:
         zero[task] = zero_action(task, budget)
         for method in budget["methods"]:
-            results.append(curves[method](task))
+            results += [curves[method](task, seed) for seed in seeds_of(budget, task)]
     return present(results, zero, budget)
+
+
+def seeds_of(budget: dict, task: str) -> list:
+    seeds = budget["seeds"]
+    return seeds[task] if isinstance(seeds, dict) else seeds
+
+
+def thresholds(budget: dict) -> dict:
+    """Each task's threshold: the budget's, else the task's env.task.solved_at."""
+    return {
+        t: budget["thresholds"].get(t, task_config(t, budget).env.task.solved_at)
+        for t in budget["tasks"]
+    }
+
+
+def aggregate(runs: list[dict], threshold: float) -> dict:
+    """One method on one task over its seeds: medians of the time, samples and simulated steps
+    to the threshold (a seed that never reaches it counts as infinite, so the median exists
+    when more than half reach it), of the total wall time, final and best curve return."""
+    hits = [time_to(r["points"], threshold) for r in runs]
+    to = np.array([h[:3] if h else [np.inf] * 3 for h in hits], dtype=float)
+    median_to = np.median(to, axis=0)
+    reached = [None if not np.isfinite(v) else v for v in median_to]
+    return {
+        "method": runs[0]["method"],
+        "to": reached,  # [wall s, samples, simulated] or None each
+        "reached": sum(h is not None for h in hits),
+        "seeds": len(runs),
+        "total_s": float(np.median([r["points"][-1][0] for r in runs])),
+        "final": float(np.median([r["final"]["mean"] for r in runs])),
+        "best": float(np.median([max(p[3] for p in r["points"]) for r in runs])),
+    }
 
 
 def present(results: list[dict], zero: dict, budget: dict) -> dict:
     rows, wins, targets = [], [], []
+    limits = thresholds(budget)
     for task in budget["tasks"]:
-        threshold = budget["thresholds"][task]
-        rows.append([task, "zero action", None, None, None, None, zero[task]["mean"], None])
-        for r in (r for r in results if r["task"] == task):
-            hit = time_to(r["points"], threshold)
-            best = max(p[3] for p in r["points"])
-            last = r["points"][-1]
+        threshold = limits[task]
+        rows.append([task, "zero action", None, None, None, None, None, zero[task]["mean"], None])
+        mine = [r for r in results if r["task"] == task]
+        methods = list(dict.fromkeys(r["method"] for r in mine))
+        stats = [aggregate([r for r in mine if r["method"] == m], threshold) for m in methods]
+        for a in stats:
+            wall, samples, simulated = a["to"]
             rows.append(
                 [
                     task,
-                    r["method"],
-                    hit[0] if hit else "not reached",
-                    hit[1] if hit else None,
-                    hit[2] if hit else None,
-                    last[0],
-                    r["final"]["mean"],
-                    best,
+                    a["method"],
+                    "not reached" if wall is None else wall,
+                    samples,
+                    simulated,
+                    f"{a['reached']} of {a['seeds']}",
+                    a["total_s"],
+                    a["final"],
+                    a["best"],
                 ]
             )
-        wins.append(winners(results, task, threshold))
-        targets.append(peer_target(results, task, threshold))
+        wins.append(winners(stats, task))
+        targets.append(peer_target(stats, task, threshold))
         wins += [
-            f"{task}: {r['method']} ended below where it started ({r['points'][0][3]:,.0f} -> "
-            f"{r['points'][-1][3]:,.0f} on its curve)."
-            for r in results
-            if r["task"] == task and r["points"][-1][3] < r["points"][0][3]
+            f"{task}: {r['method']} (seed {r['seed']}) ended below where it started "
+            f"({r['points'][0][3]:,.0f} -> {r['points'][-1][3]:,.0f} on its curve)."
+            for r in mine
+            if r["points"][-1][3] < r["points"][0][3]
         ]
+    seeds = {t: seeds_of(budget, t) for t in budget["tasks"]}
     return {
         "title": "brax PPO and APG vs PODS and HDS",
         "tables": [
             {
                 "caption": "Time and env steps to the threshold (wall s from the start, compile "
-                "included, evaluation excluded); final return on the 50 fixed states",
+                "included, evaluation excluded); final return on the 50 fixed states; medians "
+                "over each method's seeds",
                 "columns": [
                     "task",
                     "method",
                     "wall s to threshold",
                     "samples to threshold",
                     "simulated steps to threshold",
+                    "seeds reaching it",
                     "total wall s",
                     "final return",
                     "best curve return",
@@ -320,11 +375,16 @@ def present(results: list[dict], zero: dict, budget: dict) -> dict:
         ],
         "notes": [
             "Thresholds (mean return over the 50 fixed initial states): "
-            + ", ".join(f"{t} {v:,.0f}" for t, v in budget["thresholds"].items())
+            + ", ".join(f"{t} {v:,.0f}" for t, v in limits.items())
             + ". Zero-action returns on the same states are in the table.",
             *wins,
-            f"Backend {budget['backend']} for every method; seed {budget['seed']}; one run "
-            "each: a single seed says little about a method's spread.",
+            f"Backend {budget['backend']} for every method; seeds per task {seeds}: "
+            + (
+                "one run each: a single seed says little about a method's spread."
+                if all(len(s) == 1 for s in seeds.values())
+                else "medians over the seeds (a seed that never reaches the threshold counts "
+                "as never; the median exists when more than half reach it)."
+            ),
             "PODS/HDS: conf/method presets (pods: line search, no noise; pods_cl: the same with "
             "closed-loop action improvement; hds: exponential noise decay, simulated annealing, "
             "no learned model), algo defaults, and pods_cl_swingup (pods_cl with the swing-up "
@@ -335,20 +395,21 @@ def present(results: list[dict], zero: dict, budget: dict) -> dict:
             "tuned exhaustively.",
         ],
         "targets": targets,
-        "data": {"curves": results, "zero_action": zero},
+        "data": {"curves": results, "zero_action": zero, "thresholds": limits},
     }
 
 
 OURS, PEERS = ("pods", "pods_cl", "pods_cl_swingup", "hds"), ("ppo", "apg")
 
 
-def peer_target(results: list[dict], task: str, threshold: float) -> dict:
+def peer_target(stats: list[dict], task: str, threshold: float) -> dict:
     """Issue 6's target: PODS or HDS (any preset) reaches the threshold in less wall-clock time
-    than each of brax's PPO and APG (a peer that never reaches it counts as slower)."""
-    hits = {r["method"]: time_to(r["points"], threshold) for r in results if r["task"] == task}
-    ours = {m: h[0] for m, h in hits.items() if m in OURS and h}
+    (median over seeds) than each of brax's PPO and APG (a peer that never reaches it counts as
+    slower)."""
+    wall = {a["method"]: a["to"][0] for a in stats}
+    ours = {m: t for m, t in wall.items() if m in OURS and t is not None}
     best = min(ours, key=ours.get) if ours else None
-    peers = {m: (hits[m][0] if hits.get(m) else None) for m in PEERS if m in hits}
+    peers = {m: t for m, t in wall.items() if m in PEERS}
     met = best is not None and all(t is None or ours[best] < t for t in peers.values())
     shown = ", ".join(
         f"{m} {'not reached' if t is None else f'{t:.1f} s'}" for m, t in peers.items()
@@ -361,24 +422,22 @@ def peer_target(results: list[dict], task: str, threshold: float) -> dict:
     }
 
 
-def winners(results: list[dict], task: str, threshold: float) -> str:
+def winners(stats: list[dict], task: str) -> str:
     """Who reaches the threshold first (wall clock, samples) and who ends highest."""
-    mine = [r for r in results if r["task"] == task]
-    hits = {r["method"]: time_to(r["points"], threshold) for r in mine}
-    reached = {m: h for m, h in hits.items() if h}
+    reached = {a["method"]: a["to"] for a in stats if a["to"][0] is not None}
     parts = [f"{task}:"]
     if reached:
         fast = min(reached, key=lambda m: reached[m][0])
         frugal = min(reached, key=lambda m: reached[m][1])
         parts.append(
             f"first to the threshold by wall clock: {fast} ({reached[fast][0]:.1f} s); "
-            f"by samples: {frugal} ({reached[frugal][1]:,});"
+            f"by samples: {frugal} ({reached[frugal][1]:,.0f});"
         )
     else:
         parts.append("no method reached the threshold;")
-    top = max(mine, key=lambda r: r["final"]["mean"])
-    parts.append(f"highest final return: {top['method']} ({top['final']['mean']:,.1f}).")
-    missed = [m for m, h in hits.items() if h is None]
+    top = max(stats, key=lambda a: a["final"])
+    parts.append(f"highest final return: {top['method']} ({top['final']:,.1f}).")
+    missed = [a["method"] for a in stats if a["to"][0] is None]
     if missed:
         parts.append(f"Not reached: {', '.join(missed)}.")
     return " ".join(parts)

@@ -7,7 +7,17 @@ raw numbers under `data`; this module only lays them out.
 
 from __future__ import annotations
 
-ORDER = ("reference", "overhead", "peers", "scaling", "compile", "engine", "discovery", "gpu")
+ORDER = (
+    "reference",
+    "overhead",
+    "peers",
+    "peers_systems",
+    "scaling",
+    "compile",
+    "engine",
+    "discovery",
+    "gpu",
+)
 
 
 def _cell(x) -> str:

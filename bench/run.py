@@ -5,6 +5,8 @@ other processes compete for the cores):
   reference  the reference configuration end to end vs the reference implementation's 573 s
   overhead   the trainer's epoch over the bare engine cost of the same rollouts
   peers      brax's PPO and APG vs PODS and HDS: time and env steps to a return threshold
+  peers_systems  the same on the double cart-pole swing-up (tree engine), 5 seeds: about 29
+             minutes on its own on a shared 2-core CPU
   scaling    seeds vmapped, horizon, rollouts per epoch: wall time and peak memory
   compile    cold and warm (persistent cache) compile, each in its own process
   engine     the tree engine vs brax generalized and MJX per system: compile, env-steps/s
@@ -43,6 +45,7 @@ SECTIONS = {
     "reference": "bench.reference",
     "overhead": "bench.overhead",
     "peers": "bench.peers",
+    "peers_systems": "bench.peers_systems",
     "scaling": "bench.scaling",
     "compile": "bench.compilation",
     "engine": "bench.engine",

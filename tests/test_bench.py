@@ -106,6 +106,22 @@ def test_the_peers_swingup_variant_is_the_swingup_experiment():
     assert variant.noise == experiment.noise
 
 
+def test_peers_medians_count_a_seed_that_never_reaches_the_threshold_as_never():
+    """bench/peers.py's median over seeds: a method reaching the threshold with 2 of 3 seeds
+    has a median time to it; with 1 of 3 it has none."""
+    from bench.peers import aggregate
+
+    def run(returns):  # a curve point every 10 s and 100 samples
+        points = [[10.0 * i, 100 * i, 300 * i, r] for i, r in enumerate(returns)]
+        return {"method": "m", "points": points, "final": {"mean": returns[-1]}}
+
+    fast, slow, never = run([-9, -5, -1]), run([-9, -8, -4, -2]), run([-9, -9, -9])
+    two = aggregate([fast, slow, never], threshold=-3)
+    assert (two["to"], two["reached"], two["seeds"]) == ([30.0, 300.0, 900.0], 2, 3)
+    assert (two["final"], two["best"]) == (-2, -2)
+    assert aggregate([fast, never, never], threshold=-3)["to"] == [None, None, None]
+
+
 SMALL = "algo.rollouts=8,env.task.horizon=20,algo.inner_epochs=2"
 
 
