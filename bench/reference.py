@@ -25,9 +25,10 @@ from bench.common import (
 )
 
 DEFAULT_BUDGET = {
-    "backends": ["analytic", "generalized"],
+    # the closed-form cart-pole engine, the generic tree engine (any contact-free MJCF), brax's
+    "backends": ["analytic", "tree", "generalized"],
     "line_search": [4, 8],
-    "seeds": 3,  # seeds trained per setting on the analytic backend (seed 0 is the timed one)
+    "seeds": 3,  # seeds trained per setting on hds's own engines (seed 0 is the timed one)
     "slow_seeds": 1,  # ... on brax backends, where one training takes minutes
     "hds_backends": ["analytic"],  # HDS with the reference's HDS settings, for comparison
     "eval_episodes": 50,
@@ -35,6 +36,7 @@ DEFAULT_BUDGET = {
     "cross_check": "generalized",  # every policy is also evaluated on this backend
     "speedup_target": 20.0,
 }
+FAST = ("analytic", "tree")  # hds's own engines: a training takes seconds
 # The reference project's HDS settings (FIELD-NOTES.md): alpha 2e-3, noise 0.1 halving per epoch.
 HDS_OVERRIDES = ("method=hds", "algo.step_size=2e-3", "noise.scale=0.1", "noise.decay=0.5")
 
@@ -135,13 +137,13 @@ def run(budget: dict) -> dict:
     evals = Evaluations(budget["eval_episodes"], budget["eval_seed"], budget["cross_check"])
     runs = []
     for backend in budget["backends"]:
-        seeds = budget["seeds"] if backend == "analytic" else budget["slow_seeds"]
+        seeds = budget["seeds"] if backend in FAST else budget["slow_seeds"]
         for n in budget["line_search"]:
             runs.append(
                 measure("pods", (*REFERENCE, f"algo.line_search={n}"), backend, seeds, evals)
             )
     for backend in budget["hds_backends"]:
-        seeds = budget["seeds"] if backend == "analytic" else budget["slow_seeds"]
+        seeds = budget["seeds"] if backend in FAST else budget["slow_seeds"]
         runs.append(measure("hds", (*REFERENCE, *HDS_OVERRIDES), backend, seeds, evals))
     zero = {b: summary(evals.of(b).zero_action()) for b in evals.built()}
     return present(runs, zero, budget)
