@@ -35,6 +35,10 @@ DEFAULT_BUDGET = {
     "eval_seed": 1,
     "cross_check": "generalized",  # every policy is also evaluated on this backend
     "speedup_target": 20.0,
+    # config overrides for every training, e.g. a user's own MJCF of the cart-pole:
+    # env.xml=bench/assets/cartpole_renamed.xml,real=none (its joints renamed: the default
+    # plant's friction names the cart-pole's `slider`)
+    "overrides": [],
 }
 FAST = ("analytic", "tree")  # hds's own engines: a training takes seconds
 # The reference project's HDS settings (FIELD-NOTES.md): alpha 2e-3, noise 0.1 halving per epoch.
@@ -140,11 +144,18 @@ def run(budget: dict) -> dict:
         seeds = budget["seeds"] if backend in FAST else budget["slow_seeds"]
         for n in budget["line_search"]:
             runs.append(
-                measure("pods", (*REFERENCE, f"algo.line_search={n}"), backend, seeds, evals)
+                measure(
+                    "pods",
+                    (*REFERENCE, f"algo.line_search={n}", *budget["overrides"]),
+                    backend,
+                    seeds,
+                    evals,
+                )
             )
     for backend in budget["hds_backends"]:
         seeds = budget["seeds"] if backend in FAST else budget["slow_seeds"]
-        runs.append(measure("hds", (*REFERENCE, *HDS_OVERRIDES), backend, seeds, evals))
+        overrides = (*REFERENCE, *HDS_OVERRIDES, *budget["overrides"])
+        runs.append(measure("hds", overrides, backend, seeds, evals))
     zero = {b: summary(evals.of(b).zero_action()) for b in evals.built()}
     return present(runs, zero, budget)
 
