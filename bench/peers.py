@@ -273,7 +273,8 @@ def run(budget: dict) -> dict:
         "ppo": lambda t, s: ppo_curve(t, budget, s),
         "apg": lambda t, s: apg_curve(t, budget, s),
     }
-    missing = [t for t, v in thresholds(budget).items() if v is None]
+    limits = thresholds(budget)
+    missing = [t for t, v in limits.items() if v is None]
     if missing:
         raise ValueError(
             f"peers: no threshold for {missing}; set env.task.solved_at in their conf/env "
@@ -284,7 +285,7 @@ def run(budget: dict) -> dict:
         zero[task] = zero_action(task, budget)
         for method in budget["methods"]:
             results += [curves[method](task, seed) for seed in seeds_of(budget, task)]
-    return present(results, zero, budget)
+    return present(results, zero, budget, limits)
 
 
 def seeds_of(budget: dict, task: str) -> list:
@@ -319,9 +320,9 @@ def aggregate(runs: list[dict], threshold: float) -> dict:
     }
 
 
-def present(results: list[dict], zero: dict, budget: dict) -> dict:
+def present(results: list[dict], zero: dict, budget: dict, limits: dict) -> dict:
+    """The section's tables and notes; `limits`: each task's threshold (`thresholds`)."""
     rows, wins, targets = [], [], []
-    limits = thresholds(budget)
     for task in budget["tasks"]:
         threshold = limits[task]
         rows.append([task, "zero action", None, None, None, None, None, zero[task]["mean"], None])

@@ -140,22 +140,24 @@ def measure(
 def run(budget: dict) -> dict:
     evals = Evaluations(budget["eval_episodes"], budget["eval_seed"], budget["cross_check"])
     runs = []
+
+    def seeds_on(backend):
+        return budget["seeds"] if backend in FAST else budget["slow_seeds"]
+
     for backend in budget["backends"]:
-        seeds = budget["seeds"] if backend in FAST else budget["slow_seeds"]
         for n in budget["line_search"]:
             runs.append(
                 measure(
                     "pods",
                     (*REFERENCE, f"algo.line_search={n}", *budget["overrides"]),
                     backend,
-                    seeds,
+                    seeds_on(backend),
                     evals,
                 )
             )
     for backend in budget["hds_backends"]:
-        seeds = budget["seeds"] if backend in FAST else budget["slow_seeds"]
         overrides = (*REFERENCE, *HDS_OVERRIDES, *budget["overrides"])
-        runs.append(measure("hds", overrides, backend, seeds, evals))
+        runs.append(measure("hds", overrides, backend, seeds_on(backend), evals))
     zero = {b: summary(evals.of(b).zero_action()) for b in evals.built()}
     return present(runs, zero, budget)
 
