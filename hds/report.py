@@ -405,6 +405,31 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
     return path
 
 
+def animated_plant(cfg, run_dir: Path, eval_plant: str | None):
+    """The plant config `animate_run` deploys on: the run's own, or its eval_plants entry."""
+    if eval_plant is None:
+        return cfg.real
+    if eval_plant not in cfg.eval_plants:
+        raise ValueError(
+            f"--gif-plant {eval_plant}: {run_dir} has no such eval_plants entry; choose one of "
+            f"{sorted(cfg.eval_plants)}, or leave --gif-plant out for the run's own plant"
+        )
+    return cfg.eval_plants[eval_plant]
+
+
+def run_to_animate(directory: Path, job: str) -> Path:
+    """The run directory `--gif [JOB]` names: the run itself, or a sweep's job JOB (default
+    its first job)."""
+    if job:
+        return directory / job
+    if (directory / "config.yaml").is_file():
+        return directory
+    runs = sorted((p.parent for p in directory.glob("*/config.yaml")), key=lambda p: p.name)
+    if not runs:
+        raise FileNotFoundError(f"no run directory (with config.yaml) in {directory} to animate")
+    return runs[0]
+
+
 def animate_run(
     run_dir: Path,
     method: str | None = None,
@@ -420,12 +445,7 @@ def animate_run(
 
     run_dir = Path(run_dir)
     cfg = run_config(run_dir)
-    if eval_plant is not None and eval_plant not in cfg.eval_plants:
-        raise ValueError(
-            f"--gif-plant {eval_plant}: {run_dir} has no such eval_plants entry; choose one of "
-            f"{sorted(cfg.eval_plants)}, or leave --gif-plant out for the run's own plant"
-        )
-    real_cfg = cfg.eval_plants[eval_plant] if eval_plant else cfg.real
+    real_cfg = animated_plant(cfg, run_dir, eval_plant)
     policy = load_policy(run_dir, method, **cfg.runs()[seed_index])
     sim = evaluate(policy, episodes=1, plant=policy.training_plant())
     real = evaluate(policy, real_cfg, episodes=1)
@@ -470,21 +490,18 @@ def main(argv=None) -> None:
         "--out", help="write the report here instead of into the directory (figures copied)"
     )
     args = parser.parse_args(argv)
-    path = build(args.directory, args.out)
-    print(f"wrote {path}")
-    if args.gif is not None:
-        root = Path(args.directory)
-        runs = (
-            [root]
-            if (root / "config.yaml").is_file()
-            else sorted((p.parent for p in root.glob("*/config.yaml")), key=lambda p: p.name)
-        )
-        if args.gif:
-            runs = [root / args.gif]
-        if not runs:
-            raise FileNotFoundError(f"no run directory (with config.yaml) in {root} to animate")
+    if args.gif_plant is not None and args.gif is None:
+        raise ValueError("--gif-plant chooses the plant of --gif's animation: add --gif [JOB]")
+    animated = None
+    if args.gif is not None:  # a bad JOB or plant is refused before the report is written
+        animated = run_to_animate(Path(args.directory), args.gif)
+        from hds.policy import run_config
+
+        animated_plant(run_config(animated), animated, args.gif_plant)
+    print(f"wrote {build(args.directory, args.out)}")
+    if animated is not None:
         out = Path(args.out) / "plots" if args.out else None
-        print(f"wrote {animate_run(runs[0], out_dir=out, eval_plant=args.gif_plant)}")
+        print(f"wrote {animate_run(animated, out_dir=out, eval_plant=args.gif_plant)}")
 
 
 if __name__ == "__main__":

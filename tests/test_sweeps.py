@@ -384,6 +384,7 @@ def test_a_policy_is_evaluated_on_further_plants_and_reported_per_plant(tmp_path
     from omegaconf import OmegaConf
 
     from hds.report import aggregate, animate_run, build, collect_rows, markdown_table
+    from hds.report import main as report_main
 
     plants = ("gain", "delay", "friction_gain")
     at_gap_3 = ("+real@eval_plants.x3=mujoco", "eval_plants.x3.friction_gap=3")
@@ -423,3 +424,8 @@ def test_a_policy_is_evaluated_on_further_plants_and_reported_per_plant(tmp_path
     OmegaConf.save(OmegaConf.structured(cfg), tmp_path / "once" / "config.yaml")
     with pytest.raises(ValueError, match=r"--gif-plant x9: .* choose one of \['delay'"):
         animate_run(tmp_path / "once", eval_plant="x9")
+    elsewhere = tmp_path / "report_elsewhere"
+    for bad in (["--gif", "--gif-plant", "x9"], ["--gif-plant", "x3"]):  # refused before writing
+        with pytest.raises(ValueError, match="--gif-plant"):
+            report_main([str(tmp_path / "once"), "--out", str(elsewhere), *bad])
+        assert not elsewhere.exists()
