@@ -201,9 +201,9 @@ def test_non_finite_results_are_written_as_null_with_a_flag(tmp_path):
 
 
 def test_a_diverging_simulator_is_reported_and_gives_no_finite_result(tmp_path, caplog):
-    """A 1e30 N s/m damping in the simulator (explicit: each step overshoots by 1e30): every
-    rollout's return is NaN."""
-    huge = "env.effects=[{name:viscous_damping,target:slider,params:{coefficient:1e30}}]"
+    """A motor 1e30 times stronger in the simulator (the cart leaves float32's range in a
+    step): every rollout's return is NaN."""
+    huge = "env.effects=[{name:actuator_gain,target:slide,params:{gain:1e30}}]"
     summary = experiment.run(make_config(*S, huge), tmp_path).summary()
     assert "evaluation rollouts diverged to NaN or inf: 2 of 2 on the simulator" in caplog.text
     assert "training rollouts diverged in every epoch too, and were all skipped" in caplog.text
