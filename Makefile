@@ -51,8 +51,8 @@ sweep: $(STAMP)
 # delete $(STUDY_RUN) to start over): friction gaps (the methods whose training reads the plant,
 # then those trained once and evaluated on every friction plant: plant_free/), then the other
 # effects' plants (policies that depend on the plant, then those trained once), the sim2real
-# loop at 20 and 80 N (closed-loop PODS, then HDS with its model refitted on each round's
-# deployments), then one report of all, its figures and GIF (closed-loop PODS from the
+# loop at 20, 80 and 40 N (closed-loop PODS), then at 20 and 80 N with HDS (its model refitted
+# on each round's deployments), then one report of all, its figures and GIF (closed-loop PODS from the
 # frictionless simulator, plant_free/1, on the 80 N plant, its eval plant x4) into
 # experiments/sim2real_friction/results; the oracle at the loop's total budget (450 epochs) at
 # 20, 80 and 40 N (40 N added last, so finished jobs keep their numbers), and the swing-up at
@@ -72,6 +72,7 @@ study: $(STAMP)
 	$(BIN)/python -m hds.run +experiment=sim2real_study_shared hydra.sweep.dir=$(STUDY_RUN)/shared
 	$(STUDY_LOOP) real.friction_gap=1 hydra.run.dir=$(STUDY_RUN)/loop/x1
 	$(STUDY_LOOP) real.friction_gap=4 hydra.run.dir=$(STUDY_RUN)/loop/x4
+	$(STUDY_LOOP) real.friction_gap=2 hydra.run.dir=$(STUDY_RUN)/loop/x2
 	$(STUDY_HDS_LOOP) real.friction_gap=1 hydra.run.dir=$(STUDY_RUN)/loop/hds_x1
 	$(STUDY_HDS_LOOP) real.friction_gap=4 hydra.run.dir=$(STUDY_RUN)/loop/hds_x4
 	$(BIN)/python -m hds.report $(STUDY_RUN) --out experiments/sim2real_friction/results \
