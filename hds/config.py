@@ -198,10 +198,12 @@ class AnnealConfig:
     # (effects, dynamics.beta) at end (a continuation); [0, 0]: off
     effect_ramp: list[float] = field(default_factory=lambda: [0.0, 0.0])
     # the ramp waits (at most until it would end on the last epoch) for the policy to solve
-    # the task without the effects (a training return >= env.task.solved_at; a task without
-    # one ramps on time): a seed still learning at `begin` would otherwise meet them unready
-    # and may never learn
+    # the task without the effects (a training return >= env.task.solved_at in `solved_for`
+    # epochs in a row; a task without one ramps on time): a seed still learning at `begin`
+    # would otherwise meet them unready and may never learn, and one epoch's return is noisy
+    # (a seed at -4.6 once, between -74 and -16, met the effects and never balanced again)
     ramp_when_solved: bool = True
+    solved_for: int = 5
 
     def check(self):
         _one_of("anneal.kind", self.kind, ("line_search", "simulated", "fixed"))
@@ -213,6 +215,7 @@ class AnnealConfig:
         _in_range("anneal.temperature", self.temperature, 0.0)
         _in_range("anneal.cooling", self.cooling, 0.0, 1.0)
         _in_range("anneal.step_decay", self.step_decay, 0.0, 1.0)
+        _in_range("anneal.solved_for", self.solved_for, 1)
 
 
 @dataclass

@@ -100,6 +100,7 @@ def test_every_launcher_composes(launcher):
         ("real.friction_gap=-1", "real.friction_gap = -1.0 is out of range"),
         ("noise.decay=1.5", "noise.decay = 1.5 is out of range"),
         ("dynamics.beta=2", "dynamics.beta = 2.0 is out of range"),
+        ("anneal.solved_for=0", "anneal.solved_for = 0 is out of range"),
         (
             "env.backend=bullet",
             "choose one of ['generalized', 'spring', 'positional', 'mjx', 'analytic', 'tree']",

@@ -325,16 +325,21 @@ def _ramped_training(*overrides):
 
 def test_the_ramp_waits_for_the_policy_to_solve_the_task():
     """anneal.ramp_when_solved: a policy that solves the task from the first epoch meets the
-    effects on the configured ramp (epochs 2-4); one that never does, as late as the ramp can
-    start and still end on the last epoch (7-9)."""
-    *_, at_once = _ramped_training("env.task.solved_at=-1e9")
+    effects on the configured ramp (epochs 2-4) when one solved epoch is enough, one epoch
+    later when it must solve 3 in a row (epochs 0-2: the ramp starts after epoch 2); one that
+    never does, as late as the ramp can start and still end on the last epoch (7-9)."""
+    *_, at_once = _ramped_training("env.task.solved_at=-1e9", "anneal.solved_for=1")
+    *_, three = _ramped_training("env.task.solved_at=-1e9", "anneal.solved_for=3")
     *_, never = _ramped_training("env.task.solved_at=1e9")
     np.testing.assert_allclose(at_once["ramp"], [0, 0, 0.5, 1, 1, 1, 1, 1, 1, 1])
+    np.testing.assert_allclose(three["ramp"], [0, 0, 0, 0.5, 1, 1, 1, 1, 1, 1])
     np.testing.assert_allclose(never["ramp"], [0, 0, 0, 0, 0, 0, 0, 0, 0.5, 1])
 
 
 def test_keep_best_returns_the_best_policy_once_the_ramp_has_ended():
-    trainer, state, states, metrics = _ramped_training("env.task.solved_at=-1e9", "algo.keep=best")
+    trainer, state, states, metrics = _ramped_training(
+        "env.task.solved_at=-1e9", "anneal.solved_for=1", "algo.keep=best"
+    )
     done = np.nonzero(metrics["ramp"] >= 1)[0]
     best = done[np.argmax(metrics["return"][done])]
     kept, last = trainer.final_policy(state), state.policy  # last: after the final update

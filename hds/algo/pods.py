@@ -41,8 +41,9 @@ class TrainState:
     opt_state: optax.OptState
     epoch: jax.Array
     key: jax.Array
-    # what the configuration tracks across epochs: "solved", the first epoch the policy solved
-    # the task (anneal.ramp_when_solved); "best" and "best_return", the kept policy (algo.keep)
+    # what the configuration tracks across epochs: "solved", the epoch the policy had solved
+    # the task anneal.solved_for epochs in a row, "streak", how many it has now
+    # (anneal.ramp_when_solved); "best" and "best_return", the kept policy (algo.keep)
     progress: dict = struct.field(default_factory=dict)
 
 
@@ -102,11 +103,13 @@ def make_train(cfg, env, model=None) -> Trainer:
     ramp = [share * algo.epochs for share in cfg.anneal.effect_ramp]  # [begin, end] epochs
     solved_at = cfg.env.task.solved_at
     gated = bool(ramp[1]) and cfg.anneal.ramp_when_solved and solved_at is not None
+    solved_for = cfg.anneal.solved_for
     keep_best = algo.keep == "best"
 
     def ramp_delay(state):
         """Epochs the ramp waits for the policy to solve the task: until the epoch after it
-        first did, at most until the ramp ends on the last epoch."""
+        first did so `anneal.solved_for` epochs in a row, at most until the ramp ends on the
+        last epoch."""
         if not gated:
             return 0
         return jnp.clip(state.progress["solved"] + 1 - ramp[0], 0, algo.epochs - ramp[1])
@@ -144,6 +147,7 @@ def make_train(cfg, env, model=None) -> Trainer:
         progress = {}
         if gated:
             progress["solved"] = jnp.array(algo.epochs, jnp.int32)  # not yet
+            progress["streak"] = jnp.array(0, jnp.int32)  # epochs in a row at solved_at
         if keep_best:
             progress |= {"best": params, "best_return": jnp.float32(-jnp.inf)}
         return TrainState(params, optimizer.init(params), jnp.array(0, jnp.int32), key, progress)
@@ -153,7 +157,9 @@ def make_train(cfg, env, model=None) -> Trainer:
         continuation's `ramp_share`."""
         progress = dict(state.progress)
         if gated:
-            first = (state.progress["solved"] == algo.epochs) & (sim_return >= solved_at)
+            streak = jnp.where(sim_return >= solved_at, state.progress["streak"] + 1, 0)
+            first = (state.progress["solved"] == algo.epochs) & (streak >= solved_for)
+            progress["streak"] = streak
             progress["solved"] = jnp.where(first, state.epoch, state.progress["solved"])
         if keep_best:  # among the epochs with the continuation at its end
             better = (ramp_share >= 1) & (sim_return > state.progress["best_return"])
