@@ -42,8 +42,8 @@ class TrainState:
     epoch: jax.Array
     key: jax.Array
     # what the configuration tracks across epochs: "solved", the epoch the policy had solved
-    # the task anneal.solved_for epochs in a row, "streak", how many it has now
-    # (anneal.ramp_when_solved); "best" and "best_return", the kept policy (algo.keep)
+    # the task anneal.solved_for epochs in a row, "streak", how many it has now (only when
+    # more than one; anneal.ramp_when_solved); "best" and "best_return", the kept policy (algo.keep)
     progress: dict = struct.field(default_factory=dict)
 
 
@@ -147,7 +147,8 @@ def make_train(cfg, env, model=None) -> Trainer:
         progress = {}
         if gated:
             progress["solved"] = jnp.array(algo.epochs, jnp.int32)  # not yet
-            progress["streak"] = jnp.array(0, jnp.int32)  # epochs in a row at solved_at
+            if solved_for > 1:  # one epoch (the default) needs no count: checkpoints as before
+                progress["streak"] = jnp.array(0, jnp.int32)  # epochs in a row at solved_at
         if keep_best:
             progress |= {"best": params, "best_return": jnp.float32(-jnp.inf)}
         return TrainState(params, optimizer.init(params), jnp.array(0, jnp.int32), key, progress)
@@ -157,9 +158,10 @@ def make_train(cfg, env, model=None) -> Trainer:
         continuation's `ramp_share`."""
         progress = dict(state.progress)
         if gated:
-            streak = jnp.where(sim_return >= solved_at, state.progress["streak"] + 1, 0)
+            streak = jnp.where(sim_return >= solved_at, state.progress.get("streak", 0) + 1, 0)
             first = (state.progress["solved"] == algo.epochs) & (streak >= solved_for)
-            progress["streak"] = streak
+            if solved_for > 1:
+                progress["streak"] = streak
             progress["solved"] = jnp.where(first, state.epoch, state.progress["solved"])
         if keep_best:  # among the epochs with the continuation at its end
             better = (ramp_share >= 1) & (sim_return > state.progress["best_return"])
