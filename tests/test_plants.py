@@ -183,10 +183,11 @@ def test_brax_and_mujoco_agree_without_effects(plants):
 
 
 def test_brax_and_mujoco_agree_with_viscous_damping(plants):
-    """Viscous damping is the joint's own damping in both plants, which MuJoCo's Euler (and
-    brax's, the analytic and the tree engine) integrate implicitly: they agree as closely as
-    without effects, where an explicit force -c qd differs from it by about h c / inertia
-    (measured: ERR on the pole)."""
+    """Viscous damping is the joint's own damping in both plants, which MuJoCo's Euler and
+    brax's (the cart-pole asks for an exact mass-matrix inverse) integrate implicitly: they
+    agree as closely as without effects (measured: 2e-6 at most). An explicit force -c qd in
+    brax, the law before, was 0.07 rad/s off in the pole's velocity, a tenth of what the
+    damping changes."""
     rng = np.random.default_rng(1)
     q0 = np.array([0.0, HANG]) + rng.uniform(-1.0, 1.0, (B, 2))
     qd0 = rng.uniform(-3.0, 3.0, (B, 2))

@@ -64,7 +64,8 @@ class ViscousDamping(Effect):
     target_kind = JOINT
     description = (
         "friction proportional to the joint's velocity (added to the joint's damping, which "
-        "every backend integrates implicitly, as MuJoCo's Euler does)"
+        "each backend integrates as it does the model's own: implicitly, as MuJoCo's Euler, "
+        "where it can)"
     )
     physical_name = "viscous friction"
     params = (Param("coefficient", "N s/m or N m s/rad", 0.0, lower=0.0),)
@@ -76,7 +77,9 @@ class ViscousDamping(Effect):
     def modify_system(self, site, p, sys):
         """The joint's damping, not an explicit force: the plant's law is MuJoCo's implicit
         one, and an explicit -c qd differs from it by about h c / inertia (3% on the pole:
-        fits came out 3% high, outside their intervals)."""
+        fits came out 3% high, outside their intervals). The analytic, tree and MJX backends
+        integrate it implicitly; brax's generalized one where the MJCF asks for an exact
+        mass-matrix inverse (numeric matrix_inv_iterations 0, as the cart-pole's does)."""
         c = p["coefficient"]
         sys = sys.replace(dof=sys.dof.replace(damping=sys.dof.damping.at[site.index].add(c)))
         if hasattr(sys, "dof_damping"):  # the mjx backend reads MuJoCo's own fields
