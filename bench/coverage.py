@@ -18,7 +18,7 @@ from scipy import stats
 from bench.common import compose, timed
 from bench.discovery import record
 
-DEFAULT_BUDGET = {"episodes": 12, "steps": 80, "noise": 0.005, "stride": 2, "seed": 0, "seeds": 3}
+DEFAULT_BUDGET = {"episodes": 12, "steps": 80, "noise": 0.005, "stride": 2, "seed": 0, "seeds": 10}
 
 # Every effect of the library at three magnitudes, on the cart-pole (actuator range +-3,
 # gear 100; the excitation uses 15% of the range).

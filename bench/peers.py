@@ -39,7 +39,17 @@ DEFAULT_BUDGET = {
             "noise=exponential",
             "noise.scale=1.0",
             "noise.decay=0.98",
-        ]
+        ],
+        # conf/experiment/furuta_balance.yaml's: closed loop with a horizon curriculum from 15
+        # steps, step size 0.2, noise 1.0 decaying 3% an epoch
+        "pods_cl_horizon": [
+            "method=pods_cl",
+            "algo.step_size=0.2",
+            "anneal.horizon_start=15",
+            "noise=exponential",
+            "noise.scale=1.0",
+            "noise.decay=0.97",
+        ],
     },
     # Returns a good policy reaches (the mean over the 50 fixed initial states); see the notes.
     # Returns a good policy reaches (mean over the 50 fixed initial states), chosen from trial
@@ -266,10 +276,10 @@ def zero_action(task: str, budget: dict) -> dict:
 
 def run(budget: dict) -> dict:
     curves = {
-        "pods": lambda t, s: pods_curve("pods", t, budget, s),
-        "pods_cl": lambda t, s: pods_curve("pods_cl", t, budget, s),
-        "pods_cl_swingup": lambda t, s: pods_curve("pods_cl_swingup", t, budget, s),
-        "hds": lambda t, s: pods_curve("hds", t, budget, s),
+        m: lambda t, s, m=m: pods_curve(m, t, budget, s)
+        for m in ("pods", "pods_cl", "hds", *budget["variants"])
+    }
+    curves |= {
         "ppo": lambda t, s: ppo_curve(t, budget, s),
         "apg": lambda t, s: apg_curve(t, budget, s),
     }
@@ -388,10 +398,11 @@ def present(results: list[dict], zero: dict, budget: dict, limits: dict) -> dict
             ),
             "PODS/HDS: conf/method presets (pods: line search, no noise; pods_cl: the same with "
             "closed-loop action improvement; hds: exponential noise decay, simulated annealing, "
-            "no learned model), algo defaults, and pods_cl_swingup (pods_cl with the swing-up "
+            "no learned model), algo defaults, pods_cl_swingup (pods_cl with the swing-up "
             "experiment's algo and noise: gradient windows of 40 steps, step 0.15, 200 rollouts, "
-            "5 inner epochs, noise 1.0 decaying 2% an epoch; budget `variants`), evaluated "
-            "every epoch.",
+            "5 inner epochs, noise 1.0 decaying 2% an epoch) and pods_cl_horizon (the Furuta "
+            "balance experiment's: a horizon curriculum from 15 steps, step 0.2, noise 1.0 "
+            "decaying 3% an epoch; budget `variants`), evaluated every epoch.",
             "PPO/APG settings are in the budget; they were chosen by hand for this task, not "
             "tuned exhaustively.",
         ],
@@ -400,7 +411,7 @@ def present(results: list[dict], zero: dict, budget: dict, limits: dict) -> dict
     }
 
 
-OURS, PEERS = ("pods", "pods_cl", "pods_cl_swingup", "hds"), ("ppo", "apg")
+OURS, PEERS = ("pods", "pods_cl", "hds", *DEFAULT_BUDGET["variants"]), ("ppo", "apg")
 
 
 def peer_target(stats: list[dict], task: str, threshold: float) -> dict:

@@ -204,6 +204,14 @@ class AnnealConfig:
     # 5 in a row cost more than they saved in the study (experiments/sim2real_friction)
     ramp_when_solved: bool = True
     solved_for: int = 1
+    # a horizon curriculum: the action improvement sees only the first `horizon_start` steps
+    # of each rollout at the first epoch, then a horizon growing linearly to the task's whole
+    # one at the share `horizon_full_at` of the epochs (0: the whole horizon from the start).
+    # On a fast unstable system (the Furuta pendulum falls in 0.3 s) the gradient of a long
+    # horizon leads to whirling the pendulum over, a local optimum, where a short one teaches
+    # the policy to catch it first; with that feedback, longer horizons stay well conditioned
+    horizon_start: int = 0
+    horizon_full_at: float = 0.5
 
     def check(self):
         _one_of("anneal.kind", self.kind, ("line_search", "simulated", "fixed"))
@@ -216,6 +224,8 @@ class AnnealConfig:
         _in_range("anneal.cooling", self.cooling, 0.0, 1.0)
         _in_range("anneal.step_decay", self.step_decay, 0.0, 1.0)
         _in_range("anneal.solved_for", self.solved_for, 1)
+        _in_range("anneal.horizon_start", self.horizon_start, 0)
+        _in_range("anneal.horizon_full_at", self.horizon_full_at, 0.0, 1.0)
 
 
 @dataclass

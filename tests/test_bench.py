@@ -106,6 +106,22 @@ def test_the_peers_swingup_variant_is_the_swingup_experiment():
     assert variant.noise == experiment.noise
 
 
+def test_the_peers_horizon_variant_is_the_furuta_balance_experiment():
+    """bench/peers.py's pods_cl_horizon trains with conf/experiment/furuta_balance.yaml's algo,
+    noise and anneal (epochs and chunk aside)."""
+    from bench.peers import DEFAULT_BUDGET
+
+    variant = compose(
+        "env=furuta_balance", "real=none", *DEFAULT_BUDGET["variants"]["pods_cl_horizon"]
+    )
+    experiment = compose("+experiment=furuta_balance")
+    for cfg in (variant, experiment):
+        cfg.algo.epochs, cfg.algo.chunk = 0, 0
+    assert variant.algo == experiment.algo
+    assert variant.noise == experiment.noise
+    assert variant.anneal == experiment.anneal
+
+
 def test_peers_medians_count_a_seed_that_never_reaches_the_threshold_as_never():
     """bench/peers.py's median over seeds: a method reaching the threshold with 2 of 3 seeds
     has a median time to it; with 1 of 3 it has none."""

@@ -101,6 +101,8 @@ def test_every_launcher_composes(launcher):
         ("noise.decay=1.5", "noise.decay = 1.5 is out of range"),
         ("dynamics.beta=2", "dynamics.beta = 2.0 is out of range"),
         ("anneal.solved_for=0", "anneal.solved_for = 0 is out of range"),
+        ("anneal.horizon_start=-5", "anneal.horizon_start = -5 is out of range"),
+        ("anneal.horizon_full_at=1.5", "anneal.horizon_full_at = 1.5 is out of range"),
         (
             "env.backend=bullet",
             "choose one of ['generalized', 'spring', 'positional', 'mjx', 'analytic', 'tree']",

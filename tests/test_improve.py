@@ -173,3 +173,60 @@ def test_windowed_gradient_is_the_full_one_over_the_horizon_and_myopic_over_one_
     own = jax.vmap(jax.grad(own_reward, 1))(states, deltas)
     np.testing.assert_allclose(jax.grad(ret)(deltas, 1), own, rtol=1e-5, atol=1e-7)
     assert not np.allclose(own, full)
+
+
+@pytest.mark.parametrize(
+    "closed_loop, order", [(False, "first"), (False, "second"), (True, "first")]
+)
+def test_an_improvement_horizon_counts_only_its_first_steps(closed_loop, order):
+    """anneal.horizon_start's curriculum: with `horizon` h, the improvement maximises the
+    rewards of the first h steps; the actions after step h move nothing it counts, so they
+    keep their values, and the return it reports is the first h steps' (open loop, first and
+    second order, and closed loop)."""
+    from hds.algo.rollout import perturbed_rollout, trajectory
+
+    h = 3
+    state = jnp.array([0.8, -0.2])
+    actions = jax.random.normal(jax.random.PRNGKey(7), (T, 1))
+    low, high = jnp.full(1, -10.0), jnp.full(1, 10.0)
+    act = (lambda o: jnp.array([-2.0 * o[0] - 0.5 * o[1]])) if closed_loop else None  # noqa: E731
+
+    def run(horizon):
+        return improve(
+            ENGINE,
+            None,
+            TASK,
+            state,
+            actions,
+            jax.random.PRNGKey(0),
+            alpha=0.5,
+            temperature=0.0,
+            cfg=settings(order),
+            low=low,
+            high=high,
+            act=act,
+            horizon=horizon,
+        )
+
+    out = run(jnp.int32(h))
+    rewards = (
+        perturbed_rollout(ENGINE, None, TASK, act, state, actions, low, high)[2]
+        if closed_loop
+        else trajectory(ENGINE, None, TASK, state, actions)[1]
+    )
+    assert bool(out.accepted)
+    np.testing.assert_allclose(out.value, rewards[:h].sum(), rtol=1e-6)
+    np.testing.assert_array_equal(out.actions[h:], actions[h:])
+    assert not np.allclose(out.actions[:h], actions[:h])
+    whole = run(None)  # no horizon: every step counts, the last actions move too
+    np.testing.assert_allclose(whole.value, rewards.sum(), rtol=1e-6)
+    assert not np.allclose(whole.actions[h:], actions[h:])
+
+
+def test_the_improvement_horizon_grows_from_its_start_to_the_whole_horizon():
+    from hds.anneal import horizon
+
+    grown = [int(horizon(jnp.int32(e), 10, 20.0, 100)) for e in (0, 10, 20, 30)]
+    assert grown == [10, 55, 100, 100]
+    assert horizon(jnp.int32(5), 0, 20.0, 100) is None  # off: no mask at all
+    assert horizon(jnp.int32(5), 100, 20.0, 100) is None  # a start of the whole horizon

@@ -6,7 +6,8 @@
 The candidate step sizes alpha / 2^k are evaluated together, as one batched rollout, and then
 accepted by the step-size rule of `anneal` (hds/anneal.py). A sequence whose return or gradient
 is not finite is left as it was and reported as skipped; candidates are clipped to the
-actuator's range.
+actuator's range. With a `horizon` (anneal.horizon_start, a curriculum), only the rewards of
+the first `horizon` steps count.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from hds.algo.rollout import open_loop_return, perturbed_rollout, trajectory
+from hds.algo.rollout import perturbed_rollout, trajectory
 from hds.anneal import accept
 
 
@@ -44,9 +45,10 @@ def psd(matrix: jax.Array) -> jax.Array:
     return (v * jnp.maximum(w, 0.0)) @ v.T
 
 
-def gauss_newton_matrix(engine, params, task, state, actions) -> jax.Array:
+def gauss_newton_matrix(engine, params, task, state, actions, counted=None) -> jax.Array:
     """H = J^T Hs J + Ha for the cost C = -V, with J = d(states)/d(actions) and Hs, Ha the
-    per-step cost Hessians (projected to PSD); second-order terms of the dynamics are dropped."""
+    per-step cost Hessians (projected to PSD) of the `counted` steps ([T] weights; default all);
+    second-order terms of the dynamics are dropped."""
     T, n_act = actions.shape
     states = lambda a: trajectory(engine, params, task, state, a)[0]  # noqa: E731
     s = states(actions)
@@ -58,6 +60,8 @@ def gauss_newton_matrix(engine, params, task, state, actions) -> jax.Array:
 
     Hs = jax.vmap(lambda s_t, u_t: psd(jax.hessian(step_cost, 0)(s_t, u_t)))(s, actions)
     Ha = jax.vmap(lambda s_t, u_t: psd(jax.hessian(step_cost, 1)(s_t, u_t)))(s, actions)
+    if counted is not None:
+        Hs, Ha = Hs * counted[:, None, None], Ha * counted[:, None, None]
     H = jnp.einsum("tia,tij,tjb->ab", J, Hs, J)
     return H + jax.scipy.linalg.block_diag(*Ha)
 
@@ -70,27 +74,47 @@ def gauss_newton_step(H: jax.Array, g: jax.Array, damping: float) -> jax.Array:
 
 
 def improve(
-    engine, params, task, state, actions, key, *, alpha, temperature, cfg, low, high, act=None
+    engine,
+    params,
+    task,
+    state,
+    actions,
+    key,
+    *,
+    alpha,
+    temperature,
+    cfg,
+    low,
+    high,
+    act=None,
+    horizon=None,
 ):
     """One action-improvement step for one sequence; `cfg` holds algo and anneal settings.
 
     With `act` (the policy, o -> u), `actions` are perturbations of the closed loop,
     u_t = clip(act(o_t) + actions_t), and the return is differentiated through the policy's
-    feedback (first order only); otherwise they are the open-loop controls (PODS)."""
+    feedback (first order only); otherwise they are the open-loop controls (PODS). `horizon`
+    (may be traced): count only the rewards of the first `horizon` steps; None: all."""
     if act is None:
-        ret = lambda a: open_loop_return(engine, params, task, state, a)  # noqa: E731
+        rewards = lambda a: trajectory(engine, params, task, state, a)[1]  # noqa: E731
     else:
-        ret = lambda d: perturbed_rollout(  # noqa: E731  (a window leaves values as they are)
+        rewards = lambda d: perturbed_rollout(  # noqa: E731  (a window leaves values as they are)
             engine, params, task, act, state, d, low, high, cfg.grad_window
-        )[2].sum()
+        )[2]
         low, high = low - high, high - low  # a perturbation may span the whole range
+    counted = None
+    if horizon is None:
+        ret = lambda a: rewards(a).sum()  # noqa: E731
+    else:
+        counted = (jnp.arange(actions.shape[0]) < horizon).astype(actions.dtype)
+        ret = lambda a: jnp.dot(rewards(a), counted)  # noqa: E731
     value, grad = jax.value_and_grad(ret)(actions)
     grad, _ = optax.clip_by_global_norm(cfg.grad_clip).update(grad, None)
     finite = jnp.isfinite(value) & jnp.all(jnp.isfinite(grad))
     grad = jnp.where(finite, grad, 0.0)
 
     if cfg.order == "second":
-        H = gauss_newton_matrix(engine, params, task, state, actions)
+        H = gauss_newton_matrix(engine, params, task, state, actions, counted)
         step = gauss_newton_step(H, grad.reshape(-1), cfg.gn_damping).reshape(actions.shape)
         finite &= jnp.all(jnp.isfinite(step))
         direction = jnp.where(finite, step, 0.0)

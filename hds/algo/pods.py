@@ -101,6 +101,10 @@ def make_train(cfg, env, model=None) -> Trainer:
     )
 
     ramp = [share * algo.epochs for share in cfg.anneal.effect_ramp]  # [begin, end] epochs
+
+    def improve_horizon(epoch):  # anneal.horizon_start's curriculum; None: the whole horizon
+        full_at = cfg.anneal.horizon_full_at * algo.epochs
+        return anneal.horizon(epoch, cfg.anneal.horizon_start, full_at, task.horizon)
     solved_at = cfg.env.task.solved_at
     gated = bool(ramp[1]) and cfg.anneal.ramp_when_solved and solved_at is not None
     solved_for = cfg.anneal.solved_for
@@ -225,6 +229,7 @@ def make_train(cfg, env, model=None) -> Trainer:
                 low=low,
                 high=high,
                 act=act if closed else None,
+                horizon=improve_horizon(epoch),
             ),
             in_axes=(p_axis, 0, 0, 0),
         )
@@ -251,9 +256,9 @@ def make_train(cfg, env, model=None) -> Trainer:
             result = result._replace(actions=controls)
         return obs, result, alpha
 
-    def regress_batch(params, opt_state, obs, targets, key, tol=algo.early_stop):
+    def regress_batch(params, opt_state, obs, targets, key, tol=algo.early_stop, weights=None):
         """Stage 3: regress the policy onto the targets (rows of obs [N, n_obs] and targets
-        [N, n_act]); `tol`: the early stop (-inf: every inner epoch)."""
+        [N, n_act], `weights` [N], default 1); `tol`: the early stop (-inf: every inner epoch)."""
         return regress(
             policy.apply,
             optimizer,
@@ -261,7 +266,7 @@ def make_train(cfg, env, model=None) -> Trainer:
             opt_state,
             obs,
             targets,
-            jnp.ones(obs.shape[0]),
+            jnp.ones(obs.shape[0]) if weights is None else weights,
             key,
             inner_epochs=algo.inner_epochs,
             minibatch=algo.minibatch,
@@ -307,8 +312,12 @@ def make_train(cfg, env, model=None) -> Trainer:
         masks, rows = shares(hparams, ramp_share)
         obs = jnp.concatenate([o[0] for o in outs])[rows].reshape(-1, sim.n_obs)
         targets = jnp.concatenate([o[1].actions for o in outs])[rows].reshape(-1, sim.n_act)
+        horizon = improve_horizon(state.epoch)
+        weights = None  # the steps beyond the improvement's horizon were not improved: left out
+        if horizon is not None:
+            weights = jnp.tile(jnp.arange(task.horizon) < horizon, algo.rollouts)
         params, opt_state, loss = regress_batch(
-            state.policy, state.opt_state, obs, targets, regress_key
+            state.policy, state.opt_state, obs, targets, regress_key, weights=weights
         )
 
         def used(value_of, part):  # a part's values, NaN where this run does not use them
