@@ -106,15 +106,17 @@ def test_the_peers_swingup_variant_is_the_swingup_experiment():
     assert variant.noise == experiment.noise
 
 
-def test_the_peers_horizon_variant_is_the_furuta_balance_experiment():
-    """bench/peers.py's pods_cl_horizon trains with conf/experiment/furuta_balance.yaml's algo,
-    noise and anneal (epochs and chunk aside)."""
+@pytest.mark.parametrize(
+    "variant, experiment",
+    [("pods_cl_horizon", "furuta_balance"), ("pods_cl_furuta_swingup", "furuta_swingup")],
+)
+def test_the_peers_furuta_variants_are_the_furuta_experiments(variant, experiment):
+    """bench/peers.py's Furuta variants train with their conf/experiment files' algo, noise and
+    anneal (epochs and chunk aside)."""
     from bench.peers import DEFAULT_BUDGET
 
-    variant = compose(
-        "env=furuta_balance", "real=none", *DEFAULT_BUDGET["variants"]["pods_cl_horizon"]
-    )
-    experiment = compose("+experiment=furuta_balance")
+    variant = compose(f"env={experiment}", "real=none", *DEFAULT_BUDGET["variants"][variant])
+    experiment = compose(f"+experiment={experiment}")
     for cfg in (variant, experiment):
         cfg.algo.epochs, cfg.algo.chunk = 0, 0
     assert variant.algo == experiment.algo
