@@ -105,6 +105,7 @@ def make_train(cfg, env, model=None) -> Trainer:
     def improve_horizon(epoch):  # anneal.horizon_start's curriculum; None: the whole horizon
         full_at = cfg.anneal.horizon_full_at * algo.epochs
         return anneal.horizon(epoch, cfg.anneal.horizon_start, full_at, task.horizon)
+
     solved_at = cfg.env.task.solved_at
     gated = bool(ramp[1]) and cfg.anneal.ramp_when_solved and solved_at is not None
     solved_for = cfg.anneal.solved_for
