@@ -412,7 +412,7 @@ def present(results: list[dict], zero: dict, budget: dict, limits: dict) -> dict
             "closed-loop action improvement; hds: exponential noise decay, simulated annealing, "
             "no learned model), algo defaults, pods_cl_swingup (pods_cl with the swing-up "
             "experiment's algo and noise: gradient windows of 40 steps, step 0.15, 200 rollouts, "
-            "5 inner epochs, noise 1.0 decaying 2% an epoch) and pods_cl_horizon (the Furuta "
+            "5 inner epochs, noise 1.0 decaying 2% an epoch), pods_cl_horizon (the Furuta "
             "balance experiment's: a horizon curriculum from 15 steps, step 0.2, noise 1.0 "
             "decaying 3% an epoch) and pods_cl_furuta_swingup (the Furuta swing-up experiment's: "
             "pods_cl_swingup with noise 5 V and step size 3; budget `variants`), evaluated every "

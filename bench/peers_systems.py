@@ -11,7 +11,7 @@ The survey of the other tasks (one seed; the README's "Systems" quotes it), e.g.
     --set peers_systems.methods=pods_cl,hds,ppo
 and the Furuta balance, which closed-loop PODS with a horizon curriculum solves
 (bench/survey_systems/furuta_balance/):
-  python -m bench.run peers_systems --out DIR --set peers_systems.tasks=furuta_balance \
+  python -m bench.run peers_systems --out DIR --set peers_systems.tasks=furuta_balance \\
     --set peers_systems.methods=pods_cl_horizon,ppo --set peers_systems.pods_epochs=100
 """
 

@@ -6,8 +6,8 @@
   fixed        always the step alpha (unless it is not finite)
 The base step size decays by `step_decay` every epoch in all three. `effect_ramp` grows the
 simulator's effects from nothing to their values over a span of epochs (a continuation), and
-with them the share of rollouts through a learned model of the plant (HDS). `horizon` grows
-the steps the improvement sees (a curriculum).
+with them the share of rollouts through a learned model of the plant (HDS). `counted_steps`
+grows the steps the improvement sees (a curriculum).
 """
 
 from __future__ import annotations
@@ -43,14 +43,15 @@ def candidates(kind: str, line_search: int) -> int:
     return 1 if kind == "fixed" else line_search
 
 
-def horizon(epoch, start: int, full_at: float, whole: int):
-    """The steps of each rollout the action improvement sees at `epoch`: `start` at the first
-    epoch, growing linearly to `whole` at epoch `full_at`; None (all of them, no mask) when
-    `start` is 0 or not below `whole`."""
+def counted_steps(epoch, start: int, full_at: float, whole: int):
+    """Which of each rollout's `whole` steps the action improvement counts at `epoch` ([whole]
+    weights, 1 or 0): the first `start` at the first epoch, growing linearly to all of them at
+    epoch `full_at`; None (all of them, no mask) when `start` is 0 or not below `whole`."""
     if not start or start >= whole:
         return None
     share = jnp.clip(epoch / max(full_at, 1.0), 0.0, 1.0)
-    return jnp.round(start + share * (whole - start)).astype(jnp.int32)
+    horizon = jnp.round(start + share * (whole - start))
+    return (jnp.arange(whole) < horizon).astype(jnp.float32)
 
 
 def ramp_share(epoch, begin: float, end: float, delay=0):

@@ -191,7 +191,7 @@ def test_an_improvement_horizon_counts_only_its_first_steps(closed_loop, order):
     low, high = jnp.full(1, -10.0), jnp.full(1, 10.0)
     act = (lambda o: jnp.array([-2.0 * o[0] - 0.5 * o[1]])) if closed_loop else None  # noqa: E731
 
-    def run(horizon):
+    def run(counted):
         return improve(
             ENGINE,
             None,
@@ -205,10 +205,10 @@ def test_an_improvement_horizon_counts_only_its_first_steps(closed_loop, order):
             low=low,
             high=high,
             act=act,
-            horizon=horizon,
+            counted=counted,
         )
 
-    out = run(jnp.int32(h))
+    out = run((jnp.arange(T) < h).astype(jnp.float32))
     rewards = (
         perturbed_rollout(ENGINE, None, TASK, act, state, actions, low, high)[2]
         if closed_loop
@@ -218,15 +218,17 @@ def test_an_improvement_horizon_counts_only_its_first_steps(closed_loop, order):
     np.testing.assert_allclose(out.value, rewards[:h].sum(), rtol=1e-6)
     np.testing.assert_array_equal(out.actions[h:], actions[h:])
     assert not np.allclose(out.actions[:h], actions[:h])
-    whole = run(None)  # no horizon: every step counts, the last actions move too
+    whole = run(None)  # no mask: every step counts, the last actions move too
     np.testing.assert_allclose(whole.value, rewards.sum(), rtol=1e-6)
     assert not np.allclose(whole.actions[h:], actions[h:])
 
 
 def test_the_improvement_horizon_grows_from_its_start_to_the_whole_horizon():
-    from hds.anneal import horizon
+    from hds.anneal import counted_steps
 
-    grown = [int(horizon(jnp.int32(e), 10, 20.0, 100)) for e in (0, 10, 20, 30)]
-    assert grown == [10, 55, 100, 100]
-    assert horizon(jnp.int32(5), 0, 20.0, 100) is None  # off: no mask at all
-    assert horizon(jnp.int32(5), 100, 20.0, 100) is None  # a start of the whole horizon
+    masks = [counted_steps(jnp.int32(e), 10, 20.0, 100) for e in (0, 10, 20, 30)]
+    assert [int(m.sum()) for m in masks] == [10, 55, 100, 100]
+    for m in masks:  # the first steps, in one block
+        assert np.all(np.asarray(m)[: int(m.sum())] == 1)
+    assert counted_steps(jnp.int32(5), 0, 20.0, 100) is None  # off: no mask at all
+    assert counted_steps(jnp.int32(5), 100, 20.0, 100) is None  # a start of the whole horizon

@@ -6,8 +6,8 @@
 The candidate step sizes alpha / 2^k are evaluated together, as one batched rollout, and then
 accepted by the step-size rule of `anneal` (hds/anneal.py). A sequence whose return or gradient
 is not finite is left as it was and reported as skipped; candidates are clipped to the
-actuator's range. With a `horizon` (anneal.horizon_start, a curriculum), only the rewards of
-the first `horizon` steps count.
+actuator's range. With `counted` steps (anneal.horizon_start, a curriculum), only their
+rewards count.
 """
 
 from __future__ import annotations
@@ -87,14 +87,14 @@ def improve(
     low,
     high,
     act=None,
-    horizon=None,
+    counted=None,
 ):
     """One action-improvement step for one sequence; `cfg` holds algo and anneal settings.
 
     With `act` (the policy, o -> u), `actions` are perturbations of the closed loop,
     u_t = clip(act(o_t) + actions_t), and the return is differentiated through the policy's
-    feedback (first order only); otherwise they are the open-loop controls (PODS). `horizon`
-    (may be traced): count only the rewards of the first `horizon` steps; None: all."""
+    feedback (first order only); otherwise they are the open-loop controls (PODS). `counted`
+    ([T] weights, may be traced; anneal.counted_steps): weigh each step's reward; None: all."""
     if act is None:
         rewards = lambda a: trajectory(engine, params, task, state, a)[1]  # noqa: E731
     else:
@@ -102,11 +102,9 @@ def improve(
             engine, params, task, act, state, d, low, high, cfg.grad_window
         )[2]
         low, high = low - high, high - low  # a perturbation may span the whole range
-    counted = None
-    if horizon is None:
+    if counted is None:
         ret = lambda a: rewards(a).sum()  # noqa: E731
     else:
-        counted = (jnp.arange(actions.shape[0]) < horizon).astype(actions.dtype)
         ret = lambda a: jnp.dot(rewards(a), counted)  # noqa: E731
     value, grad = jax.value_and_grad(ret)(actions)
     grad, _ = optax.clip_by_global_norm(cfg.grad_clip).update(grad, None)

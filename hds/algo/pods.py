@@ -102,9 +102,9 @@ def make_train(cfg, env, model=None) -> Trainer:
 
     ramp = [share * algo.epochs for share in cfg.anneal.effect_ramp]  # [begin, end] epochs
 
-    def improve_horizon(epoch):  # anneal.horizon_start's curriculum; None: the whole horizon
+    def counted_steps(epoch):  # anneal.horizon_start's curriculum; None: the whole horizon
         full_at = cfg.anneal.horizon_full_at * algo.epochs
-        return anneal.horizon(epoch, cfg.anneal.horizon_start, full_at, task.horizon)
+        return anneal.counted_steps(epoch, cfg.anneal.horizon_start, full_at, task.horizon)
 
     solved_at = cfg.env.task.solved_at
     gated = bool(ramp[1]) and cfg.anneal.ramp_when_solved and solved_at is not None
@@ -230,7 +230,7 @@ def make_train(cfg, env, model=None) -> Trainer:
                 low=low,
                 high=high,
                 act=act if closed else None,
-                horizon=improve_horizon(epoch),
+                counted=counted_steps(epoch),
             ),
             in_axes=(p_axis, 0, 0, 0),
         )
@@ -313,10 +313,10 @@ def make_train(cfg, env, model=None) -> Trainer:
         masks, rows = shares(hparams, ramp_share)
         obs = jnp.concatenate([o[0] for o in outs])[rows].reshape(-1, sim.n_obs)
         targets = jnp.concatenate([o[1].actions for o in outs])[rows].reshape(-1, sim.n_act)
-        horizon = improve_horizon(state.epoch)
-        weights = None  # the steps beyond the improvement's horizon were not improved: left out
-        if horizon is not None:
-            weights = jnp.tile(jnp.arange(task.horizon) < horizon, algo.rollouts)
+        counted = counted_steps(state.epoch)
+        weights = None  # the steps the improvement did not count were not improved: left out
+        if counted is not None:
+            weights = jnp.tile(counted, algo.rollouts)
         params, opt_state, loss = regress_batch(
             state.policy, state.opt_state, obs, targets, regress_key, weights=weights
         )
