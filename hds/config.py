@@ -71,6 +71,10 @@ class TaskConfig:
     q_weight: list[float] = MISSING
     qd_weight: list[float] = MISSING
     effort: float = 0.0
+    # the angles the cost reads: each joint's own (joint), or each link's in the world (world:
+    # a hinge on a link that turns about a parallel hinge adds that hinge's angle), so that
+    # bending an acrobot's elbow is not a cost of its own and hanging is no local optimum
+    angles: str = "joint"
     # the mean return from which a policy counts as solving the task (brax's PPO reaches -26
     # on balance, -485 on swing-up: bench/RESULTS.md); null: no such line
     solved_at: float | None = None
@@ -79,6 +83,7 @@ class TaskConfig:
         _one_of("env.task.kind", self.kind, ("target", "reference"))
         _in_range("env.task.horizon", self.horizon, 1)
         _in_range("env.task.effort", self.effort, 0.0)
+        _one_of("env.task.angles", self.angles, ("joint", "world"))
         for key in ("q_spread", "qd_spread", "q_weight", "qd_weight"):
             if any(v < 0 for v in getattr(self, key)):
                 raise ValueError(f"env.task.{key} = {getattr(self, key)} must be non-negative")

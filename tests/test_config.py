@@ -108,6 +108,7 @@ def test_every_launcher_composes(launcher):
             "choose one of ['generalized', 'spring', 'positional', 'mjx', 'analytic', 'tree']",
         ),
         ("algo.order=third", "algo.order = 'third' is not allowed"),
+        ("env.task.angles=absolute", "env.task.angles = 'absolute' is not allowed"),
         ("algo.grad_window=-1", "algo.grad_window = -1 is out of range"),
         ("algo.grad_window=16", "algo.grad_window truncates closed-loop gradients only"),
         ("simulator=exact", "simulator = 'exact' is not allowed; choose one of ['nominal'"),

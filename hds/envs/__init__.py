@@ -50,7 +50,7 @@ def make_env(cfg, effects=None, sharpness="config", friction_gap: float = 1.0) -
         friction_gap=friction_gap,
         gradient_sharpness=None if sharpness is None else cfg.gradient_sharpness,
     )
-    task = make_task(cfg.task, sim.angular, sim.nq, sim.n_obs - sim.nq)
+    task = make_task(cfg.task, sim.angular, sim.nq, sim.n_obs - sim.nq, sim.link_angles)
     return Env(sim, params, task)
 
 

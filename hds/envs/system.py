@@ -70,6 +70,25 @@ def hinge_mask(model: mujoco.MjModel) -> np.ndarray:
     return mask
 
 
+def link_angles(model: mujoco.MjModel) -> np.ndarray:
+    """[nq, nq]: each q entry as its link's angle in the world. A hinge whose parent body turns
+    about a parallel hinge adds that hinge's world angle (an acrobot's elbow plus its
+    shoulder); every other entry is itself. Axes are compared at the model's reference pose."""
+    data = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+    hinge = int(mujoco.mjtJoint.mjJNT_HINGE)
+    rows = np.eye(model.nq)
+    for j in range(model.njnt):  # MuJoCo numbers a parent's joints before its children's
+        parent = model.body_parentid[model.jnt_bodyid[j]]
+        if model.jnt_type[j] != hinge or model.body_jntnum[parent] != 1:
+            continue
+        k = model.body_jntadr[parent]
+        along = float(np.dot(data.xaxis[j], data.xaxis[k]))
+        if model.jnt_type[k] == hinge and abs(abs(along) - 1.0) < 1e-6:
+            rows[model.jnt_qposadr[j]] += np.sign(along) * rows[model.jnt_qposadr[k]]
+    return rows
+
+
 def target_names(model: mujoco.MjModel) -> dict[str, dict[str, int]]:
     """Where effects can act on this model, by target kind: {name: index}."""
     return {
@@ -110,6 +129,7 @@ class Simulator:
     action_names: tuple[str, ...]
     targets: dict
     angular: np.ndarray  # hinge mask over q
+    link_angles: np.ndarray  # [nq, nq]: q to each link's angle in the world (`link_angles`)
     xml: str
     backend: str
     gradient_sharpness: float | None = None  # Coulomb friction's surrogate gradient, if any
@@ -208,6 +228,7 @@ def make_simulator(
         action_names=tuple(model.actuator(a).name for a in range(model.nu)),
         targets=targets,
         angular=hinge_mask(model),
+        link_angles=link_angles(model),
         xml=str(resolve_xml(xml)),
         backend=backend,
         gradient_sharpness=gradient_sharpness,

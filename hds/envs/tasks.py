@@ -27,6 +27,9 @@ class Task:
     qd_weight: np.ndarray
     effort: float
     angular: np.ndarray  # bool per q entry: hinge joints, whose error wraps around
+    # [nq, nq] to the angles the cost reads (`env.task.angles=world`: each link's angle in the
+    # world); None: the joints' own
+    angle_map: np.ndarray | None = None
 
     def initial(self, key: jax.Array) -> tuple[jax.Array, jax.Array]:
         kq, kqd = jax.random.split(key)
@@ -41,6 +44,8 @@ class Task:
         if self.kind == "reference":
             return reference_reward(q, qd)
         err = q - self.q_target
+        if self.angle_map is not None:
+            err = self.angle_map @ err
         # 2 (1 - cos e) equals e^2 near the target and is periodic for hinges.
         q_cost = jnp.where(self.angular, 2.0 * (1.0 - jnp.cos(err)), err**2)
         return -(
@@ -58,8 +63,9 @@ def reference_reward(q, qd):
     return -(jnp.cos(theta) ** 2) - theta_dot**2 - 1.5 * x**2 - 0.5 * x_dot**2
 
 
-def make_task(cfg, angular: np.ndarray, nq: int, nv: int) -> Task:
-    """Build a task from `env.task` config, checking every vector against the model's size."""
+def make_task(cfg, angular: np.ndarray, nq: int, nv: int, link_angles: np.ndarray) -> Task:
+    """Build a task from `env.task` config, checking every vector against the model's size.
+    `link_angles` ([nq, nq], `system.link_angles`) is what `angles=world` costs."""
     sizes = {
         "q_mean": nq,
         "q_spread": nq,
@@ -84,5 +90,6 @@ def make_task(cfg, angular: np.ndarray, nq: int, nv: int) -> Task:
         horizon=int(cfg.horizon),
         effort=float(cfg.effort),
         angular=angular,
+        angle_map=np.asarray(link_angles, np.float32) if cfg.angles == "world" else None,
         **vectors,
     )
