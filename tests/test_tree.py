@@ -254,6 +254,38 @@ def test_the_c_mujoco_plant_runs_each_task_as_mujoco_does(task):
     assert plant.obs_names[:nq] == tuple(f"q_{j}" for j in JOINTS[cfg.xml])
 
 
+def test_the_brax_plant_runs_a_new_system_with_its_hidden_effect():
+    """real=brax on the tree engine: the Furuta's plant with a motor gain of 0.7 hidden moves
+    as the simulator given that effect does, and unlike the nominal simulator."""
+    from hds.envs import make_env
+    from hds.real import make_plant
+
+    cfg = make_config(
+        "env=furuta_balance",
+        "real=brax",
+        "real.effects=[{name: actuator_gain, target: motor, params: {gain: 0.7}}]",
+    )
+    plant = make_plant(cfg.real, cfg.env)
+    rng = np.random.default_rng(0)
+    q0, qd0 = rng.uniform(-0.1, 0.1, (2, 2)), np.zeros((2, 2))
+    u = rng.uniform(-5, 5, (10, 2, 1))
+    plant.reset(q0, qd0)
+    measured = np.stack([plant.step(u[t]) for t in range(10)])
+    gain = [{"name": "actuator_gain", "target": "motor", "params": {"gain": 0.7}}]
+    expected = {}
+    for name, effects in (("gain", gain), ("nominal", [])):
+        env = make_env(cfg.env, effects=effects, sharpness=None)
+        state = jax.vmap(env.sim.init, in_axes=(0, 0, None))(q0, qd0, env.params)
+        step = jax.vmap(env.sim.step, in_axes=(None, 0, 0))
+        obs = []
+        for t in range(10):
+            state = step(env.params, state, jnp.asarray(u[t], jnp.float32))
+            obs.append(jax.vmap(env.sim.observe, in_axes=(None, 0))(env.params, state))
+        expected[name] = np.stack(obs)
+    np.testing.assert_allclose(measured, expected["gain"], atol=1e-6)
+    assert np.abs(measured - expected["nominal"]).max() > 1e-2
+
+
 JOINTS = {
     "double_cartpole.xml": ("slider", "hinge1", "hinge2"),
     "furuta.xml": ("arm", "pendulum"),
