@@ -250,6 +250,10 @@ class DynamicsConfig:
     patience: int = 100
     val_fraction: float = 0.2  # share of episodes held out for early stopping and metrics
     eval_steps: list[int] = field(default_factory=lambda: [1, 10, 25])  # open-loop k-step errors
+    # train through a fitted model only if it predicts the held-out plant episodes better than
+    # the simulator alone at every k of eval_steps; a model that does not has nothing to add to
+    # the simulator it is meant to correct (a delay it cannot represent), and its share is 0
+    require_better: bool = True
     # data collected from the plant when no dataset is given
     episodes: int = 64
     horizon: int = 100  # steps per episode

@@ -153,13 +153,13 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
     trained before is restored from its checkpoints; its report is written to round.json."""
     round_cfg = round_config(cfg, r)
     env = make_env(env_cfg)
-    model = None
+    model, model_report = None, {}
     if r > 0 and cfg.uses_model():
         from hds.dynamics import build
 
         save(concatenate(data), rdir / "model_data.npz")
         dyn = dataclasses.replace(cfg.dynamics, data=str(rdir / "model_data.npz"))
-        model, _ = build(dyn, env, None, jax.random.PRNGKey(cfg.seed), rdir / "dynamics")
+        model, model_report = build(dyn, env, None, jax.random.PRNGKey(cfg.seed), rdir / "dynamics")
     method = f"loop{r}"
     with experiment.method_logger(round_cfg, rdir, method, hooks) as logger:
         training = experiment.train(
@@ -169,6 +169,8 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
         logger.finish(rows, {})
     real, gap = (mean_ci([row[k] for row in rows]) for k in ("real_return", "gap"))
     report = {"rows": rows, "real_return": real, "gap": gap}
+    if "not_used_because" in model_report:
+        report["model_not_used_because"] = model_report["not_used_because"]
     atomic_write_json(rdir / "round.json", report)
     return report | {"params": training.params}
 

@@ -266,6 +266,26 @@ def discovery_sections(root: Path, out: Path) -> list[str]:
     return sections
 
 
+def unused_models(root: Path) -> list[str]:
+    """A line per run below root whose learned model was fitted but not used (dynamics.
+    require_better): HDS there trained without it."""
+    lines = []
+    for path in sorted(root.rglob("summary.json")):
+        model = read_json(path).get("dynamics", {})
+        if "not_used_because" in model:
+            job = path.parent.relative_to(root) if path.parent != root else Path(".")
+            lines.append(f"- `{job}`: {model['not_used_because']}")
+    if not lines:
+        return []
+    return [
+        "Learned models not used (predicting the held-out plant episodes no better than the "
+        "simulator; HDS trained without them, `dynamics.require_better`):",
+        "",
+        *lines,
+        "",
+    ]
+
+
 def loop_sections(found: list[tuple], root: Path, out: Path) -> list[str]:
     """A section per loop `found` below root: each round's named effects, real return and
     gap, and its figure (copied into out/plots/ when the report is written elsewhere)."""
@@ -286,6 +306,12 @@ def loop_sections(found: list[tuple], root: Path, out: Path) -> list[str]:
                 f"| {r['round']} | {r['named']} | {number(r['real_return'])} {r['interval']} "
                 f"| {number(r['gap'])} | {r['episodes']} |"
             )
+        lines += [
+            f"\nRound {report['round']}: the learned model was not used, predicting no better "
+            f"than the round's simulator ({report['model_not_used_because']})."
+            for report in rounds
+            if "model_not_used_because" in report
+        ]
         figure = loop_dir / "plots" / "loop_rounds.png"
         if figure.is_file():
             link = rel / "plots" / figure.name
@@ -400,7 +426,12 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
     if len(columns) > 1:
         text += [f"Learning curves and sim-vs-real bars: {column_names(list(columns))[shown]}.", ""]
     text += [f"![{name}](plots/{name}.png)" for name in figures]
-    text += [""] + loop_sections(found_loops, root, out) + discovery_sections(root, out)
+    text += (
+        [""]
+        + unused_models(root)
+        + loop_sections(found_loops, root, out)
+        + discovery_sections(root, out)
+    )
     path = atomic_write_bytes(out / "report.md", ("\n".join(text) + "\n").encode())
     return path
 

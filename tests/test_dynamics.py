@@ -220,6 +220,43 @@ def test_save_load_round_trip_predicts_identically(setup, fitted, tmp_path, kind
     assert meta["report"]["multistep"] == report["multistep"]
 
 
+def test_a_model_no_better_than_the_simulator_is_not_used(setup, fitted, tmp_path):
+    """On a plant that is the simulator itself nothing is left to learn: the fitted model
+    predicts worse than the simulator, so build returns no model and says why; on the 20 N
+    friction plant it beats the simulator at every k and is used."""
+    from hds.real.brax_plant import BraxPlant
+
+    cfg, env, *_ = setup
+    _, report = fitted("mlp")
+    assert report["used"] is True and "not_used_because" not in report
+    same = BraxPlant(make_env(cfg.env, effects=[], sharpness=None))
+    model, report = dynamics.build(cfg.dynamics, env, same, jax.random.PRNGKey(2), tmp_path)
+    assert model is None and report["used"] is False
+    assert "k=1:" in report["not_used_because"] and "k=25:" in report["not_used_because"]
+    kept, _ = dynamics.build(
+        replace(cfg.dynamics, require_better=False), env, same, jax.random.PRNGKey(2), tmp_path
+    )
+    assert kept is not None
+
+
+@pytest.mark.parametrize(
+    "errors, worse",
+    [
+        ({"1": (0.01, 0.02), "25": (0.1, 0.2)}, []),
+        ({"1": (0.03, 0.02), "25": (0.1, 0.2)}, ["k=1"]),
+        ({"1": (None, 0.02), "25": (0.3, 0.2)}, ["k=1", "k=25"]),
+        ({"1": (0.03, None)}, []),  # the simulator's own prediction was not finite
+    ],
+)
+def test_worse_than_simulator_names_each_k_the_model_does_not_beat(errors, worse):
+    report = {"multistep": {k: {"model": m, "simulator": s} for k, (m, s) in errors.items()}}
+    why = dynamics.worse_than_simulator(report)
+    if not worse:
+        assert why is None
+    else:
+        assert [k for k in ("k=1", "k=25") if f"{k}:" in why] == worse
+
+
 def test_build_reuses_a_saved_model_by_path(setup, fitted):
     cfg, env, *_ = setup
     _, report = fitted("mlp")

@@ -152,6 +152,7 @@ def test_hds_report_gives_each_loop_round_rows_and_a_section(tmp_path):
     rounds = [round_report(0, -40.0, []), round_report(1, -6.0, [friction])]
     (loop_dir / "loop.json").write_text(json.dumps({"rounds": rounds}))
     hds_rounds = [round_report(0, -200.0, []), round_report(1, -8.0, [friction])]
+    hds_rounds[1]["model_not_used_because"] = "k=1: 0.02 against 0.01"
     (hds_dir / "loop.json").write_text(json.dumps({"rounds": hds_rounds}))
     report = build(tmp_path).read_text()
     # each loop's rounds apart, labelled by its method: 2 runs a row, not 4
@@ -161,6 +162,19 @@ def test_hds_report_gives_each_loop_round_rows_and_a_section(tmp_path):
     assert "### Sim2real loop: loop/x4 (coulomb_friction@slider)" in report
     assert "### Sim2real loop: loop/hds_x4 (coulomb_friction@slider)" in report
     assert "| 1 | coulomb_friction@slider 80.7 [79, 82] | -5.5 [-6.0, -5.0] |" in report
+    assert report.count("the learned model was not used") == 1
+    assert "Round 1: the learned model was not used, predicting no better than the " in report
+
+
+def test_the_report_lists_the_runs_whose_learned_model_was_not_used(tmp_path):
+    from hds.report import unused_models
+
+    for job, model in (("0", {"used": True}), ("1", {"used": False, "not_used_because": "k=1"})):
+        (tmp_path / job).mkdir()
+        (tmp_path / job / "summary.json").write_text(json.dumps({"dynamics": model}))
+    lines = unused_models(tmp_path)
+    assert lines[0].startswith("Learned models not used") and "- `1`: k=1" in lines
+    assert not any(line.startswith("- `0`") for line in lines)
 
 
 @pytest.mark.parametrize(

@@ -4,7 +4,8 @@
   save(path, model, cfg, report) / load(path, env) -> model
   build(cfg, env, plant, key, out_dir) -> (model, report)   what `python -m hds.run` calls:
       load dynamics.path when given; else fit on dynamics.data, or on episodes collected
-      from the plant with an excitation signal, and save the model to out_dir
+      from the plant with an excitation signal, and save the model to out_dir; the model is
+      None when it predicts held-out data worse than the simulator (cfg.require_better)
   evaluate(model, obs, actions, ks)    open-loop k-step errors, model and constant velocity
 
 A model (`DynamicsModel`) satisfies the engine protocol of hds.algo (reset, step, observe,
@@ -78,9 +79,30 @@ def measured_data(cfg, env, plant, key):
     return collect_data(cfg, env, plant, key), source
 
 
-def build(cfg, env, plant, key, out_dir) -> tuple[DynamicsModel, dict]:
+def _number(x: float | None) -> str:
+    return "not finite" if x is None else f"{x:.3g}"
+
+
+def worse_than_simulator(report: dict) -> str | None:
+    """Why a fitted model has nothing to add: the k-step errors at which it predicts the
+    held-out episodes no better than the simulator alone; None when it beats it at every k
+    (or the report holds no simulator errors)."""
+    worse = [
+        f"k={k}: {_number(row['model'])} against {row['simulator']:.3g}"
+        for k, row in report.get("multistep", {}).items()
+        if row.get("simulator") is not None
+        and (row["model"] is None or row["model"] >= row["simulator"])
+    ]
+    if not worse:
+        return None
+    return "open-loop nrmse on held-out episodes, model against simulator, " + ", ".join(worse)
+
+
+def build(cfg, env, plant, key, out_dir) -> tuple[DynamicsModel | None, dict]:
     """The model for a run: loaded from cfg.path, or fitted (on cfg.data or on data collected
-    from `plant`) and saved to out_dir. Returns (model, JSON-ready report)."""
+    from `plant`) and saved to out_dir. Returns (model, JSON-ready report); the model is None,
+    and the report says why, when a fitted model predicts the held-out episodes no better
+    than the simulator alone (cfg.require_better)."""
     if cfg.path:
         model = load(cfg.path, env)
         meta = read_meta(cfg.path)
@@ -104,9 +126,6 @@ def build(cfg, env, plant, key, out_dir) -> tuple[DynamicsModel, dict]:
     path = save(Path(out_dir), model, cfg, report)
     report.update({"path": str(path), "loaded": False})
 
-    def fmt(x):
-        return "nan" if x is None else f"{x:.3g}"
-
     log.info(
         "fitted the %s dynamics model in %.1f s, saved to %s; open-loop nrmse on held-out "
         "episodes (model / constant velocity / simulator): %s",
@@ -114,10 +133,20 @@ def build(cfg, env, plant, key, out_dir) -> tuple[DynamicsModel, dict]:
         report["fit_s"],
         path,
         ", ".join(
-            f"k={k}: {fmt(v['model'])} / {fmt(v['baseline'])} / {fmt(v.get('simulator'))}"
+            f"k={k}: " + " / ".join(_number(v.get(n)) for n in ("model", "baseline", "simulator"))
             for k, v in report["multistep"].items()
         ),
     )
+    why = worse_than_simulator(report) if cfg.require_better else None
+    report["used"] = why is None
+    if why:
+        report["not_used_because"] = why
+        log.warning(
+            "the learned model is not used, its share of rollouts is 0: it predicts no better "
+            "than the simulator (%s; dynamics.require_better=false uses it anyway)",
+            why,
+        )
+        return None, report
     return model, report
 
 
@@ -139,5 +168,6 @@ __all__ = [
     "read_meta",
     "save",
     "skeleton",
+    "worse_than_simulator",
     "zero_residual",
 ]
