@@ -52,7 +52,7 @@ sweep: $(STAMP)
 # then those trained once and evaluated on every friction plant: plant_free/), then the other
 # effects' plants (policies that depend on the plant, then those trained once), the sim2real
 # loop at 20, 80 and 40 N (closed-loop PODS), then at 20 and 80 N with HDS (its model refitted
-# on each round's deployments), then one report of all, its figures and GIF (closed-loop PODS from the
+# on each round's deployments), then on each other effect's plant, then one report of all, its figures and GIF (closed-loop PODS from the
 # frictionless simulator, plant_free/1, on the 80 N plant, its eval plant x4) into
 # experiments/sim2real_friction/results; the oracle at the loop's total budget (450 epochs) at
 # 20, 80 and 40 N (40 N added last, so finished jobs keep their numbers), and the swing-up at
@@ -64,6 +64,7 @@ STUDY_SWINGUP := outputs/study/swingup
 STUDY_ORACLE := outputs/study/oracle_budget
 STUDY_LOOP := $(BIN)/python -m hds.loop env.backend=analytic seeds=5 method=pods_cl_effects
 STUDY_HDS_LOOP := $(BIN)/python -m hds.loop env.backend=analytic seeds=5 method=hds
+STUDY_EFFECT_PLANTS := gain offset deadzone delay lag mass viscous sensor_bias friction_gain
 study: $(STAMP)
 	$(BIN)/python -m hds.run +experiment=sim2real_study hydra.sweep.dir=$(STUDY_RUN)
 	$(BIN)/python -m hds.run +experiment=sim2real_study_friction_shared \
@@ -75,6 +76,8 @@ study: $(STAMP)
 	$(STUDY_LOOP) real.friction_gap=2 hydra.run.dir=$(STUDY_RUN)/loop/x2
 	$(STUDY_HDS_LOOP) real.friction_gap=1 hydra.run.dir=$(STUDY_RUN)/loop/hds_x1
 	$(STUDY_HDS_LOOP) real.friction_gap=4 hydra.run.dir=$(STUDY_RUN)/loop/hds_x4
+	for plant in $(STUDY_EFFECT_PLANTS); do \
+		$(STUDY_LOOP) real=$$plant hydra.run.dir=$(STUDY_RUN)/loop/$$plant || exit 1; done
 	$(BIN)/python -m hds.report $(STUDY_RUN) --out experiments/sim2real_friction/results \
 		--gif plant_free/1 --gif-plant x4
 	$(BIN)/python -m hds.run +experiment=sim2real_study method=oracle algo.epochs=450 \

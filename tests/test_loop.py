@@ -45,6 +45,9 @@ def test_the_loop_names_the_friction_and_shrinks_the_gap(uninterrupted):
     assert found["params"]["force"] == pytest.approx(20.0, rel=0.1)
     assert abs(second["gap"][0]) < 0.5 * abs(first["gap"][0]), (first["gap"], second["gap"])
     assert second["data_episodes"] >= 16 and first["data_episodes"] == 0
+    # at this budget no policy balances: round 1, warm-started, fails and trains again afresh
+    assert second["trained_afresh"] == [0, 1] and "trained_afresh" not in first
+    assert (out / "rounds" / "1" / "afresh" / "checkpoints" / "loop1").is_dir()
     report = json.loads((out / "loop.json").read_text())
     assert [r["round"] for r in report["rounds"]] == [0, 1]
     assert (out / "rounds" / "1" / "discovery" / "report.md").is_file()
@@ -200,3 +203,26 @@ def test_a_warm_started_round_ramps_its_effects_in_at_once():
     assert later.algo.epochs == 40 and later.anneal.ramp_when_solved
     assert cfg.anneal.effect_ramp == [0.5, 0.7] and cfg.algo.epochs == 150  # not modified
     assert loop.round_config(make_config("method=pods_cl_effects"), 2).algo.epochs == 150
+
+
+def test_train_starts_the_runs_marked_fresh_from_their_own_initial_policy(tmp_path):
+    """experiment.train's `fresh`: what a loop round uses to train again from scratch the runs
+    that failed warm-started; the others are warm-started."""
+    from hds.experiment import train
+
+    cfg = make_config("debug=fast", "logger=none", "seeds=2", "real=none")
+    env = make_env(cfg.env)
+    scratch = train(cfg, env, tmp_path / "scratch", "pods", hooks=Hooks(console=False))
+    mixed = train(
+        cfg,
+        env,
+        tmp_path / "mixed",
+        "pods",
+        hooks=Hooks(console=False),
+        init_params=scratch.params,
+        fresh=np.array([True, False]),
+    )
+    first = jax.tree.map(lambda a, b: np.array_equal(a[0], b[0]), mixed.params, scratch.params)
+    second = jax.tree.map(lambda a, b: np.array_equal(a[1], b[1]), mixed.params, scratch.params)
+    assert all(jax.tree.leaves(first))  # started afresh: the same training as from scratch
+    assert not all(jax.tree.leaves(second))  # warm-started: trained further
