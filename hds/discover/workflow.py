@@ -270,7 +270,9 @@ def discover(
     ]
     result.tentative, result.law_mismatch = tentative, law_mismatch + refused
     result.identifiability = checks
-    if unexplained > cfg.unexplained_warning:  # the library leaves much: look beyond it
+    # the library leaves much: look beyond it, unless what it leaves is an effect the data
+    # cannot identify (a cart that friction holds still), which terms would only compensate
+    if unexplained > cfg.unexplained_warning and not selection.unidentified:
         t0 = time.perf_counter()
         result.terms = fit_terms(
             env_cfg, data, after["identification"][0], after["heldout"][0], cfg.stop_margin
@@ -421,7 +423,7 @@ def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
             "or for a named effect the data cannot separate it from; reported as tentative, "
             "not as a missing effect"
         )
-    if result.unexplained_fraction > cfg.unexplained_warning:
+    if result.unexplained_fraction > cfg.unexplained_warning and not result.selection.unidentified:
         top = result.remainder.top
         share = f"{result.unexplained_fraction:.0%} of the held-out prediction error (MSE)"
         if result.structured_unexplained > cfg.unexplained_warning * 0.5 and top:
@@ -463,7 +465,8 @@ def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
         out.append(
             f"{result.selection.unidentified} explains more of the gap than any effect the "
             "data can identify, but these data cannot identify it: nothing that would only "
-            "compensate for it is named; record data that identify it"
+            "compensate for it is named, in the library or beyond it; record data that "
+            "identify it"
         )
     by_reason: dict[str, list[str]] = {}
     for r in result.identifiability:
