@@ -270,6 +270,28 @@ def test_gain_friction_and_delay_hidden_together_are_all_named(plants, task, env
     assert shrink(result.error("before"), result.error("after")) >= 10.0
 
 
+@pytest.mark.parametrize("seed, noise", [(0, 0.0), (1, 0.003)])
+def test_a_heavier_pole_and_a_damper_on_its_hinge_hiding_each_other_are_both_named(
+    plants, task, env_cfg, seed, noise
+):
+    """A pole 1.3 times heavier slows the decay that 0.4 N m s/rad more hinge damping speeds:
+    each fitted alone explains little, and a gain loss and a lighter cart, chosen first as
+    their proxies, explain more. Once both are in, the proxies are dropped, all of them (not
+    one a round), and under noise, where neither lowers the held-out error by the margin
+    alone, the pole's mass is swapped in for a proxy. The two correlate strongly, yet each
+    interval excludes its no-op value, so both are named, and the intervals hold the truth."""
+    hidden = [
+        effect("viscous_damping", "hinge", coefficient=0.4),
+        effect("mass_scale", "pole", scale=1.3),
+    ]
+    data = record(plants("mujoco", hidden), task, seed=seed, noise=noise)
+    result = discover(data, env_cfg, CFG)
+    assert sorted(named(result)) == sorted((h["name"], h["target"]) for h in hidden)
+    assert_recovered(result, hidden, rtol=0.05)
+    assert_intervals_hold(result, hidden)
+    assert {c.key for c in result.selection.dropped} >= {"actuator_gain@slide"}
+
+
 @pytest.fixture(scope="module")
 def filter_cfg(env_cfg, tmp_path_factory):
     """The cart-pole whose motor is MuJoCo's own first-order filter (dyntype filter: Euler-

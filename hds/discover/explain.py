@@ -169,11 +169,20 @@ def forward_selection(
         drop = state.heldout_error - held[best]
         label = model.candidates[best].label
         if not drop >= needed:
-            stopped = (
-                f"the best remaining candidate, {label}, lowers held-out error by "
-                f"{max(drop, 0.0):.3g} (normalized RMSE), less than the margin {needed:.3g}"
+            swapped = _swap(
+                fit, states, fit.state(state.selected + [model.candidates[best]], batch, best)
             )
-            break
+            if swapped is None:
+                stopped = (
+                    f"the best remaining candidate, {label}, lowers held-out error by "
+                    f"{max(drop, 0.0):.3g} (normalized RMSE), less than the margin {needed:.3g}"
+                )
+                break
+            states, gone = swapped
+            dropped += gone
+            banned.update(c.key for c in gone)
+            state = states[-1]
+            continue
         unidentified = _unidentifiable_explains_more(model, unidentifiable, held, best)
         if unidentified:
             stopped = (
@@ -193,12 +202,25 @@ def forward_selection(
         state = grown
         states.append(state)
         states, gone = _drop_proxies(fit, states, cfg)
-        if gone is not None:
-            dropped.append(gone)
-            banned.add(gone.key)
-            state = states[-1]
+        dropped += gone
+        banned.update(c.key for c in gone)
+        state = states[-1]
     states = _refuse_law_mismatch(fit, states, mismatch)
     return Selection(states, rounds, stopped, dropped, mismatch, unidentified)
+
+
+def _swap(fit, states: list[State], grown: State):
+    """Where the best remaining candidate does not earn its place: whether it replaces one
+    already selected (a floating search's swap). Added (`grown`), it may make an earlier
+    effect redundant (`_drop_proxies`); if the model without it predicts the held-out
+    episodes better than the current model, of as many effects, the swap is kept. A gain
+    chosen first for a heavier, damped pole (each of which alone explains little) is
+    replaced once both are in. Returns (the states, the replaced candidates) or None."""
+    current = states[-1]
+    trial, gone = _drop_proxies(fit, [*states, grown], fit.cfg)
+    if not gone or not trial[-1].heldout_error < current.heldout_error:
+        return None
+    return trial, gone
 
 
 def _unidentifiable_explains_more(model, keys: set[str], held, best: int) -> str:
@@ -240,18 +262,21 @@ def _drop_proxies(fit, states: list[State], cfg):
     """Try dropping each selected effect but the newest, the others refitted: an effect
     chosen early as a proxy (a lag for a delay) no longer earns its place once the real one
     is in, i.e. dropping it raises the held-out error by less than the margin an effect
-    must bring to be added. Returns the states (the chain rebuilt without it) and the
-    dropped candidate, or (states, None)."""
-    state = states[-1]
-    if len(state.selected) < 2:
-        return states, None
-    sets = [[c for c in state.selected if c is not out] for out in state.selected[:-1]]
-    reduced = fit.sets(state, sets)
-    j = int(np.argmin([s.heldout_error for s in reduced]))
-    rise = reduced[j].heldout_error - state.heldout_error
-    if rise >= max(cfg.stop_margin * reduced[j].heldout_error, cfg.min_improvement):
-        return states, None
-    return _chain_without(fit, states, j, reduced[j]), state.selected[j]
+    must bring to be added. Repeated while one drops out (a gain and a heavier cart, both
+    taken for a heavier, damped pole, leave once it is in). Returns the states (the chain
+    rebuilt without them) and the dropped candidates."""
+    gone = []
+    while len(states[-1].selected) >= 2:
+        state = states[-1]
+        sets = [[c for c in state.selected if c is not out] for out in state.selected[:-1]]
+        reduced = fit.sets(state, sets)
+        j = int(np.argmin([s.heldout_error for s in reduced]))
+        rise = reduced[j].heldout_error - state.heldout_error
+        if rise >= max(cfg.stop_margin * reduced[j].heldout_error, cfg.min_improvement):
+            break
+        gone.append(state.selected[j])
+        states = _chain_without(fit, states, j, reduced[j])
+    return states, gone
 
 
 def _chain_without(fit, states: list[State], j: int, reduced: State) -> list[State]:

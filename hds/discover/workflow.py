@@ -225,7 +225,7 @@ def discover(
     shares = explained_shares(selection)
     structured = shares[-1] * structure(remainder)
     mismatch = next((i for i, s in enumerate(shares[:-1]) if s < structured), len(shares) - 1)
-    named_count = min(mismatch, _separable_count(selection.final))
+    named_count = min(mismatch, _separable_count(model, selection.final))
     final = selection.states[named_count]
     after = (
         full if named_count == len(shares) - 1 else compare(engine, data, final.theta, final.delay)
@@ -401,16 +401,34 @@ def _round(x: float) -> float:
     return x if not np.isfinite(x) or x == 0 else float(f"{x:.6g}")
 
 
-def _separable_count(state: State) -> int:
+def _separable_count(model, state: State) -> int:
     """How many effects, in the order of selection, come before the first whose parameters
-    the data cannot separate from an earlier effect's (|correlation| > INSEPARABLE): that
-    one is a compensation the data cannot tell apart, not named."""
+    the data cannot separate from an earlier effect's: correlated beyond INSEPARABLE, and
+    its 95% interval (which the correlation widens) holds its no-op value, so the data do not
+    show it beside the earlier one. That one is a compensation the data cannot tell apart,
+    not named. A strong correlation alone is not enough: a heavier pole and a damper on its
+    hinge correlate at 0.97, yet data that both fit exactly identify each."""
+    inseparable = [r for r in correlations(state) if r["inseparable"]]
+    if not inseparable:
+        return len(state.selected)
     order = {c.key: i for i, c in enumerate(state.selected)}
-    clashes = [
-        max(order[r["a"].split(".")[0]], order[r["b"].split(".")[0]])
-        for r in correlations(state)
-        if r["inseparable"]
-    ]
+    cis = intervals(model, state)
+    nominal = {
+        f"{c.key}.{p}": float(model.nominal[s])
+        for c in state.selected
+        for p, s in zip(c.params, c.slots, strict=True)
+    }
+
+    def unshown(name: str) -> bool:
+        key, param = name.rsplit(".", 1)
+        lo, hi = cis[key][param]
+        return lo <= nominal[name] <= hi
+
+    clashes = []
+    for r in inseparable:
+        later = max((r["a"], r["b"]), key=lambda n: order[n.rsplit(".", 1)[0]])
+        if unshown(later):
+            clashes.append(order[later.rsplit(".", 1)[0]])
     return min(clashes, default=len(state.selected))
 
 
@@ -457,9 +475,9 @@ def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
     for r in result.correlations:
         if r["inseparable"]:
             out.append(
-                f"{r['a']} and {r['b']} correlate at {r['rho']:.3f}: the data cannot "
-                "separate them, and the later one is not named; record data that excite "
-                "them differently"
+                f"{r['a']} and {r['b']} correlate at {r['rho']:.3f}: the data separate "
+                "them only jointly, and their intervals are wide for it; record data that "
+                "excite them differently"
             )
     if result.selection.unidentified:
         out.append(
