@@ -57,13 +57,15 @@ sweep: $(STAMP)
 # experiments/sim2real_friction/results; the oracle at the loop's total budget (450 epochs) at
 # 20, 80 and 40 N (40 N added last, so finished jobs keep their numbers), and the swing-up at
 # 20, 40 and 80 N (the corrected simulator and the oracle at each, the frictionless simulator
-# and domain randomization once: plant_free/, then HDS), each reported apart (GIF: the
-# frictionless simulator's policy, plant_free/0, at 20 N).
+# and domain randomization once: plant_free/, then HDS, then the loop at each, its rounds
+# trained from scratch), each reported apart (GIF: the frictionless simulator's policy,
+# plant_free/0, at 20 N).
 STUDY_RUN := outputs/study/sim2real_friction
 STUDY_SWINGUP := outputs/study/swingup
 STUDY_ORACLE := outputs/study/oracle_budget
 STUDY_LOOP := $(BIN)/python -m hds.loop env.backend=analytic seeds=5 method=pods_cl_effects
 STUDY_HDS_LOOP := $(BIN)/python -m hds.loop env.backend=analytic seeds=5 method=hds
+STUDY_SWINGUP_LOOP := $(BIN)/python -m hds.loop +experiment=sim2real_study_swingup_loop
 STUDY_EFFECT_PLANTS := gain offset deadzone delay lag mass viscous sensor_bias friction_gain
 study: $(STAMP)
 	$(BIN)/python -m hds.run +experiment=sim2real_study hydra.sweep.dir=$(STUDY_RUN)
@@ -87,6 +89,9 @@ study: $(STAMP)
 	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup_shared \
 		hydra.sweep.dir=$(STUDY_SWINGUP)/plant_free
 	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup_hds hydra.sweep.dir=$(STUDY_SWINGUP)/hds
+	for gap in 1 2 4; do \
+		$(STUDY_SWINGUP_LOOP) real.friction_gap=$$gap hydra.run.dir=$(STUDY_SWINGUP)/loop/x$$gap \
+		|| exit 1; done
 	$(BIN)/python -m hds.report $(STUDY_SWINGUP) --out experiments/sim2real_friction/results/swingup --gif plant_free/0
 
 clean:

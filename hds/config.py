@@ -433,7 +433,11 @@ class LoopConfig:
     rounds: int = 2  # correction rounds after round 0 (the loop may stop earlier)
     deploy_episodes: int = 16  # episodes of the current policy recorded on the plant a round
     excitation_episodes: int = 16  # open-loop excitation episodes a round (dynamics.excitation)
-    epochs: int = 0  # epochs of each round after the first, warm-started; 0: algo.epochs
+    epochs: int = 0  # epochs of each round after the first; 0: algo.epochs
+    # each later round starts from the previous round's policy; false: from scratch, as round
+    # 0 (a swing-up learned without friction is a way of swinging that warm-started rounds
+    # do not leave: experiments/sim2real_friction/README.md)
+    warm_start: bool = True
 
     def check(self):
         _in_range("loop.rounds", self.rounds, 0)

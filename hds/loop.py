@@ -82,16 +82,19 @@ def excite_until_identifiable(cfg: Config, env, plant, params, key, data_so_far)
 
 
 def round_config(cfg: Config, r: int) -> Config:
-    """Round 0 trains as configured. Each later round trains loop.epochs more (0: algo.epochs),
-    warm-started from a policy that already solves the task, so its continuation
-    (anneal.effect_ramp) begins at once and lasts as long as configured: waiting first, as a
-    policy learning from scratch must, would spend the round's first epochs on the simulator
-    without the effects it was corrected with. The ramp still waits for a warm-started policy
-    that does not solve the task (anneal.ramp_when_solved)."""
+    """Round 0 trains as configured. Each later round trains loop.epochs (0: algo.epochs).
+    Warm-started (loop.warm_start) from a policy that already solves the task, its
+    continuation (anneal.effect_ramp) begins at once and lasts as long as configured: waiting
+    first, as a policy learning from scratch must, would spend the round's first epochs on the
+    simulator without the effects it was corrected with. The ramp still waits for a
+    warm-started policy that does not solve the task (anneal.ramp_when_solved). A round from
+    scratch keeps round 0's continuation."""
     if r == 0:
         return cfg
-    begin, end = cfg.anneal.effect_ramp
-    anneal = dataclasses.replace(cfg.anneal, effect_ramp=[0.0, end - begin])
+    anneal = cfg.anneal
+    if cfg.loop.warm_start:
+        begin, end = cfg.anneal.effect_ramp
+        anneal = dataclasses.replace(cfg.anneal, effect_ramp=[0.0, end - begin])
     algo = dataclasses.replace(cfg.algo, epochs=cfg.loop.epochs or cfg.algo.epochs)
     return dataclasses.replace(cfg, algo=algo, anneal=anneal)
 
@@ -123,7 +126,8 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
                 atomic_write_json(rdir / "excitation.json", {"scale": scale, "notes": notes})
             data = [*data, *new]
             env_cfg, found = discover_round(cfg, concatenate(data), rdir)
-        report = train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants)
+        start = params if cfg.loop.warm_start else None
+        report = train_round(cfg, r, env_cfg, start, data, rdir, hooks, plants)
         params = report.pop("params")
         report |= {"round": r, "effects": found, "excitation_scale": scale, "notes": notes}
         report["data_episodes"] = int(sum(d.n_episodes for d in data))
@@ -148,7 +152,7 @@ def discover_round(cfg: Config, data: Dataset, rdir: Path):
 
 
 def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
-    """Train (warm-started from `params` after round 0) on the round's simulator and, for HDS,
+    """Train (warm-started from `params`, None: from scratch) on the round's simulator and, for HDS,
     a model refitted on the loop's data; evaluate on `plants` (the runs' plants). A round
     trained before is restored from its checkpoints; its report is written to round.json."""
     round_cfg = round_config(cfg, r)

@@ -205,6 +205,14 @@ def test_a_warm_started_round_ramps_its_effects_in_at_once():
     assert loop.round_config(make_config("method=pods_cl_effects"), 2).algo.epochs == 150
 
 
+def test_a_round_from_scratch_keeps_round_0s_continuation():
+    """loop.warm_start=false: each round trains from scratch, so its effects wait for the
+    policy as round 0's do, over loop.epochs."""
+    cfg = make_config("method=pods_cl_effects", "loop.epochs=40", "loop.warm_start=false")
+    later = loop.round_config(cfg, 1)
+    assert later.anneal.effect_ramp == [0.5, 0.7] and later.algo.epochs == 40
+
+
 def test_train_starts_the_runs_marked_fresh_from_their_own_initial_policy(tmp_path):
     """experiment.train's `fresh`: what a loop round uses to train again from scratch the runs
     that failed warm-started; the others are warm-started."""
