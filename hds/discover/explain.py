@@ -169,8 +169,13 @@ def forward_selection(
         drop = state.heldout_error - held[best]
         label = model.candidates[best].label
         if not drop >= needed:
-            swapped = _swap(
-                fit, states, fit.state(state.selected + [model.candidates[best]], batch, best)
+            # no swap for a compensation of what the data cannot identify (below)
+            swapped = (
+                None
+                if _unidentifiable_explains_more(model, unidentifiable, held, best)
+                else _swap(
+                    fit, states, fit.state(state.selected + [model.candidates[best]], batch, best)
+                )
             )
             if swapped is None:
                 stopped = (
