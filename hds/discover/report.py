@@ -130,7 +130,8 @@ def _selection_notes(result: Result) -> list[str]:
             "| --- | --- | --- | --- |",
         ]
         for r in result.correlations:
-            sep = "no" if r["inseparable"] else "yes"
+            # a named pair beyond INSEPARABLE stood apart jointly (workflow._separable_count)
+            sep = "only jointly" if r["inseparable"] else "yes"
             lines.append(f"| {r['a']} | {r['b']} | {_fmt(r['rho'])} | {sep} |")
     blind = [r for r in result.identifiability if not r.identifiable]
     if blind:
