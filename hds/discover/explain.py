@@ -168,11 +168,12 @@ def forward_selection(
         best = min(fresh, key=lambda j: held[j])
         drop = state.heldout_error - held[best]
         label = model.candidates[best].label
+        compensated = _unidentifiable_explains_more(model, unidentifiable, held, best)
         if not drop >= needed:
             # no swap for a compensation of what the data cannot identify (below)
             swapped = (
                 None
-                if _unidentifiable_explains_more(model, unidentifiable, held, best)
+                if compensated
                 else _swap(
                     fit, states, fit.state(state.selected + [model.candidates[best]], batch, best)
                 )
@@ -188,8 +189,8 @@ def forward_selection(
             banned.update(c.key for c in gone)
             state = states[-1]
             continue
-        unidentified = _unidentifiable_explains_more(model, unidentifiable, held, best)
-        if unidentified:
+        if compensated:
+            unidentified = compensated
             stopped = (
                 f"the best remaining candidate, {unidentified}, is one the data cannot "
                 f"identify (see identifiability): {label}, the best the data can identify, "

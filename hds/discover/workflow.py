@@ -415,7 +415,7 @@ def _separable_count(model, state: State) -> int:
     inseparable = [r for r in correlations(state) if r["inseparable"]]
     if not inseparable:
         return len(state.selected)
-    order = {c.key: i for i, c in enumerate(state.selected)}
+    order = {f"{c.key}.{p}": i for i, c in enumerate(state.selected) for p in c.params}
     ci = confidence_intervals(state.theta[state.slots], state.h, state.g, state.misfit, state.views)
     half = dict(zip(state.slots, ci.half, strict=True))
     widen = stats.norm.ppf(1 - 0.025 / len(model.candidates)) / stats.norm.ppf(0.975)
@@ -427,9 +427,9 @@ def _separable_count(model, state: State) -> int:
 
     clashes = []
     for r in inseparable:
-        later = max((r["a"], r["b"]), key=lambda n: order[n.rsplit(".", 1)[0]])
+        later = max((r["a"], r["b"]), key=order.__getitem__)
         if not apart(later):
-            clashes.append(order[later.rsplit(".", 1)[0]])
+            clashes.append(order[later])
     return min(clashes, default=len(state.selected))
 
 
