@@ -209,6 +209,12 @@ class AnnealConfig:
     # 5 in a row cost more than they saved in the study (experiments/sim2real_friction)
     ramp_when_solved: bool = True
     solved_for: int = 1
+    # once under way, the ramp stands still in every epoch whose training return misses
+    # env.task.solved_at (still at most until it would end on the last epoch): the effects
+    # grow only while the policy copes with them, as automatic domain randomization widens
+    # its ranges (OpenAI et al. 2019); a seed that a step of the ramp throws off relearns the
+    # task where it stands instead of meeting ever stronger effects
+    ramp_pauses: bool = False
     # a horizon curriculum: the action improvement sees only the first `horizon_start` steps
     # of each rollout at the first epoch, then a horizon growing linearly to the task's whole
     # one at the share `horizon_full_at` of the epochs (0: the whole horizon from the start).

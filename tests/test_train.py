@@ -336,6 +336,26 @@ def test_the_ramp_waits_for_the_policy_to_solve_the_task():
     np.testing.assert_allclose(never["ramp"], [0, 0, 0, 0, 0, 0, 0, 0, 0.5, 1])
 
 
+def test_a_pausing_ramp_stands_still_in_the_epochs_the_policy_fails():
+    """anneal.ramp_pauses: once under way, the ramp advances after an epoch whose training
+    return reaches env.task.solved_at and stands still after one that misses it, and still
+    ends by the last epoch. The threshold is the return of the same training without pauses
+    in the epoch before its ramp began: the ramp starts on time, and the returns on it, which
+    go up and down, fall on both sides."""
+    ramp = ("algo.epochs=16", "anneal.effect_ramp=[0.125,0.5]", "anneal.ramp_pauses=true")
+    *_, free = _ramped_training(*ramp, "env.task.solved_at=-1e9")  # never pauses
+    before = np.argmax(free["ramp"] > 0) - 1
+    threshold = float(free["return"][before]) - 1e-3
+    *_, paused = _ramped_training(*ramp, f"env.task.solved_at={threshold}")
+    share, passed = paused["ramp"], paused["return"] >= threshold
+    moving = (share[:-1] > 0) & (share[:-1] < 1)
+    advanced = share[1:] > share[:-1]
+    assert moving.any()
+    np.testing.assert_array_equal(advanced[moving], passed[:-1][moving])
+    assert (~passed[:-1][moving]).any() and passed[:-1][moving].any()  # both kinds happened
+    assert share[-1] == 1.0
+
+
 def test_keep_best_returns_the_best_policy_once_the_ramp_has_ended():
     trainer, state, states, metrics = _ramped_training(
         "env.task.solved_at=-1e9", "anneal.solved_for=1", "algo.keep=best"

@@ -43,7 +43,8 @@ class TrainState:
     key: jax.Array
     # what the configuration tracks across epochs: "solved", the epoch the policy had solved
     # the task anneal.solved_for epochs in a row, "streak", how many it has now (only when
-    # more than one; anneal.ramp_when_solved); "best" and "best_return", the kept policy (algo.keep)
+    # more than one; anneal.ramp_when_solved), "paused", the epochs the ramp stood still
+    # (anneal.ramp_pauses); "best" and "best_return", the kept policy (algo.keep)
     progress: dict = struct.field(default_factory=dict)
 
 
@@ -109,6 +110,7 @@ def make_train(cfg, env, model=None) -> Trainer:
     solved_at = cfg.env.task.solved_at
     gated = bool(ramp[1]) and cfg.anneal.ramp_when_solved and solved_at is not None
     solved_for = cfg.anneal.solved_for
+    pauses = gated and cfg.anneal.ramp_pauses
     keep_best = algo.keep == "best"
 
     def ramp_delay(state):
@@ -117,7 +119,8 @@ def make_train(cfg, env, model=None) -> Trainer:
         last epoch."""
         if not gated:
             return 0
-        return jnp.clip(state.progress["solved"] + 1 - ramp[0], 0, algo.epochs - ramp[1])
+        waited = state.progress["solved"] + 1 - ramp[0] + state.progress.get("paused", 0)
+        return jnp.clip(waited, 0, algo.epochs - ramp[1])
 
     # The split of the batch is static: a swept beta (sweep.beta) runs the widest split, and
     # each run uses its own share of it (`shares`), so every run sees the rollouts a run with
@@ -154,6 +157,8 @@ def make_train(cfg, env, model=None) -> Trainer:
             progress["solved"] = jnp.array(algo.epochs, jnp.int32)  # not yet
             if solved_for > 1:  # one epoch (the default) needs no count: checkpoints as before
                 progress["streak"] = jnp.array(0, jnp.int32)  # epochs in a row at solved_at
+            if pauses:
+                progress["paused"] = jnp.array(0, jnp.int32)  # failed epochs on the ramp
         if keep_best:
             progress |= {"best": params, "best_return": jnp.float32(-jnp.inf)}
         return TrainState(params, optimizer.init(params), jnp.array(0, jnp.int32), key, progress)
@@ -168,6 +173,9 @@ def make_train(cfg, env, model=None) -> Trainer:
             if solved_for > 1:
                 progress["streak"] = streak
             progress["solved"] = jnp.where(first, state.epoch, state.progress["solved"])
+            if pauses:
+                failed = (ramp_share > 0) & (ramp_share < 1) & (sim_return < solved_at)
+                progress["paused"] = state.progress["paused"] + failed.astype(jnp.int32)
         if keep_best:  # among the epochs with the continuation at its end
             better = (ramp_share >= 1) & (sim_return > state.progress["best_return"])
             progress["best_return"] = jnp.where(better, sim_return, state.progress["best_return"])
