@@ -72,7 +72,10 @@ def _trained(cfg, env):
 @pytest.mark.slow
 def test_a_range_of_no_width_trains_as_that_value_alone():
     plain = make_config(
-        *TINY, "method=pods_cl_effects", f"env.effects=[{FRICTION % 'params: {force: 20.0}'}]"
+        *TINY,
+        "method=pods_cl_effects",
+        "anneal.ramp_pauses=true",  # as method=dr's ramp
+        f"env.effects=[{FRICTION % 'params: {force: 20.0}'}]",
     )
     plain_policy, plain_return = _trained(plain, make_env(plain.env))()
     cfg = make_config(*TINY, "method=dr", f"dr.effects=[{FRICTION % 'ranges: {force: [20, 20]}'}]")
