@@ -186,6 +186,7 @@ def machine() -> dict:
         "python": platform.python_version(),
         "jax_backend": jax.default_backend(),
         "devices": [str(d) for d in jax.devices()],
+        "accelerators": sorted({d.device_kind for d in jax.devices() if d.platform != "cpu"}),
         "versions": {p: _version(p) for p in ("jax", "jaxlib", "brax", "flax", "optax", "mujoco")},
     }
 

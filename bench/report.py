@@ -40,7 +40,7 @@ def machine_lines(machine: dict) -> list[str]:
         f"- Python {machine.get('python')}; jax {v.get('jax')} (jaxlib {v.get('jaxlib')}, "
         f"backend {machine.get('jax_backend')}), brax {v.get('brax')}, flax {v.get('flax')}, "
         f"optax {v.get('optax')}, mujoco {v.get('mujoco')}",
-    ]
+    ] + [f"- Accelerator: {kind}" for kind in machine.get("accelerators", [])]
 
 
 def section_lines(name: str, sec: dict) -> list[str]:
@@ -78,8 +78,8 @@ def render(results: dict) -> str:
         "# hds benchmarks",
         "",
         "Written by `python -m bench.run` (`make bench`); `python -m bench.run SECTION ...` "
-        "re-measures only those sections. Raw numbers: `bench/results.json`. Benchmarks "
-        "measure and report; no timing is asserted anywhere. "
+        "re-measures only those sections. Raw numbers: `bench/results.json` (a GPU's: "
+        "`bench/results-gpu.json`). Benchmarks measure and report; no timing is asserted anywhere. "
         "Each section records the machine's load average before and after it: on a shared "
         "machine, other processes slow compiles and runs alike, so compare rows measured "
         "under similar load.",
