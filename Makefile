@@ -55,7 +55,8 @@ sweep: $(STAMP)
 # on each round's deployments), then on each other effect's plant, then one report of all, its figures and GIF (closed-loop PODS from the
 # frictionless simulator, plant_free/1, on the 80 N plant, its eval plant x4) into
 # experiments/sim2real_friction/results; the oracle at the loop's total budget (450 epochs) at
-# 20, 80 and 40 N (40 N added last, so finished jobs keep their numbers), and the swing-up at
+# 20, 80 and 40 N (40 N added last, so finished jobs keep their numbers) and on the other
+# effects' plants, and the swing-up at
 # 20, 40 and 80 N (the corrected simulator and the oracle at each, the frictionless simulator
 # and domain randomization once: plant_free/, then HDS, then the loop at each, its rounds
 # trained from scratch), each reported apart (GIF: the frictionless simulator's policy,
@@ -84,6 +85,8 @@ study: $(STAMP)
 		--gif plant_free/1 --gif-plant x4
 	$(BIN)/python -m hds.run +experiment=sim2real_study method=oracle algo.epochs=450 \
 		real.friction_gap=1,4,2 hydra.sweep.dir=$(STUDY_ORACLE)
+	$(BIN)/python -m hds.run +experiment=sim2real_study_effects method=oracle algo.epochs=450 \
+		hydra.sweep.dir=$(STUDY_ORACLE)/effects
 	$(BIN)/python -m hds.report $(STUDY_ORACLE) --out experiments/sim2real_friction/results/oracle_450
 	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup hydra.sweep.dir=$(STUDY_SWINGUP)
 	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup_shared \
