@@ -115,8 +115,8 @@ def make_train(cfg, env, model=None) -> Trainer:
 
     def ramp_delay(state):
         """Epochs the ramp waits for the policy to solve the task: until the epoch after it
-        first did so `anneal.solved_for` epochs in a row, at most until the ramp ends on the
-        last epoch."""
+        first did so `anneal.solved_for` epochs in a row, plus (anneal.ramp_pauses) each
+        epoch on the ramp it failed, at most until the ramp ends on the last epoch."""
         if not gated:
             return 0
         waited = state.progress["solved"] + 1 - ramp[0] + state.progress.get("paused", 0)
