@@ -235,6 +235,11 @@ class AnnealConfig:
         _in_range("anneal.cooling", self.cooling, 0.0, 1.0)
         _in_range("anneal.step_decay", self.step_decay, 0.0, 1.0)
         _in_range("anneal.solved_for", self.solved_for, 1)
+        if self.ramp_pauses and not self.ramp_when_solved:
+            raise ValueError(
+                "anneal.ramp_pauses = true needs anneal.ramp_when_solved = true: the ramp "
+                "pauses once it is under way, from the epoch the policy first solves the task"
+            )
         _in_range("anneal.horizon_start", self.horizon_start, 0)
         _in_range("anneal.horizon_full_at", self.horizon_full_at, 0.0, 1.0)
 

@@ -164,6 +164,11 @@ def test_bad_values_fail_at_composition(override, message):
     assert message in str(err.value)
 
 
+def test_a_pausing_ramp_without_waiting_for_solved_is_refused():
+    with pytest.raises(ValueError, match="anneal.ramp_pauses = true needs anneal.ramp_when_solv"):
+        make_config("anneal.ramp_pauses=true", "anneal.ramp_when_solved=false")
+
+
 def test_retrain_composes_with_a_plant_that_has_effects():
     cfg = make_config(
         "data=measured.npz",

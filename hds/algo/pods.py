@@ -168,13 +168,14 @@ def make_train(cfg, env, model=None) -> Trainer:
         continuation's `ramp_share`."""
         progress = dict(state.progress)
         if gated:
-            streak = jnp.where(sim_return >= solved_at, state.progress.get("streak", 0) + 1, 0)
+            solved_now = sim_return >= solved_at
+            streak = jnp.where(solved_now, state.progress.get("streak", 0) + 1, 0)
             first = (state.progress["solved"] == algo.epochs) & (streak >= solved_for)
             if solved_for > 1:
                 progress["streak"] = streak
             progress["solved"] = jnp.where(first, state.epoch, state.progress["solved"])
             if pauses:
-                failed = (ramp_share > 0) & (ramp_share < 1) & (sim_return < solved_at)
+                failed = (ramp_share > 0) & (ramp_share < 1) & ~solved_now
                 progress["paused"] = state.progress["paused"] + failed.astype(jnp.int32)
         if keep_best:  # among the epochs with the continuation at its end
             better = (ramp_share >= 1) & (sim_return > state.progress["best_return"])

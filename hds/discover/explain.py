@@ -207,7 +207,7 @@ def forward_selection(
             break
         state = grown
         states.append(state)
-        states, gone = _drop_proxies(fit, states, cfg)
+        states, gone = _drop_proxies(fit, states)
         dropped += gone
         banned.update(c.key for c in gone)
         state = states[-1]
@@ -223,7 +223,7 @@ def _swap(fit, states: list[State], grown: State):
     chosen first for a heavier, damped pole (each of which alone explains little) is
     replaced once both are in. Returns (the states, the replaced candidates) or None."""
     current = states[-1]
-    trial, gone = _drop_proxies(fit, [*states, grown], fit.cfg)
+    trial, gone = _drop_proxies(fit, [*states, grown])
     if not gone or not trial[-1].heldout_error < current.heldout_error:
         return None
     return trial, gone
@@ -264,7 +264,7 @@ def _within_mismatch(model, state: State, cand: Candidate, min_scale_change: flo
     )
 
 
-def _drop_proxies(fit, states: list[State], cfg):
+def _drop_proxies(fit, states: list[State]):
     """Try dropping each selected effect but the newest, the others refitted: an effect
     chosen early as a proxy (a lag for a delay) no longer earns its place once the real one
     is in, i.e. dropping it raises the held-out error by less than the margin an effect
@@ -278,7 +278,7 @@ def _drop_proxies(fit, states: list[State], cfg):
         reduced = fit.sets(state, sets)
         j = int(np.argmin([s.heldout_error for s in reduced]))
         rise = reduced[j].heldout_error - state.heldout_error
-        if rise >= max(cfg.stop_margin * reduced[j].heldout_error, cfg.min_improvement):
+        if rise >= max(fit.cfg.stop_margin * reduced[j].heldout_error, fit.cfg.min_improvement):
             break
         gone.append(state.selected[j])
         states = _chain_without(fit, states, j, reduced[j])
