@@ -22,6 +22,7 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
@@ -32,6 +33,7 @@ from conftest import CONF, ROOT, SHARED, make_config
 from hds.data import Dataset, collect, random_steps, save
 from hds.discover import DiscoverConfig, discover, identifiability, load_dataset, write_report
 from hds.discover.fit import confidence_intervals
+from hds.discover.model import Candidate
 from hds.effects import place
 from hds.effects.library import candidate_effects
 from hds.envs import make_env
@@ -335,6 +337,32 @@ def test_a_lag_standing_in_for_mujocos_soft_friction_is_law_mismatch(plants, tas
     assert any("actuator_lag@slide" in w and "law mismatch" in w for w in result.warnings)
 
 
+class _Refits:
+    """A stand-in for selection's fitter in `_refuse_law_mismatch`: each set of the cart's
+    mass scale (slot 0) and the rail's friction (slot 1), refitted, leaves the given misfit."""
+
+    engine = SimpleNamespace(model=SimpleNamespace(nominal=np.array([1.0, 0.0])))
+    cfg = DiscoverConfig()
+
+    def __init__(self, misfits: dict):
+        self.misfits = misfits
+
+    def sets(self, _, sets):
+        return [_state(s, self.misfits[tuple(c.key for c in s)]) for s in sets]
+
+
+def _state(selected, misfit, theta=(1.0, 0.0), h=None, g=None):
+    from hds.discover.explain import State
+
+    slots = [] if h is None else [0, 1]
+    zero = np.zeros(1, np.int32)
+    return State(selected, np.array(theta), zero, 0.1, 0.1, h, g, slots, misfit)
+
+
+MASS = Candidate("mass_scale", "cart", (0,), ("scale",))
+FRICTION = Candidate("coulomb_friction", "slider", (1,), ("force",))
+
+
 def test_an_effect_selected_first_is_refused_when_it_only_compensates_the_next():
     """The 80 N loop's data (C MuJoCo friction only): a 20x heavier cart wins the first round
     (the friction's fit stalls from its start), the friction the second, and the cart, refitted
@@ -342,26 +370,12 @@ def test_an_effect_selected_first_is_refused_when_it_only_compensates_the_next()
     what it adds beside the friction (the misfit rises from 1389 to 2113 without it, by less
     than the 1389 left), not by its first-round share, it is law mismatch, and the friction,
     refitted alone, is named. Effects that each earn more than the misfit left all stay."""
-    from hds.discover.explain import State, _refuse_law_mismatch
-    from hds.discover.model import Candidate
+    from hds.discover.explain import _refuse_law_mismatch
 
-    mass = Candidate("mass_scale", "cart", (0,), ("scale",))
-    friction = Candidate("coulomb_friction", "slider", (1,), ("force",))
-
-    def state(selected, misfit):
-        return State(selected, np.array([1.0, 0.0]), np.zeros(1, np.int32), 0.1, 0.1, misfit=misfit)
-
-    class Refits:  # the others refitted: the misfit each set of effects leaves
-        def __init__(self, misfits):
-            self.misfits = misfits
-
-        def sets(self, _, sets):
-            return [state(s, self.misfits[tuple(c.key for c in s)]) for s in sets]
-
-    base = state([], 903558.0)
-    chain = [base, state([mass], 17047.0), state([mass, friction], 1389.0)]
+    base = _state([], 903558.0)
+    chain = [base, _state([MASS], 17047.0), _state([MASS, FRICTION], 1389.0)]
     refused = []
-    fit = Refits({("coulomb_friction@slider",): 2113.0, ("mass_scale@cart",): 17047.0})
+    fit = _Refits({("coulomb_friction@slider",): 2113.0, ("mass_scale@cart",): 17047.0})
     kept = _refuse_law_mismatch(fit, chain, refused)
     assert [s.keys for s in kept] == [set(), {"coulomb_friction@slider"}]
     assert kept[-1].misfit == 2113.0
@@ -370,8 +384,30 @@ def test_an_effect_selected_first_is_refused_when_it_only_compensates_the_next()
         "mass_scale@cart"
     }
     # a cart 1.28 heavy that the data need: without it the misfit would more than double
-    fit = Refits({("coulomb_friction@slider",): 3000.0, ("mass_scale@cart",): 17047.0})
+    fit = _Refits({("coulomb_friction@slider",): 3000.0, ("mass_scale@cart",): 17047.0})
     assert _refuse_law_mismatch(fit, chain, []) == chain
+
+
+def test_an_effect_whose_interval_holds_no_effect_is_refused():
+    """The 80 N swing-up loop's data: beside the friction, a cart 1.05 [1.00, 1.11] times
+    heavier earns more than the misfit left (without it the misfit more than doubles), but its
+    interval, law mismatch included, does not rule out a change below min_scale_change: the
+    data do not show it, and the friction is named alone. A cart 1.5 times heavier, with the
+    same interval's width, is kept."""
+    from hds.discover.explain import _refuse_law_mismatch
+
+    # noise-free data (no episode's gradient): the intervals are the misfit's share alone,
+    # sqrt(misfit / h_jj): +-0.12 on the scale, +-12 N on the force
+    h, g = np.diag([1e5, 10.0]), np.zeros((4, 2))
+    fit = _Refits({("coulomb_friction@slider",): 3000.0, ("mass_scale@cart",): 17047.0})
+    base = _state([], 903558.0)
+    for scale, refused_keys in ((1.05, ["mass_scale@cart"]), (1.5, [])):
+        last = _state([FRICTION, MASS], 1389.0, (scale, 80.0), h, g)
+        chain = [base, _state([FRICTION], 3000.0, (1.0, 80.0), h, g), last]
+        refused = []
+        kept = _refuse_law_mismatch(fit, chain, refused)
+        assert [with_it.selected[-1].key for with_it, _ in refused] == refused_keys
+        assert kept[-1].keys == {"coulomb_friction@slider", "mass_scale@cart"} - set(refused_keys)
 
 
 @pytest.mark.parametrize("kind", KINDS)

@@ -468,10 +468,16 @@ def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
             )
     out += compensations(result.missing_effects, result.terms)
     for e in result.law_mismatch:
+        fitted = ", ".join(
+            f"{p} = {v:.4g}" + (" [{:.4g}, {:.4g}]".format(*e.ci95[p]) if p in e.ci95 else "")
+            for p, v in e.params.items()
+        )
         out.append(
-            f"{e.name}@{e.target} lowered the held-out error ({e.explained_fraction:.1%} of "
-            "it) by less than the structure the named effects' residual still has: law "
-            "mismatch (the plant's laws are not exactly the library's), not added"
+            f"{e.name}@{e.target} ({fitted}) is law mismatch (the plant's laws are not exactly "
+            f"the library's), not added: it lowered the held-out error by "
+            f"{e.explained_fraction:.1%} of it, less than the structure the named effects' "
+            "residual still has, or less than the misfit they leave without it, or with an "
+            "interval that does not exclude no effect"
         )
     for r in result.correlations:
         if r["inseparable"]:
