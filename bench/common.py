@@ -212,6 +212,7 @@ def save_section(name: str, data: dict, path: Path = RESULTS_JSON, md: Path = RE
         "machine": machine(),
     }
     atomic_write_json(path, results)
+    results = load_results(path)  # rendered as stored (a NaN is stored as null: "-")
     atomic_write_bytes(md, render(results).encode())
     return results
 
