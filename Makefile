@@ -54,7 +54,7 @@ sweep: $(STAMP)
 # loop at 20, 80 and 40 N (closed-loop PODS), then at 20 and 80 N with HDS (its model refitted
 # on each round's deployments), then on each other effect's plant, then one report of all, its figures and GIF (closed-loop PODS from the
 # frictionless simulator, plant_free/1, on the 80 N plant, its eval plant x4) into
-# experiments/sim2real_friction/results; the oracle at the loop's total budget (450 epochs) at
+# experiments/sim2real_friction/results; the oracle at the loop's total budget and schedule (450 epochs) at
 # 20, 80 and 40 N (40 N added last, so finished jobs keep their numbers) and on the other
 # effects' plants, and the swing-up at
 # 20, 40 and 80 N (the corrected simulator and the oracle at each, the frictionless simulator
@@ -64,6 +64,9 @@ sweep: $(STAMP)
 STUDY_RUN := outputs/study/sim2real_friction
 STUDY_SWINGUP := outputs/study/swingup
 STUDY_ORACLE := outputs/study/oracle_budget
+# the oracle at the loop's budget and schedule: 450 epochs, its effects met after the first
+# third (round 0's 150 epochs) and grown in over 30 (a round's ramp)
+STUDY_ORACLE_BUDGET := method=oracle algo.epochs=450 'anneal.effect_ramp=[0.33,0.4]'
 STUDY_LOOP := $(BIN)/python -m hds.loop env.backend=analytic seeds=5 method=pods_cl_effects
 STUDY_HDS_LOOP := $(BIN)/python -m hds.loop env.backend=analytic seeds=5 method=hds
 STUDY_SWINGUP_LOOP := $(BIN)/python -m hds.loop +experiment=sim2real_study_swingup_loop
@@ -83,9 +86,9 @@ study: $(STAMP)
 		$(STUDY_LOOP) real=$$plant hydra.run.dir=$(STUDY_RUN)/loop/$$plant || exit 1; done
 	$(BIN)/python -m hds.report $(STUDY_RUN) --out experiments/sim2real_friction/results \
 		--gif plant_free/1 --gif-plant x4
-	$(BIN)/python -m hds.run +experiment=sim2real_study method=oracle algo.epochs=450 \
+	$(BIN)/python -m hds.run +experiment=sim2real_study $(STUDY_ORACLE_BUDGET) \
 		real.friction_gap=1,4,2 hydra.sweep.dir=$(STUDY_ORACLE)
-	$(BIN)/python -m hds.run +experiment=sim2real_study_effects method=oracle algo.epochs=450 \
+	$(BIN)/python -m hds.run +experiment=sim2real_study_effects $(STUDY_ORACLE_BUDGET) \
 		hydra.sweep.dir=$(STUDY_ORACLE)/effects
 	$(BIN)/python -m hds.report $(STUDY_ORACLE) --out experiments/sim2real_friction/results/oracle_450
 	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup hydra.sweep.dir=$(STUDY_SWINGUP)
