@@ -47,12 +47,7 @@ def print_summary(result, out_dir: Path) -> None:
     for col in ("effect", "target", "parameters (95% CI)", "explained"):
         table.add_column(col)
     for e in result.missing_effects:
-        params = ", ".join(
-            f"{p}={v:.4g} {e.units.get(p, '')}"
-            + (f" [{e.ci95[p][0]:.4g}, {e.ci95[p][1]:.4g}]" if p in e.ci95 else "")
-            for p, v in e.params.items()
-        )
-        table.add_row(e.name, e.target, params, f"{e.explained_fraction:.1%}")
+        table.add_row(e.name, e.target, e.fitted(units=True), f"{e.explained_fraction:.1%}")
     for t in result.terms:  # added to the corrected model too
         table.add_row(
             "joint_force_terms",

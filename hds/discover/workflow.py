@@ -60,6 +60,15 @@ class NamedEffect:
             "kind": effect_type(self.name).target_kind,
         }
 
+    def fitted(self, units: bool = False) -> str:
+        """Each parameter's value (with its unit) and 95% interval: "force = 20.4 [18.7, 22.1]"."""
+        return ", ".join(
+            f"{p} = {v:.4g}"
+            + (f" {self.units.get(p, '')}" if units else "")
+            + (f" [{self.ci95[p][0]:.4g}, {self.ci95[p][1]:.4g}]" if p in self.ci95 else "")
+            for p, v in self.params.items()
+        )
+
     def as_effect(self) -> dict:
         """The effect as an `env.effects` entry."""
         return {"name": self.name, "target": self.target, "params": dict(self.params)}
@@ -468,12 +477,8 @@ def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
             )
     out += compensations(result.missing_effects, result.terms)
     for e in result.law_mismatch:
-        fitted = ", ".join(
-            f"{p} = {v:.4g}" + (" [{:.4g}, {:.4g}]".format(*e.ci95[p]) if p in e.ci95 else "")
-            for p, v in e.params.items()
-        )
         out.append(
-            f"{e.name}@{e.target} ({fitted}) is law mismatch (the plant's laws are not exactly "
+            f"{e.name}@{e.target} ({e.fitted()}) is law mismatch (the plant's laws are not exactly "
             f"the library's), not added: it lowered the held-out error by "
             f"{e.explained_fraction:.1%} of it, less than the structure the named effects' "
             "residual still has, or less than the misfit they leave without it, or with an "
