@@ -66,7 +66,8 @@ def ramp_share(epoch, begin: float, end: float, delay=0):
 def effect_ramp(params, sites, epoch, begin: float, end: float, delay=0):
     """A continuation: the effects' parameters stay at their nominal values (the effect does
     nothing) until epoch `begin`, then move linearly to their own, reached at epoch `end`
-    (begin = end = 0: their own from the start). A policy first learned without the effect
+    (begin = end = 0: their own from the start); a discrete parameter (a delay's length)
+    sets a shape and is at its own value throughout. A policy first learned without the effect
     is a starting point from which the gradient still flows, where dry friction at full
     strength from the start holds the cart still and leaves the policy little to learn from."""
     if not end:

@@ -315,14 +315,11 @@ def train(
     hooks: Hooks | None = None,
     logger: RunLogger | None = None,
     init_params=None,
-    fresh=None,
 ) -> Training:
     """Train the batch of `cfg.runs()` together on `env` (and a learned `model`);
     `effects`: each run's effect parameters of env, stacked. Resumes from
     out_dir/checkpoints/<method> when it has a checkpoint; `logger` (optional) shows progress
-    and records to W&B; `init_params` (the policies of every run, stacked) warm-starts it,
-    but for the runs where `fresh` (a bool per run) holds, which start from their own
-    initial policy."""
+    and records to W&B; `init_params` (the policies of every run, stacked) warm-starts it."""
     hooks = hooks or Hooks()
     trainer = make_train(cfg, env, model)
     hparams = batch_hparams(cfg, trainer, effects)
@@ -331,16 +328,7 @@ def train(
     start = time.perf_counter()
     state = init(keys, hparams)
     if init_params is not None:
-        policy = init_params
-        if fresh is not None and np.any(fresh):
-            policy = jax.tree.map(
-                lambda new, old: jnp.where(
-                    np.reshape(fresh, (-1,) + (1,) * (old.ndim - 1)), new, old
-                ),
-                state.policy,
-                init_params,
-            )
-        state = state.replace(policy=policy)
+        state = state.replace(policy=init_params)
     compiled = run_chunk.lower(state, hparams).compile()
     timing = {"compile_s": time.perf_counter() - start}
 

@@ -99,6 +99,15 @@ def round_config(cfg: Config, r: int) -> Config:
     return dataclasses.replace(cfg, algo=algo, anneal=anneal)
 
 
+def afresh_config(cfg: Config, r: int) -> Config:
+    """Round r's training for a run whose warm start failed: from scratch, with the round's
+    continuation (its effects waiting until the policy balances), for round 0's epochs and
+    rounds 1..r's, so that the policy it keeps has had the loop's budget so far."""
+    round_cfg = round_config(cfg, r)
+    epochs = cfg.algo.epochs + r * round_cfg.algo.epochs
+    return dataclasses.replace(round_cfg, algo=dataclasses.replace(round_cfg.algo, epochs=epochs))
+
+
 def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) -> list[dict]:
     """Every round of the loop (see the module's doc); returns the rounds' reports."""
     out_dir = Path(out_dir)
@@ -166,37 +175,43 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
         model, model_report = build(dyn, env, None, jax.random.PRNGKey(cfg.seed), rdir / "dynamics")
     method = f"loop{r}"
 
-    def train_and_evaluate(out_dir, fresh=None):
-        with experiment.method_logger(round_cfg, out_dir, method, hooks) as logger:
+    def train_and_evaluate(cfg_, out_dir, init_params):
+        with experiment.method_logger(cfg_, out_dir, method, hooks) as logger:
             training = experiment.train(
-                round_cfg,
+                cfg_,
                 env,
                 out_dir,
                 method,
                 model,
                 hooks=hooks,
                 logger=logger,
-                init_params=params,
-                fresh=fresh,
+                init_params=init_params,
             )
-            rows, _ = experiment.evaluate_training(round_cfg, training, plants)
+            rows, _ = experiment.evaluate_training(cfg_, training, plants)
             logger.finish(rows, {})
-        return training, rows
+        return training.params, rows
 
-    training, rows = train_and_evaluate(rdir)
-    # A warm-started run that still fails on the corrected simulator trains the round again
-    # from scratch, its effects waiting until it balances: warm-started from a policy that the
-    # named 2-step delay topples, every seed failed, where from scratch the round reaches the
-    # oracle. The other runs repeat their warm-started training to the bit.
+    trained, rows = train_and_evaluate(round_cfg, rdir, params)
+    # A warm-started run that still fails on the corrected simulator trains again from
+    # scratch, its effects waiting until it balances, for every epoch the loop has spent on it
+    # (`afresh_config`): warm-started from a policy that the named 2-step delay topples, every
+    # seed failed, and a policy from scratch on a round's budget alone lags the oracle's.
     afresh = np.array([params is not None and not row.get("solved_sim", True) for row in rows])
     if afresh.any():
         log.info(
             "round %d: runs %s fail the task on the corrected simulator, warm-started; they "
-            "train the round again from scratch",
+            "train again from scratch, %d epochs",
             r,
             np.flatnonzero(afresh).tolist(),
+            afresh_config(cfg, r).algo.epochs,
         )
-        training, rows = train_and_evaluate(rdir / "afresh", afresh)
+        again, rows_again = train_and_evaluate(afresh_config(cfg, r), rdir / "afresh", None)
+        trained = jax.tree.map(
+            lambda new, old: np.where(np.reshape(afresh, (-1,) + (1,) * (old.ndim - 1)), new, old),
+            again,
+            trained,
+        )
+        rows = [b if a else row for a, row, b in zip(afresh, rows, rows_again)]
     real, gap = (mean_ci([row[k] for row in rows]) for k in ("real_return", "gap"))
     report = {"rows": rows, "real_return": real, "gap": gap}
     if afresh.any():
@@ -204,7 +219,7 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
     if "not_used_because" in model_report:
         report["model_not_used_because"] = model_report["not_used_because"]
     atomic_write_json(rdir / "round.json", report)
-    return report | {"params": training.params}
+    return report | {"params": trained}
 
 
 def improved(before: dict, after: dict) -> bool:

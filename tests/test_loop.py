@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from hds import loop
+from hds.checkpoint import Checkpoints
 from hds.envs import make_env
 from hds.experiment import Hooks, run_plants
 from tests.conftest import make_config
@@ -47,7 +48,10 @@ def test_the_loop_names_the_friction_and_shrinks_the_gap(uninterrupted):
     assert second["data_episodes"] >= 16 and first["data_episodes"] == 0
     # at this budget no policy balances: round 1, warm-started, fails and trains again afresh
     assert second["trained_afresh"] == [0, 1] and "trained_afresh" not in first
-    assert (out / "rounds" / "1" / "afresh" / "checkpoints" / "loop1").is_dir()
+    # trained again for round 0's epochs and round 1's: debug=fast's 6 and loop.epochs=3
+    afresh = Checkpoints(out / "rounds" / "1" / "afresh" / "checkpoints" / "loop1")
+    assert afresh.latest() == 6 + 3
+    afresh.close()
     report = json.loads((out / "loop.json").read_text())
     assert [r["round"] for r in report["rounds"]] == [0, 1]
     assert (out / "rounds" / "1" / "discovery" / "report.md").is_file()
@@ -213,24 +217,11 @@ def test_a_round_from_scratch_keeps_round_0s_continuation():
     assert later.anneal.effect_ramp == [0.5, 0.7] and later.algo.epochs == 40
 
 
-def test_train_starts_the_runs_marked_fresh_from_their_own_initial_policy(tmp_path):
-    """experiment.train's `fresh`: what a loop round uses to train again from scratch the runs
-    that failed warm-started; the others are warm-started."""
-    from hds.experiment import train
-
-    cfg = make_config("debug=fast", "logger=none", "seeds=2", "real=none")
-    env = make_env(cfg.env)
-    scratch = train(cfg, env, tmp_path / "scratch", "pods", hooks=Hooks(console=False))
-    mixed = train(
-        cfg,
-        env,
-        tmp_path / "mixed",
-        "pods",
-        hooks=Hooks(console=False),
-        init_params=scratch.params,
-        fresh=np.array([True, False]),
-    )
-    first = jax.tree.map(lambda a, b: np.array_equal(a[0], b[0]), mixed.params, scratch.params)
-    second = jax.tree.map(lambda a, b: np.array_equal(a[1], b[1]), mixed.params, scratch.params)
-    assert all(jax.tree.leaves(first))  # started afresh: the same training as from scratch
-    assert not all(jax.tree.leaves(second))  # warm-started: trained further
+def test_a_run_trained_again_from_scratch_gets_the_loop_s_epochs_so_far():
+    """A run whose warm start failed in round r trains from scratch for round 0's epochs and
+    rounds 1..r's, its effects growing in once it balances (the round's continuation)."""
+    cfg = make_config("method=pods_cl_effects", "loop.epochs=40")
+    first, second = loop.afresh_config(cfg, 1), loop.afresh_config(cfg, 2)
+    assert (first.algo.epochs, second.algo.epochs) == (150 + 40, 150 + 80)
+    assert first.anneal == loop.round_config(cfg, 1).anneal
+    assert first.anneal.ramp_when_solved
