@@ -48,6 +48,17 @@ class State:
     def keys(self) -> set[str]:
         return {c.key for c in self.selected}
 
+    def intervals(self, mismatch: bool = True):
+        """`confidence_intervals` of the fitted slots: the noise's and (`mismatch`) the
+        laws' mismatch's."""
+        extra = (self.misfit, self.views) if mismatch else ()
+        return confidence_intervals(self.theta[self.slots], self.h, self.g, *extra)
+
+    def half_widths(self, mismatch: bool = True) -> dict[int, float]:
+        """Each fitted slot's 95% half-width (`intervals`); inf where the data do not
+        determine it."""
+        return dict(zip(self.slots, map(float, self.intervals(mismatch).half)))
+
 
 @dataclass
 class Selection:
@@ -257,12 +268,8 @@ def _within_mismatch(model, state: State, cand: Candidate, min_scale_change: flo
         model.nominal[s] == 1.0 and abs(state.theta[s] - 1.0) < min_scale_change for s in cand.slots
     ):
         return True
-    ci = confidence_intervals(state.theta[state.slots], state.h, state.g)
-    where = {s: i for i, s in enumerate(state.slots)}
-    return all(
-        abs(float(state.theta[s]) - float(model.nominal[s])) <= ci.half[where[s]]
-        for s in cand.slots
-    )
+    half = state.half_widths(mismatch=False)
+    return all(abs(float(state.theta[s]) - float(model.nominal[s])) <= half[s] for s in cand.slots)
 
 
 def _drop_proxies(fit, states: list[State]):
@@ -336,14 +343,13 @@ def _indistinct(model, state: State, min_scale_change: float) -> np.ndarray:
     selection, it belongs in the interval."""
     if state.h is None:  # no fit's curvature, no interval
         return np.zeros(len(state.selected), bool)
-    ci = confidence_intervals(state.theta[state.slots], state.h, state.g, state.misfit, state.views)
-    where = {s: i for i, s in enumerate(state.slots)}
+    half = state.half_widths()
 
     def reaches_no_op(s: int) -> bool:
         nominal = float(model.nominal[s])
         margin = min_scale_change if nominal == 1.0 else 0.0
-        half = ci.half[where[s]]  # inf: the data do not determine it, judged elsewhere
-        return bool(np.isfinite(half)) and abs(float(state.theta[s]) - nominal) <= half + margin
+        # inf: the data do not determine it, judged elsewhere
+        return np.isfinite(half[s]) and abs(float(state.theta[s]) - nominal) <= half[s] + margin
 
     return np.array(
         [bool(c.slots) and all(reaches_no_op(s) for s in c.slots) for c in state.selected]
@@ -446,8 +452,7 @@ def intervals(model, state: State, delay_steps: dict | None = None) -> dict:
     mismatch: what the model fails to fit and how its fit moves between views of the data,
     see `confidence_intervals`); a delay's are the steps the data cannot rule out
     (`delay_steps`: key -> [lowest, highest], from `delay_range`)."""
-    ci = confidence_intervals(state.theta[state.slots], state.h, state.g, state.misfit, state.views)
-    where = {s: i for i, s in enumerate(state.slots)}
+    half = state.half_widths()
     out = {}
     for cand in state.selected:
         if cand.shifts_actions:
@@ -456,7 +461,7 @@ def intervals(model, state: State, delay_steps: dict | None = None) -> dict:
             continue
         out[cand.key] = {}
         for p, s in zip(cand.params, cand.slots, strict=True):
-            value, w = float(state.theta[s]), float(ci.half[where[s]])
+            value, w = float(state.theta[s]), half[s]
             lo, hi = float(model.lower[s]), float(model.upper[s])
             out[cand.key][p] = [max(value - w, lo), min(value + w, hi)]
     return out
@@ -467,7 +472,7 @@ def correlations(state: State) -> list[dict]:
     `inseparable` where the data cannot tell them apart (|rho| > INSEPARABLE)."""
     if not state.slots:
         return []
-    ci = confidence_intervals(state.theta[state.slots], state.h, state.g, state.misfit, state.views)
+    ci = state.intervals()
     names = {s: f"{c.key}.{p}" for c in state.selected for p, s in zip(c.params, c.slots)}
     owner = {s: c.key for c in state.selected for s in c.slots}
     rows = []
