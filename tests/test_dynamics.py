@@ -389,3 +389,34 @@ def test_a_beta_sweep_needs_a_model():
         make_config("sweep.beta=[0.1,0.2]")
     with pytest.raises(ValueError, match=r"sweep.beta = \[0.5, 2.0\] must lie in \[0, 1\]"):
         make_config("dynamics=mlp", "sweep.beta=[0.5,2.0]")
+
+
+def test_a_policy_run_through_a_model_that_is_the_plant_scores_the_plants_return(setup):
+    """`python -m hds.dynamics --policy`: the policy's return through the model, from the
+    initial states of its episodes on the plant, next to its return there."""
+    from hds.dynamics.__main__ import closed_loop_returns, deployed
+    from hds.real.brax_plant import BraxPlant
+
+    cfg, env, friction_plant, _, _ = setup
+    gains = np.array([[0.5], [8.0], [0.5], [1.0]])
+
+    def policy(o):  # a feedback that pushes the cart under the pole; NumPy or JAX
+        xp = jnp if isinstance(o, jax.Array) else np
+        return 2.0 * xp.tanh(o @ gains)
+
+    exact = dynamics.zero_residual(env)  # the simulator's own step
+    for plant, same in (
+        (BraxPlant(make_env(cfg.env, sharpness=None)), True),
+        (friction_plant, False),
+    ):
+        data = deployed(policy, env, plant, jax.random.PRNGKey(5), 6, 40)
+        returns = closed_loop_returns(policy, exact, env, data)
+        model, on_plant = returns["model"][0], returns["plant"][0]
+        assert (model == pytest.approx(on_plant, rel=1e-3)) is same, (model, on_plant)
+
+
+def test_the_dynamics_command_names_a_policy_directory_it_cannot_read(tmp_path, capsys):
+    from hds.dynamics.__main__ import main
+
+    with pytest.raises(SystemExit, match="config.yaml not found"):
+        main(["--policy", str(tmp_path), "debug=fast"])
