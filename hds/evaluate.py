@@ -9,6 +9,13 @@ and sim_vs_real.gif into out= (default: <run dir>/evaluations/<plant>).
 
 The `real` overrides compose as they do for `python -m hds.run`; without them the run's own
 plant is used. (In Python: `hds.evaluate(policy, real=...)`, hds/policy.py.)
+
+`model=<dir>`, a learned dynamics model (an HDS run's <run dir>/dynamics), adds what HDS's
+rollouts through it meet: the policy's return run through the model from the same initial
+states, and the model's k-step errors along the policy's episodes on the plant, next to the
+simulator's and constant velocity's (evaluation.json's "model"):
+
+    python -m hds.evaluate run=outputs/runs/x/t model=outputs/runs/x/t/dynamics
 """
 
 from __future__ import annotations
@@ -31,7 +38,7 @@ KEYS = {
     "eval_episodes": int,
     "eval_seed": int,
 }
-KEYS |= {"out": Path, "gif": cli.boolean}
+KEYS |= {"out": Path, "gif": cli.boolean, "model": Path}
 
 
 def main(argv: list[str]) -> Path:
@@ -48,12 +55,52 @@ def main(argv: list[str]) -> Path:
     out = args.get("out") or args["run"] / "evaluations" / name
     episodes, seed = args.get("eval_episodes"), args.get("eval_seed")
     real_eval = evaluate(policy, real, episodes, seed)
-    return write_evaluation(policy, real_eval, out, episodes, seed, gif=args.get("gif", True))
+    extra = {}
+    if args.get("model"):
+        extra["model"] = through_model(policy, args["model"], real_eval)
+    return write_evaluation(
+        policy, real_eval, out, episodes, seed, gif=args.get("gif", True), extra=extra
+    )
 
 
-def write_evaluation(policy, real_eval, out: Path, episodes, seed, gif: bool = True) -> Path:
+def through_model(policy, model_dir: Path, real_eval) -> dict:
+    """The policy run through the learned model at `model_dir` from the initial states of its
+    episodes on the plant (`real_eval`), and the model's k-step errors along those episodes
+    (hds.dynamics.evaluate: model, constant velocity, simulator); printed and returned."""
+    from hds import dynamics
+    from hds.evaluation import mean_ci
+
+    env = policy.simulator
+    model = dynamics.load(model_dir, env)
+    obs, actions = real_eval.episodes.obs, real_eval.episodes.actions
+    returns = dynamics.closed_loop_returns(
+        model, env.task, policy, obs[:, 0], actions.shape[1], env.sim.ctrl_range
+    )
+    errors = dynamics.evaluate(model, obs, actions, policy.config.dynamics.eval_steps, env)
+    (mean, lo, hi), (real_mean, *_) = mean_ci(returns), real_eval.mean_ci()
+    print(
+        f"through the model: return {mean:.4g} [{lo:.4g}, {hi:.4g}] (worst episode "
+        f"{returns.min():.4g}); on the plant {real_mean:.4g} (worst {real_eval.returns.min():.4g})"
+    )
+    print("k-step nrmse along the policy's episodes on the plant (model / const-vel / simulator):")
+    for k, row in errors.items():
+        values = (row[n] for n in ("model", "baseline", "simulator"))
+        print(f"  k={k}: " + " / ".join("inf" if v is None else f"{v:.4g}" for v in values))
+    return {
+        "path": str(model_dir),
+        "returns": returns.tolist(),
+        "mean": mean,
+        "ci95": [lo, hi],
+        "k_step": errors,
+    }
+
+
+def write_evaluation(
+    policy, real_eval, out: Path, episodes, seed, gif: bool = True, extra: dict | None = None
+) -> Path:
     """evaluation.json (returns on the plant and on the simulator the policy trained on, from
-    the same initial states), plots/trajectories.png and, with gif, sim_vs_real.gif."""
+    the same initial states, and `extra`'s entries), plots/trajectories.png and, with gif,
+    sim_vs_real.gif."""
     from hds import plots
     from hds.animate import animate
     from hds.policy import evaluate
@@ -78,6 +125,7 @@ def write_evaluation(policy, real_eval, out: Path, episodes, seed, gif: bool = T
         "real": real_eval.to_json(),
         "sim": sim_eval.to_json(),
         "gap": sim_mean - real_mean,
+        **(extra or {}),
     }
     atomic_write_json(out / "evaluation.json", summary)
     return out

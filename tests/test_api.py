@@ -180,6 +180,26 @@ def test_hds_evaluate_runs_a_saved_policy_on_another_plant(sweep_run, tmp_path):
     assert "none of this run's runs match seed=7" in bad.stderr
 
 
+def test_hds_evaluate_runs_a_policy_through_a_learned_model(sweep_run, tmp_path):
+    """model=: through a model that is the simulator the policy trained on, it scores its
+    simulator return from the same initial states; the model's errors along its episodes."""
+    from hds import dynamics
+    from hds.evaluate import main
+
+    out, _ = sweep_run
+    policy = hds.load_policy(out, seed=0, step_size=0.04)
+    exact = dynamics.save(tmp_path / "model", dynamics.zero_residual(policy.simulator))
+    args = [f"run={out}", "seed=0", "step_size=0.04", "eval_episodes=4", "gif=false"]
+    written = main([*args, f"model={exact}", f"out={tmp_path / 'eval'}"])
+    result = json.loads((written / "evaluation.json").read_text())
+    np.testing.assert_allclose(result["model"]["returns"], result["sim"]["returns"], rtol=1e-4)
+    assert result["model"]["k_step"]["1"]["model"] == pytest.approx(
+        result["model"]["k_step"]["1"]["simulator"]
+    )
+    with pytest.raises(FileNotFoundError):
+        main([*args, f"model={tmp_path / 'none'}", f"out={tmp_path / 'eval2'}"])
+
+
 def test_train_calls_its_hooks_and_returns_a_typed_result(tmp_path):
     epochs, params_seen = [], []
     hooks = Hooks(

@@ -392,9 +392,10 @@ def test_a_beta_sweep_needs_a_model():
 
 
 def test_a_policy_run_through_a_model_that_is_the_plant_scores_the_plants_return(setup):
-    """`python -m hds.dynamics --policy`: the policy's return through the model, from the
-    initial states of its episodes on the plant, next to its return there."""
-    from hds.dynamics.__main__ import closed_loop_returns, deployed
+    """closed_loop_returns: through a model that is the plant a policy scores its return on
+    the plant, from the same initial states; on a plant with friction it does not."""
+    from hds.data import initial_states
+    from hds.real import rollout
     from hds.real.brax_plant import BraxPlant
 
     cfg, env, friction_plant, _, _ = setup
@@ -404,19 +405,13 @@ def test_a_policy_run_through_a_model_that_is_the_plant_scores_the_plants_return
         xp = jnp if isinstance(o, jax.Array) else np
         return 2.0 * xp.tanh(o @ gains)
 
+    q0, qd0 = initial_states(env.task, 5, 6)
     exact = dynamics.zero_residual(env)  # the simulator's own step
-    for plant, same in (
-        (BraxPlant(make_env(cfg.env, sharpness=None)), True),
-        (friction_plant, False),
-    ):
-        data = deployed(policy, env, plant, jax.random.PRNGKey(5), 6, 40)
-        returns = closed_loop_returns(policy, exact, env, data)
-        model, on_plant = returns["model"][0], returns["plant"][0]
-        assert (model == pytest.approx(on_plant, rel=1e-3)) is same, (model, on_plant)
-
-
-def test_the_dynamics_command_names_a_policy_directory_it_cannot_read(tmp_path, capsys):
-    from hds.dynamics.__main__ import main
-
-    with pytest.raises(SystemExit, match="config.yaml not found"):
-        main(["--policy", str(tmp_path), "debug=fast"])
+    through = dynamics.closed_loop_returns(
+        exact, env.task, policy, np.concatenate([q0, qd0], 1), 40, env.sim.ctrl_range
+    )
+    assert through.shape == (6,) and np.all(through < 0)
+    plain = BraxPlant(make_env(cfg.env, sharpness=None))
+    for plant, same in ((plain, True), (friction_plant, False)):
+        on_plant = rollout(plant, env.task, q0, qd0, policy, 40).returns
+        assert np.allclose(through, on_plant, rtol=1e-3) is same, (through, on_plant)

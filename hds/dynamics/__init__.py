@@ -7,6 +7,8 @@
       from the plant with an excitation signal, and save the model to out_dir; the model is
       None when it predicts held-out data worse than the simulator (cfg.require_better)
   evaluate(model, obs, actions, ks)    open-loop k-step errors, model and constant velocity
+  closed_loop_returns(model, task, act, starts, horizon, ctrl_range)   a policy's returns
+      run through the model
 
 A model (`DynamicsModel`) satisfies the engine protocol of hds.algo (reset, step, observe,
 qqd; its state is the observation [q, qd]); see hds.dynamics.model for the three kinds.
@@ -20,7 +22,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from hds.dynamics.metrics import multistep_errors, open_loop_predictions
+from hds.dynamics.metrics import closed_loop_returns, multistep_errors, open_loop_predictions
 from hds.dynamics.model import (
     KINDS,
     DynamicsModel,
@@ -156,6 +158,7 @@ __all__ = [
     "Normalizer",
     "as_arrays",
     "build",
+    "closed_loop_returns",
     "collect_data",
     "constant_velocity",
     "evaluate",

@@ -5,6 +5,8 @@ times with the recorded actions actions[e, t .. t+k-1], and its prediction compa
 obs[e, t+k]. Hinge-angle errors are wrapped to [-pi, pi). Per variable the error is a root mean
 square over all windows; the score `nrmse` divides each by the spread (std) of that variable
 in the held-out data and averages over variables (1 means as far off as the data's spread).
+
+`closed_loop_returns`: a policy's return run through a model, the loop HDS's rollouts close.
 """
 
 from __future__ import annotations
@@ -65,3 +67,15 @@ def multistep_errors(
             "rmse": {n: float(v) for n, v in zip(names, rmse, strict=True)},
         }
     return out
+
+
+def closed_loop_returns(model, task, act, starts, horizon: int, ctrl_range) -> np.ndarray:
+    """[E]: the return of the policy `act` (JAX in, JAX out) run through `model` for `horizon`
+    steps from each of `starts` [E, n_obs] (the model's states), the task's rewards as the
+    simulator scores them."""
+    from hds.algo.rollout import perturbed_rollout
+
+    low, high = (jnp.asarray(np.asarray(ctrl_range)[:, i], jnp.float32) for i in (0, 1))
+    zeros = jnp.zeros((horizon, len(low)), jnp.float32)
+    one = lambda s: perturbed_rollout(model, None, task, act, s, zeros, low, high)[2].sum()  # noqa: E731
+    return np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(starts, jnp.float32)))
