@@ -77,5 +77,8 @@ def closed_loop_returns(model, task, act, starts, horizon: int, ctrl_range) -> n
 
     low, high = (jnp.asarray(np.asarray(ctrl_range)[:, i], jnp.float32) for i in (0, 1))
     zeros = jnp.zeros((horizon, len(low)), jnp.float32)
-    one = lambda s: perturbed_rollout(model, None, task, act, s, zeros, low, high)[2].sum()  # noqa: E731
-    return np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(starts, jnp.float32)))
+
+    def episode_return(start):
+        return perturbed_rollout(model, None, task, act, start, zeros, low, high)[2].sum()
+
+    return np.asarray(jax.jit(jax.vmap(episode_return))(jnp.asarray(starts, jnp.float32)))
