@@ -175,10 +175,10 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
         model, model_report = build(dyn, env, None, jax.random.PRNGKey(cfg.seed), rdir / "dynamics")
     method = f"loop{r}"
 
-    def train_and_evaluate(cfg_, out_dir, init_params):
-        with experiment.method_logger(cfg_, out_dir, method, hooks) as logger:
+    def train_and_evaluate(train_cfg, out_dir, init_params):
+        with experiment.method_logger(train_cfg, out_dir, method, hooks) as logger:
             training = experiment.train(
-                cfg_,
+                train_cfg,
                 env,
                 out_dir,
                 method,
@@ -187,7 +187,7 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
                 logger=logger,
                 init_params=init_params,
             )
-            rows, _ = experiment.evaluate_training(cfg_, training, plants)
+            rows, _ = experiment.evaluate_training(train_cfg, training, plants)
             logger.finish(rows, {})
         return training.params, rows
 
@@ -198,14 +198,15 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
     # seed failed, and a policy from scratch on a round's budget alone lags the oracle's.
     afresh = np.array([params is not None and not row.get("solved_sim", True) for row in rows])
     if afresh.any():
+        afresh_cfg = afresh_config(cfg, r)
         log.info(
             "round %d: runs %s fail the task on the corrected simulator, warm-started; they "
             "train again from scratch, %d epochs",
             r,
             np.flatnonzero(afresh).tolist(),
-            afresh_config(cfg, r).algo.epochs,
+            afresh_cfg.algo.epochs,
         )
-        again, rows_again = train_and_evaluate(afresh_config(cfg, r), rdir / "afresh", None)
+        again, rows_again = train_and_evaluate(afresh_cfg, rdir / "afresh", None)
         trained = jax.tree.map(
             lambda new, old: np.where(np.reshape(afresh, (-1,) + (1,) * (old.ndim - 1)), new, old),
             again,
