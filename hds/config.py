@@ -248,6 +248,10 @@ class AnnealConfig:
 class DynamicsConfig:
     model: str = "none"  # none | mlp | ensemble | residual
     beta: float = 0.0  # fraction of rollouts taken through the learned model
+    # 0: the model's rollouts start from the task's initial states and run the whole horizon;
+    # n: each is cut into short ones of n steps (the largest divisor of the horizon not above
+    # n) started from states the simulator's rollouts visited (MBPO's branched rollouts)
+    branch: int = 0
     path: str | None = None  # a saved model to reuse instead of training one
     data: str | None = None  # a measured dataset (.npz/.csv) to fit on instead of collecting
     # network and fitting (hds.dynamics)
@@ -276,6 +280,7 @@ class DynamicsConfig:
     def check(self):
         _one_of("dynamics.model", self.model, ("none", "mlp", "ensemble", "residual"))
         _in_range("dynamics.beta", self.beta, 0.0, 1.0)
+        _in_range("dynamics.branch", self.branch, 0)
         _check_widths("dynamics.hidden", self.hidden, fewest=1)
         for key in ("ensemble_size", "minibatch", "epochs", "patience", "episodes", "horizon"):
             _in_range(f"dynamics.{key}", getattr(self, key), 1)
@@ -536,6 +541,19 @@ class Config:
             raise ValueError(
                 "sweep.beta sweeps the share of rollouts through the learned model, but "
                 "dynamics.model = none; choose one (dynamics=mlp, or method=hds)"
+            )
+        beta = max([self.dynamics.beta, *self.sweep.beta])  # above 1: sweep's own error
+        if (
+            self.dynamics.branch
+            and self.uses_model()
+            and beta <= 1
+            and round(beta * self.algo.rollouts) >= self.algo.rollouts
+        ):
+            raise ValueError(
+                f"dynamics.branch = {self.dynamics.branch} starts the model's rollouts from "
+                f"states of the simulator's, but a beta of {beta:g} leaves none of "
+                f"algo.rollouts = {self.algo.rollouts} on the simulator; lower dynamics.beta "
+                "(sweep.beta) or set dynamics.branch=0"
             )
         if self.sweep.noise_decay and self.noise.schedule != "exponential":
             raise ValueError(

@@ -322,6 +322,44 @@ def test_a_model_drives_rollouts_inside_the_trainer(setup, fitted):
     assert not np.allclose(first, first_alone)
 
 
+def test_branched_model_rollouts_start_from_states_the_used_simulator_rollouts_visited():
+    """dynamics.branch's starts: only states of the rollouts this run uses (the first
+    n_used), from every one of them and from many steps; more draws begin with the same ones."""
+    from hds.algo.pods import branch_starts
+
+    n, steps, n_used = 6, 10, 3
+    visited = jnp.arange(n * steps * 4, dtype=jnp.float32).reshape(n, steps, 4)
+    key = jax.random.PRNGKey(3)
+    starts = np.asarray(jax.jit(branch_starts, static_argnums=2)(visited, n_used, 300, key))
+    flat = np.asarray(visited).reshape(-1, 4)
+    index = [int(np.flatnonzero((flat == s).all(1))[0]) for s in starts]
+    rollout, step = np.divmod(index, steps)
+    assert set(rollout) == set(range(n_used))
+    assert len(set(step)) == steps
+    fewer = np.asarray(branch_starts(visited, n_used, 40, key))
+    np.testing.assert_array_equal(fewer, starts[:40])
+
+
+def test_branched_model_rollouts_drive_the_trainer(setup, fitted):
+    """dynamics.branch=5 (of a 10-step horizon): training through the model stays finite,
+    and its short rollouts from simulator states train otherwise than whole ones."""
+    from hds.algo.pods import make_train
+
+    cfg, env, *_ = setup
+    model, _ = fitted("ensemble")
+    key = jax.random.PRNGKey(0)
+    results = {}
+    for branch in (0, 5):
+        trainer = make_train(
+            replace(cfg, dynamics=replace(cfg.dynamics, branch=branch)), env, model
+        )
+        state, metrics = jax.jit(trainer.train)(key, trainer.default_hparams)
+        assert np.all(np.isfinite(np.asarray(metrics["loss"])))
+        assert int(np.sum(metrics["skipped"])) == 0
+        results[branch] = jax.tree.leaves(state.policy)[0]
+    assert not np.allclose(results[0], results[5])
+
+
 @pytest.mark.parametrize("kind", ["mlp", "ensemble"])
 def test_model_rollouts_have_a_finite_nonzero_action_gradient(setup, fitted, kind):
     from hds.algo.rollout import open_loop_return
@@ -349,16 +387,19 @@ def test_residual_step_has_a_finite_jacobian(setup, fitted):
 
 
 @pytest.mark.slow  # make test-slow: keeps make test under 10 min cold
-def test_a_vmapped_beta_sweep_gives_the_numbers_of_separate_runs(setup, fitted, tmp_path):
+@pytest.mark.parametrize("branch", [0, 5])
+def test_a_vmapped_beta_sweep_gives_the_numbers_of_separate_runs(setup, fitted, tmp_path, branch):
     """sweep.beta trains every share of model rollouts in one program (the widest split, each
-    run using its own share): the numbers of one run per beta, beta = 0 being plain PODS."""
+    run using its own share): the numbers of one run per beta, beta = 0 being plain PODS;
+    with whole model rollouts and with branched ones."""
     _, env, *_ = setup
     model, _ = fitted("ensemble")
     betas = (0.0, 0.25, 0.75)
-    swept = make_config(*SMALL, f"sweep.beta=[{','.join(map(str, betas))}]")
+    small = (*SMALL, f"dynamics.branch={branch}")
+    swept = make_config(*small, f"sweep.beta=[{','.join(map(str, betas))}]")
     together, history = trained(swept, env, tmp_path / "vmapped", "hds", model)
     for i, beta in enumerate(betas):
-        alone_cfg = make_config(*SMALL, f"dynamics.beta={beta}")
+        alone_cfg = make_config(*small, f"dynamics.beta={beta}")
         alone, alone_history = trained(
             alone_cfg, env, tmp_path / f"alone{i}", "hds", model if beta else None
         )
@@ -382,6 +423,12 @@ def test_the_model_share_grows_in_with_the_effect_ramp(setup, fitted, tmp_path):
     )
     np.testing.assert_array_equal(ramped["loss"][0][:2], alone["loss"][0][:2])
     assert not np.allclose(ramped["loss"][0][2:], alone["loss"][0][2:])
+
+
+def test_branched_model_rollouts_need_simulator_rollouts_to_branch_from():
+    with pytest.raises(ValueError, match=r"dynamics.branch = 5 .* beta of 1 leaves none"):
+        make_config("method=hds", "dynamics.beta=1.0")
+    assert make_config("method=hds", "dynamics.beta=1.0", "dynamics.branch=0").dynamics.beta == 1
 
 
 def test_a_beta_sweep_needs_a_model():

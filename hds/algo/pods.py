@@ -81,6 +81,20 @@ def chunk_length(epochs: int, most: int) -> int:
     return max(d for d in range(1, min(epochs, most) + 1) if epochs % d == 0)
 
 
+def branch_starts(visited, n_used, count: int, key):
+    """`count` initial states for branched model rollouts, each drawn uniformly from the
+    states the first `n_used` (may be traced) of the rollouts `visited` ([n, T, n_obs]; a
+    model's state is its observation) reached. One key per draw, so a batch with more draws
+    begins with the same ones (a beta sweep)."""
+
+    def draw(k):
+        k_which, k_when = jax.random.split(k)
+        which = jnp.floor(jax.random.uniform(k_which) * n_used).astype(jnp.int32)
+        return visited[which, jax.random.randint(k_when, (), 0, visited.shape[1])]
+
+    return jax.vmap(draw)(jax.random.split(key, count))
+
+
 def make_train(cfg, env, model=None) -> Trainer:
     """`cfg` is a validated `hds.config.Config`; `model` an optional learned dynamics engine
     (reset/step/observe/qqd) through which a share `cfg.dynamics.beta` of rollouts runs."""
@@ -134,20 +148,28 @@ def make_train(cfg, env, model=None) -> Trainer:
     if ramp[1]:
         betas = [*betas, 0.0]
     n_model_max, n_model_min = int(model_count(max(betas))), int(model_count(min(betas)))
+    # dynamics.branch: each of the model's rollouts becomes horizon / branch short ones, each
+    # started from a state the simulator's rollouts visited (MBPO's branched rollouts), so a
+    # model's error compounds over `branch` steps, not the whole horizon; same rows to regress
+    horizon = task.horizon
+    branched = bool(cfg.dynamics.branch) and bool(n_model_max)
+    branch = chunk_length(horizon, cfg.dynamics.branch) if branched else horizon
+    per_slot = horizon // branch
     parts = [(env, algo.rollouts - n_model_min, "effects")]
     if n_model_max:
-        parts.append((model, n_model_max, None))
+        parts.append((model, n_model_max * per_slot, None))
 
     def shares(hparams, ramp_share):
-        """Per part, which of its rollouts this run uses where the continuation stands at
-        `ramp_share`, and the regression's row order."""
+        """Where the continuation stands at `ramp_share`: how many of the simulator part's
+        rollouts this run uses, per part which of its rollouts it uses, and the regression's
+        rows (the used steps of the parts' flattened rollouts, the simulator's first)."""
         beta = hparams["beta"] * ramp_share
         n_model = model_count(beta) if n_model_max else 0
         n_sim = algo.rollouts - n_model
-        i = jnp.arange(algo.rollouts)
-        rows = jnp.where(i < n_sim, i, parts[0][1] + i - n_sim)
-        masks = [jnp.arange(n) < k for (_, n, _), k in zip(parts, (n_sim, n_model))]
-        return masks, rows
+        i = jnp.arange(algo.rollouts * horizon)
+        rows = jnp.where(i < n_sim * horizon, i, (parts[0][1] - n_sim) * horizon + i)
+        masks = [jnp.arange(n) < k for (_, n, _), k in zip(parts, (n_sim, n_model * per_slot))]
+        return n_sim, masks, rows
 
     def init(key, hparams) -> TrainState:
         key, init_key = jax.random.split(key)
@@ -198,16 +220,21 @@ def make_train(cfg, env, model=None) -> Trainer:
 
     randomized = cfg.simulator == "randomized"
 
-    def collect(engine, params, count, policy_params, hparams, epoch, key, per_rollout=False):
+    def collect(
+        engine, params, count, policy_params, hparams, epoch, key, per_rollout=False, starts=None
+    ):
         """Stage 1: roll the (noisy) policy out from `count` initial states (`per_rollout`:
-        params holds each rollout's own effect parameters, batched on axis 0). Returns the
+        params holds each rollout's own effect parameters, batched on axis 0; `starts`: given
+        ones, rolled out for `branch` steps, not drawn ones for the horizon). Returns the
         starts, observations, controls, rewards and the key left for stage 2."""
         k_reset, k_roll, k_improve = jax.random.split(key, 3)
-        starts = jax.vmap(engine.reset)(jax.random.split(k_reset, count))
+        steps = horizon if starts is None else branch
+        if starts is None:
+            starts = jax.vmap(engine.reset)(jax.random.split(k_reset, count))
         act = lambda o: policy.apply(policy_params, o)  # noqa: E731
         obs, actions, rewards = jax.vmap(
             lambda p, s, k: policy_rollout(
-                engine, p, task, act, s, k, sigma(hparams, epoch), task.horizon, low, high
+                engine, p, task, act, s, k, sigma(hparams, epoch), steps, low, high
             ),
             in_axes=(0 if per_rollout else None, 0, 0),
         )(params, starts, jax.random.split(k_roll, count))
@@ -239,7 +266,8 @@ def make_train(cfg, env, model=None) -> Trainer:
                 low=low,
                 high=high,
                 act=act if closed else None,
-                counted=counted_steps(epoch),
+                # the curriculum counts an episode's first steps; a branch starts mid-episode
+                counted=counted_steps(epoch) if actions.shape[1] == horizon else None,
             ),
             in_axes=(p_axis, 0, 0, 0),
         )
@@ -283,7 +311,7 @@ def make_train(cfg, env, model=None) -> Trainer:
             tol=tol,
         )
 
-    def collect_and_improve(engine, params_key, count, state, hparams, key, delay):
+    def collect_and_improve(engine, params_key, count, state, hparams, key, delay, starts=None):
         params = hparams[params_key] if params_key else None
         # domain randomization: each rollout its own draw (params batched on axis 0); the key
         # is folded in, so a range of no width trains exactly as that value alone
@@ -292,8 +320,8 @@ def make_train(cfg, env, model=None) -> Trainer:
             params = sample_effects(jax.random.fold_in(key, 1), *hparams["effect_ranges"], count)
         if params_key == "effects":
             params = anneal.effect_ramp(params, sim.effects.sites, state.epoch, *ramp, delay)
-        starts, obs, actions, rewards, k_improve = collect(
-            engine, params, count, state.policy, hparams, state.epoch, key, drawn
+        starts, visited, actions, rewards, k_improve = collect(
+            engine, params, count, state.policy, hparams, state.epoch, key, drawn, starts
         )
         obs, result, alpha = improve_batch(
             engine,
@@ -302,12 +330,12 @@ def make_train(cfg, env, model=None) -> Trainer:
             hparams,
             state.epoch,
             starts,
-            obs,
+            visited,
             actions,
             k_improve,
             drawn,
         )
-        return obs, result, rewards.sum(-1), alpha
+        return obs, result, rewards.sum(-1), alpha, visited
 
     def epoch(state: TrainState, hparams):
         # the same keys whether or not a model takes part: a run with beta = 0 in a beta sweep
@@ -315,17 +343,27 @@ def make_train(cfg, env, model=None) -> Trainer:
         key, sim_key, regress_key, model_key = jax.random.split(state.key, 4)
         delay = ramp_delay(state)
         ramp_share = anneal.ramp_share(state.epoch, *ramp, delay)
-        outs = [
-            collect_and_improve(e, pk, n, state, hparams, k, delay)
-            for (e, n, pk), k in zip(parts, (sim_key, model_key))
-        ]
-        masks, rows = shares(hparams, ramp_share)
-        obs = jnp.concatenate([o[0] for o in outs])[rows].reshape(-1, sim.n_obs)
-        targets = jnp.concatenate([o[1].actions for o in outs])[rows].reshape(-1, sim.n_act)
+        n_sim, masks, rows = shares(hparams, ramp_share)
+        outs = [collect_and_improve(env, "effects", parts[0][1], state, hparams, sim_key, delay)]
+        if n_model_max:
+            starts = None
+            if branched:
+                k_branch = jax.random.fold_in(model_key, 1)
+                starts = branch_starts(outs[0][4], n_sim, parts[1][1], k_branch)
+            outs.append(
+                collect_and_improve(
+                    model, None, parts[1][1], state, hparams, model_key, delay, starts
+                )
+            )
+        obs = jnp.concatenate([o[0].reshape(-1, sim.n_obs) for o in outs])[rows]
+        targets = jnp.concatenate([o[1].actions.reshape(-1, sim.n_act) for o in outs])[rows]
         counted = counted_steps(state.epoch)
         weights = None  # the steps the improvement did not count were not improved: left out
-        if counted is not None:
-            weights = jnp.tile(counted, algo.rollouts)
+        if counted is not None:  # (a branch's steps all count)
+            step = jnp.arange(algo.rollouts * horizon)
+            weights = counted[step % horizon]
+            if branched:
+                weights = jnp.where(step < n_sim * horizon, weights, 1.0)
         params, opt_state, loss = regress_batch(
             state.policy, state.opt_state, obs, targets, regress_key, weights=weights
         )
