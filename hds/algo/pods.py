@@ -11,7 +11,8 @@ simulator), so `jax.jit(jax.vmap(train))` trains many seeds or settings in one c
 One epoch:
   1. roll the policy out (plus exploration noise) from a batch of initial states; a static
      share `dynamics.beta` of the batch runs through a learned dynamics model instead of the
-     simulator (two batches of fixed size: no per-sample branch, which would run both);
+     simulator (two batches of fixed size: no per-sample switch, which would run both), as
+     short rollouts from states the simulator's visited where `dynamics.branch` says so;
   2. improve every action sequence with the gradient of its return (hds/algo/improve.py);
   3. regress the policy onto the improved actions (hds/algo/regress.py).
 """
