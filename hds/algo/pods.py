@@ -242,11 +242,23 @@ def make_train(cfg, env, model=None) -> Trainer:
         return starts, obs, actions, rewards, k_improve
 
     def improve_batch(
-        engine, params, policy_params, hparams, epoch, starts, obs, actions, key, per_rollout=False
+        engine,
+        params,
+        policy_params,
+        hparams,
+        epoch,
+        starts,
+        obs,
+        actions,
+        key,
+        per_rollout=False,
+        episodes=True,
     ):
         """Stage 2: improve every rollout's actions (open loop) or perturbations of the
         policy's controls (closed loop); the result's actions are the regression targets, and
-        (closed loop) its observations the improved trajectory's. Returns (obs, result, alpha)."""
+        (closed loop) its observations the improved trajectory's. `episodes`: the rollouts
+        start where episodes do (the horizon curriculum counts their first steps), not
+        mid-episode (branches). Returns (obs, result, alpha)."""
         count = jax.tree.leaves(starts)[0].shape[0]
         p_axis = 0 if per_rollout else None
         act = lambda o: policy.apply(policy_params, o)  # noqa: E731
@@ -267,8 +279,7 @@ def make_train(cfg, env, model=None) -> Trainer:
                 low=low,
                 high=high,
                 act=act if closed else None,
-                # the curriculum counts an episode's first steps; a branch starts mid-episode
-                counted=counted_steps(epoch) if actions.shape[1] == horizon else None,
+                counted=counted_steps(epoch) if episodes else None,
             ),
             in_axes=(p_axis, 0, 0, 0),
         )
@@ -321,6 +332,7 @@ def make_train(cfg, env, model=None) -> Trainer:
             params = sample_effects(jax.random.fold_in(key, 1), *hparams["effect_ranges"], count)
         if params_key == "effects":
             params = anneal.effect_ramp(params, sim.effects.sites, state.epoch, *ramp, delay)
+        episodes = starts is None  # given starts: branches, mid-episode
         starts, visited, actions, rewards, k_improve = collect(
             engine, params, count, state.policy, hparams, state.epoch, key, drawn, starts
         )
@@ -335,6 +347,7 @@ def make_train(cfg, env, model=None) -> Trainer:
             actions,
             k_improve,
             drawn,
+            episodes,
         )
         return obs, result, rewards.sum(-1), alpha, visited
 
