@@ -58,7 +58,8 @@ sweep: $(STAMP)
 # 20, 80 and 40 N (40 N added last, so finished jobs keep their numbers) and on the other
 # effects' plants, and the swing-up at
 # 20, 40 and 80 N (the corrected simulator and the oracle at each, the frictionless simulator
-# and domain randomization once: plant_free/, then HDS, then the loop at each, its rounds
+# and domain randomization once: plant_free/, open-loop PODS as published once: open_loop/,
+# then HDS, then the loop at each, its rounds
 # trained from scratch), each reported apart (GIF: the frictionless simulator's policy,
 # plant_free/0, at 20 N).
 STUDY_RUN := outputs/study/sim2real_friction
@@ -94,6 +95,8 @@ study: $(STAMP)
 	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup hydra.sweep.dir=$(STUDY_SWINGUP)
 	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup_shared \
 		hydra.sweep.dir=$(STUDY_SWINGUP)/plant_free
+	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup_open_loop \
+		hydra.sweep.dir=$(STUDY_SWINGUP)/open_loop
 	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup_hds hydra.sweep.dir=$(STUDY_SWINGUP)/hds
 	for gap in 1 2 4; do \
 		$(STUDY_SWINGUP_LOOP) real.friction_gap=$$gap hydra.run.dir=$(STUDY_SWINGUP)/loop/x$$gap \
