@@ -82,10 +82,10 @@ def through_model(policy, model_dir: Path, real_eval) -> dict:
         f"through the model: return {mean:.4g} [{lo:.4g}, {hi:.4g}] (worst episode "
         f"{returns.min():.4g}); on the plant {real_mean:.4g} (worst {real_eval.returns.min():.4g})"
     )
-    print("k-step nrmse along the policy's episodes on the plant (model / const-vel / simulator):")
-    for k, row in errors.items():
-        values = (row[n] for n in ("model", "baseline", "simulator"))
-        print(f"  k={k}: " + " / ".join("inf" if v is None else f"{v:.4g}" for v in values))
+    print(
+        "open-loop nrmse along the policy's episodes on the plant (model / constant velocity / "
+        f"simulator): {dynamics.describe_errors(errors)}"
+    )
     return {
         "path": str(model_dir),
         "returns": returns.tolist(),

@@ -7,6 +7,7 @@
       from the plant with an excitation signal, and save the model to out_dir; the model is
       None when it predicts held-out data worse than the simulator (cfg.require_better)
   evaluate(model, obs, actions, ks)    open-loop k-step errors, model and constant velocity
+  describe_errors(errors)    those errors on one line, as the log and hds.evaluate print them
   closed_loop_returns(model, task, act, starts, horizon, ctrl_range)   a policy's returns
       run through the model
 
@@ -85,6 +86,15 @@ def _number(x: float | None) -> str:
     return "not finite" if x is None else f"{x:.3g}"
 
 
+def describe_errors(errors: dict) -> str:
+    """k-step nrmse (`evaluate`'s, or a report's "multistep") on one line:
+    `k=1: model / constant velocity / simulator, k=10: ...`."""
+    return ", ".join(
+        f"k={k}: " + " / ".join(_number(row.get(n)) for n in ("model", "baseline", "simulator"))
+        for k, row in errors.items()
+    )
+
+
 def worse_than_simulator(report: dict) -> str | None:
     """Why a fitted model has nothing to add: the k-step errors at which it predicts the
     held-out episodes no better than the simulator alone; None when it beats it at every k
@@ -134,10 +144,7 @@ def build(cfg, env, plant, key, out_dir) -> tuple[DynamicsModel | None, dict]:
         cfg.model,
         report["fit_s"],
         path,
-        ", ".join(
-            f"k={k}: " + " / ".join(_number(v.get(n)) for n in ("model", "baseline", "simulator"))
-            for k, v in report["multistep"].items()
-        ),
+        describe_errors(report["multistep"]),
     )
     why = worse_than_simulator(report) if cfg.require_better else None
     report["used"] = why is None
@@ -161,6 +168,7 @@ __all__ = [
     "closed_loop_returns",
     "collect_data",
     "constant_velocity",
+    "describe_errors",
     "evaluate",
     "excite",
     "fit",
