@@ -27,7 +27,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-CONF = ROOT / "conf"
+CONF = ROOT / "hds" / "conf"
 
 
 def result_files(backend: str, folder: Path = ROOT / "bench") -> tuple[Path, Path]:

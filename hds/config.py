@@ -774,7 +774,7 @@ def _check_known_keys(node, where: str = "") -> None:
         _check_known_keys(node[key], f"{where}.{key}" if where else str(key))
 
 
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+CONF_DIR = Path(__file__).resolve().parent / "conf"
 
 
 def config_groups() -> list[str]:

@@ -256,7 +256,7 @@ def round_row(report: dict) -> dict:
     }
 
 
-@hydra.main(config_path="../conf", config_name="config", version_base="1.3")
+@hydra.main(config_path="conf", config_name="config", version_base="1.3")
 def main(dcfg) -> float:
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     hydra_dir = out_dir / HydraConfig.get().output_subdir

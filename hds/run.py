@@ -51,7 +51,7 @@ def one_job_at_a_time(hydra_cfg) -> bool:
     return not multirun or str(hydra_cfg.launcher._target_).endswith(".BasicLauncher")
 
 
-@hydra.main(config_path="../conf", config_name="config", version_base="1.3")
+@hydra.main(config_path="conf", config_name="config", version_base="1.3")
 def main(dcfg) -> float:
     hydra_cfg = HydraConfig.get()
     if dcfg.logger.group is None:

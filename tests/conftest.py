@@ -36,7 +36,7 @@ enable_compilation_cache()
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 ROOT = Path(__file__).resolve().parents[1]
-CONF = ROOT / "conf"
+CONF = ROOT / "hds" / "conf"
 SHARED = ROOT.parent / "shared"
 
 

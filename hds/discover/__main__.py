@@ -30,7 +30,7 @@ from hds.utils.runtime import enable_compilation_cache  # noqa: E402
 log = logging.getLogger("hds")
 
 
-@hydra.main(config_path="../../conf", config_name="discover", version_base="1.3")
+@hydra.main(config_path="../conf", config_name="discover", version_base="1.3")
 def main(dcfg) -> float:
     try:
         cfg = validate(dcfg)  # every range check, before anything compiles
