@@ -117,13 +117,13 @@ def render(source: str) -> str:
         if isinstance(node, ast.ClassDef)
         and any(ast.unparse(d) == "dataclass" for d in node.decorator_list)
     }
-    out, seen = [], set()
+    out = []
 
     def visit(name: str, path: str) -> None:
-        if name in seen:
-            out.append(f"`{path}` takes a `{name}`: see above.\n")
+        if path.endswith(".<name>"):  # a dict of a schema documented under its own group
+            out.append(f"## `{path}` ({name})\n")
+            out.append(f"Each entry takes the keys of a `{name}`, as documented above.\n")
             return
-        seen.add(name)
         cls = classes[name]
         doc = ast.get_docstring(cls)
         group = path.split(".")[0].split("[")[0]
