@@ -644,7 +644,7 @@ def test_emps_names_coulomb_viscous_and_offset_within_ten_percent():
     assert shrink(before, after) >= 3.0
     assert np.all(after.rollout_rmse < before.rollout_rmse)
     # IDIM-LS, the benchmark's own fit of the force equation, on the same record: the split
-    # between Coulomb and viscous friction differs (docs/discovery.md), their sum at the speeds the
+    # between Coulomb and viscous friction differs (README), their sum at the speeds the
     # axis moves at does not, and IDIM-LS's values lie inside discovery's 95% intervals
     idim = emps.idim_ls(EMPS / emps.ESTIMATION)
     by_name = {e.name: e for e in result.missing_effects}
