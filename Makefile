@@ -6,8 +6,9 @@ STAMP   := $(VENV)/.installed
 export WANDB_MODE ?= offline
 export WANDB_SILENT ?= true
 export XLA_PYTHON_CLIENT_PREALLOCATE ?= false
+export NO_MKDOCS_2_WARNING ?= 1
 
-.PHONY: install run test test-slow bench lint sweep study clean
+.PHONY: install run test test-slow docs bench lint sweep study clean
 
 $(STAMP): pyproject.toml
 	@test -d $(VENV) || $(PY) -m venv $(VENV)
@@ -37,6 +38,16 @@ test: $(STAMP)
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m slow
 
+# the user guide's site (docs/, mkdocs.yml) into site/; --strict: a broken link, a missing page
+# or an API name that no longer exists fails the build
+DOCS_STAMP := $(VENV)/.installed-docs
+$(DOCS_STAMP): pyproject.toml $(STAMP)
+	$(BIN)/python -m pip install -q -e ".[dev,docs]"
+	@touch $(DOCS_STAMP)
+
+docs: $(DOCS_STAMP)
+	$(BIN)/mkdocs build --strict --quiet
+
 bench: $(STAMP)
 	$(BIN)/python -m bench.run
 
@@ -63,6 +74,9 @@ sweep: $(STAMP)
 # trained from scratch), each reported apart (GIF: the frictionless simulator's policy,
 # plant_free/0, at 20 N).
 STUDY_RUN := outputs/study/sim2real_friction
+# the study's configs live beside it (experiments/sim2real_friction/conf/experiment/), added to
+# Hydra's search path: +experiment=sim2real_study* composes as from hds/conf/experiment/
+STUDY_CONF := --config-dir experiments/sim2real_friction/conf
 STUDY_SWINGUP := outputs/study/swingup
 STUDY_ORACLE := outputs/study/oracle_budget
 # the oracle at the loop's budget and schedule: 450 epochs, its effects met after the first
@@ -70,14 +84,14 @@ STUDY_ORACLE := outputs/study/oracle_budget
 STUDY_ORACLE_BUDGET := method=oracle algo.epochs=450 'anneal.effect_ramp=[0.33,0.4]'
 STUDY_LOOP := $(BIN)/python -m hds.loop env.backend=analytic seeds=5 method=pods_cl_effects
 STUDY_HDS_LOOP := $(BIN)/python -m hds.loop env.backend=analytic seeds=5 method=hds
-STUDY_SWINGUP_LOOP := $(BIN)/python -m hds.loop +experiment=sim2real_study_swingup_loop
+STUDY_SWINGUP_LOOP := $(BIN)/python -m hds.loop $(STUDY_CONF) +experiment=sim2real_study_swingup_loop
 STUDY_EFFECT_PLANTS := gain offset deadzone delay lag mass viscous sensor_bias friction_gain
 study: $(STAMP)
-	$(BIN)/python -m hds.run +experiment=sim2real_study hydra.sweep.dir=$(STUDY_RUN)
-	$(BIN)/python -m hds.run +experiment=sim2real_study_friction_shared \
+	$(BIN)/python -m hds.run $(STUDY_CONF) +experiment=sim2real_study hydra.sweep.dir=$(STUDY_RUN)
+	$(BIN)/python -m hds.run $(STUDY_CONF) +experiment=sim2real_study_friction_shared \
 		hydra.sweep.dir=$(STUDY_RUN)/plant_free
-	$(BIN)/python -m hds.run +experiment=sim2real_study_effects hydra.sweep.dir=$(STUDY_RUN)/effects
-	$(BIN)/python -m hds.run +experiment=sim2real_study_shared hydra.sweep.dir=$(STUDY_RUN)/shared
+	$(BIN)/python -m hds.run $(STUDY_CONF) +experiment=sim2real_study_effects hydra.sweep.dir=$(STUDY_RUN)/effects
+	$(BIN)/python -m hds.run $(STUDY_CONF) +experiment=sim2real_study_shared hydra.sweep.dir=$(STUDY_RUN)/shared
 	$(STUDY_LOOP) real.friction_gap=1 hydra.run.dir=$(STUDY_RUN)/loop/x1
 	$(STUDY_LOOP) real.friction_gap=4 hydra.run.dir=$(STUDY_RUN)/loop/x4
 	$(STUDY_LOOP) real.friction_gap=2 hydra.run.dir=$(STUDY_RUN)/loop/x2
@@ -87,17 +101,17 @@ study: $(STAMP)
 		$(STUDY_LOOP) real=$$plant hydra.run.dir=$(STUDY_RUN)/loop/$$plant || exit 1; done
 	$(BIN)/python -m hds.report $(STUDY_RUN) --out experiments/sim2real_friction/results \
 		--gif plant_free/1 --gif-plant x4
-	$(BIN)/python -m hds.run +experiment=sim2real_study $(STUDY_ORACLE_BUDGET) \
+	$(BIN)/python -m hds.run $(STUDY_CONF) +experiment=sim2real_study $(STUDY_ORACLE_BUDGET) \
 		real.friction_gap=1,4,2 hydra.sweep.dir=$(STUDY_ORACLE)
-	$(BIN)/python -m hds.run +experiment=sim2real_study_effects $(STUDY_ORACLE_BUDGET) \
+	$(BIN)/python -m hds.run $(STUDY_CONF) +experiment=sim2real_study_effects $(STUDY_ORACLE_BUDGET) \
 		hydra.sweep.dir=$(STUDY_ORACLE)/effects
 	$(BIN)/python -m hds.report $(STUDY_ORACLE) --out experiments/sim2real_friction/results/oracle_450
-	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup hydra.sweep.dir=$(STUDY_SWINGUP)
-	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup_shared \
+	$(BIN)/python -m hds.run $(STUDY_CONF) +experiment=sim2real_study_swingup hydra.sweep.dir=$(STUDY_SWINGUP)
+	$(BIN)/python -m hds.run $(STUDY_CONF) +experiment=sim2real_study_swingup_shared \
 		hydra.sweep.dir=$(STUDY_SWINGUP)/plant_free
-	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup_open_loop \
+	$(BIN)/python -m hds.run $(STUDY_CONF) +experiment=sim2real_study_swingup_open_loop \
 		hydra.sweep.dir=$(STUDY_SWINGUP)/open_loop
-	$(BIN)/python -m hds.run +experiment=sim2real_study_swingup_hds hydra.sweep.dir=$(STUDY_SWINGUP)/hds
+	$(BIN)/python -m hds.run $(STUDY_CONF) +experiment=sim2real_study_swingup_hds hydra.sweep.dir=$(STUDY_SWINGUP)/hds
 	for gap in 1 2 4; do \
 		$(STUDY_SWINGUP_LOOP) real.friction_gap=$$gap hydra.run.dir=$(STUDY_SWINGUP)/loop/x$$gap \
 		|| exit 1; done

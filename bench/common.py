@@ -315,21 +315,3 @@ def summary(values) -> dict:
         "max": float(np.max(values)),
         "n": int(values.size),
     }
-
-
-def fmt(x, digits: int = 3) -> str:
-    """A number for a table: thousands separators, `digits` significant figures for small ones."""
-    if x is None:
-        return "-"
-    if isinstance(x, str):
-        return x
-    if isinstance(x, bool):
-        return "yes" if x else "no"
-    if isinstance(x, int | np.integer):
-        return f"{int(x):,}"
-    x = float(x)
-    if not np.isfinite(x):
-        return str(x)
-    if abs(x) >= 1000:
-        return f"{x:,.0f}"
-    return f"{x:.{digits}g}"

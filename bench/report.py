@@ -7,6 +7,8 @@ raw numbers under `data`; this module only lays them out.
 
 from __future__ import annotations
 
+import numpy as np
+
 ORDER = (
     "reference",
     "overhead",
@@ -20,9 +22,25 @@ ORDER = (
 )
 
 
-def _cell(x) -> str:
-    from bench.common import fmt
+def fmt(x, digits: int = 3) -> str:
+    """A number for a table: thousands separators, `digits` significant figures for small ones."""
+    if x is None:
+        return "-"
+    if isinstance(x, str):
+        return x
+    if isinstance(x, bool):
+        return "yes" if x else "no"
+    if isinstance(x, int | np.integer):
+        return f"{int(x):,}"
+    x = float(x)
+    if not np.isfinite(x):
+        return str(x)
+    if abs(x) >= 1000:
+        return f"{x:,.0f}"
+    return f"{x:.{digits}g}"
 
+
+def _cell(x) -> str:
     return fmt(x).replace("|", "\\|")
 
 

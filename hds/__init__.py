@@ -1,6 +1,6 @@
 """hds: policy optimization through differentiable simulation, and closing the sim2real gap.
 
-The Python API (README, "Python API"); each name is imported on first use, so `import hds`
+The Python API (docs/tutorials/python.md); each name is imported on first use, so `import hds`
 stays light for the command-line entry points:
 
     cfg = hds.compose(["method=pods_cl", "seeds=3"])      # a validated Config, no CLI needed

@@ -567,6 +567,57 @@ class Config:
         _in_range("checkpoints_kept", self.checkpoints_kept, 1)
 
 
+# `python -m hds.discover` (conf/discover.yaml): the run's schema plus a measured dataset. Here,
+# beside Config, since compose() and the command-line checks need it and hds.discover sits
+# above the config layer (tests/test_layers.py).
+@dataclass
+class EmpsConfig:
+    """How an EMPS .mat record becomes a dataset (hds.data.emps.load)."""
+
+    dt: float = 0.005  # s between observations (the record is 1 kHz; a multiple of 1 ms)
+    segment: float = 1.0  # s per episode
+    cutoff: float = 100.0  # Hz, the Butterworth low-pass before differentiating
+    order: int = 4
+
+    def check(self):
+        _in_range("emps.dt", self.dt, 1e-3, 1.0)
+        _in_range("emps.segment", self.segment, self.dt)
+        _in_range("emps.cutoff", self.cutoff, 1e-3, 0.5 / 1e-3)
+        _in_range("emps.order", self.order, 1, 10)
+
+
+@dataclass
+class DiscoverAppConfig(Config):
+    """`python -m hds.discover`: a measured dataset and the simulator it is compared with."""
+
+    data: str = MISSING  # the measured dataset (.npz, .csv; .mat: EMPS, see hds.data.emps)
+    validation: str | None = None  # another dataset whose errors are reported, never fitted
+    retrain: bool = False  # train PODS on the original and the corrected simulator, evaluate
+    # both on the plant of `real` (the one that produced the data)
+    emps: EmpsConfig = field(default_factory=EmpsConfig)  # only for .mat (EMPS) files
+
+    def check(self):
+        super().check()
+        if self.retrain and not plant_has_effects(self.real):
+            raise ValueError(
+                f"retrain = true evaluates both policies on the plant of `real`, the one that "
+                f"produced the data, but that plant has no effect (real.plant = "
+                f"{self.real.plant}, real.effects = {[e.name for e in self.real.effects]}, "
+                f"real.friction_gap = {self.real.friction_gap}): the gap before and after "
+                "would be measured on the nominal model. Give the plant the data came from, "
+                "e.g. real=mujoco 'real.effects=[{name: coulomb_friction, target: slider, "
+                "params: {force: 20}}]' (a dataset read from a file, e.g. measured on "
+                "hardware, does not tell hds its plant: it must be given this way), or drop "
+                "retrain=true"
+            )
+
+
+def plant_has_effects(real) -> bool:
+    """Whether a `real` config's plant differs from the nominal model: some effect that is not
+    friction, or friction not scaled to zero by real.friction_gap."""
+    return any(not effect_type(e.name).friction or real.friction_gap > 0 for e in real.effects)
+
+
 def run_label(run: dict) -> str:
     """A run of the batch as one name, its seed and every swept setting: seed0_step_size0.04."""
     return "_".join(f"{k}{v:g}" if isinstance(v, float) else f"{k}{v}" for k, v in run.items())
@@ -587,6 +638,7 @@ def cli_overrides(argv: list[str]) -> list[str]:
 
 def register() -> None:
     ConfigStore.instance().store(name="config_schema", node=Config)
+    ConfigStore.instance().store(name="discover_schema", node=DiscoverAppConfig)
 
 
 def _check_all(node) -> None:
@@ -791,11 +843,7 @@ def compose(overrides=(), config_name: str = "config"):
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
-    schema = Config
-    if config_name == "discover":
-        from hds.discover.config import DiscoverAppConfig
-
-        schema = DiscoverAppConfig
+    schema = DiscoverAppConfig if config_name == "discover" else Config
     check_override_keys(overrides, schema, config_groups())
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         return validate(hydra_compose(config_name, overrides=list(overrides)))

@@ -95,7 +95,7 @@ def test_regression_flops_count_what_xla_counts():
 def test_the_peers_swingup_variant_is_the_swingup_experiment():
     """bench/peers.py's pods_cl_swingup trains with conf/experiment/swingup.yaml's algo and
     noise (its epochs and chunk aside, which the bench sets), so the bench measures the
-    experiment the README reports."""
+    experiment experiments/cartpole_training reports."""
     from bench.peers import DEFAULT_BUDGET
 
     variant = compose("env=cartpole_swingup", *DEFAULT_BUDGET["variants"]["pods_cl_swingup"])

@@ -6,7 +6,10 @@ import pytest
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
-from tests.conftest import CONF, make_config
+from tests.conftest import CONF, ROOT, make_config
+
+# the study's configs, beside it: `make study` adds this folder to Hydra's search path
+STUDY_CONF = ROOT / "experiments" / "sim2real_friction" / "conf"
 
 
 def options(group: str) -> list[str]:
@@ -64,6 +67,18 @@ def test_every_experiment_composes(experiment):
     config_name = "discover" if "python -m hds.discover" in text else "config"
     cfg = make_config(f"+experiment={experiment}", config_name=config_name)
     assert_values_landed(cfg, CONF / "experiment" / f"{experiment}.yaml")
+
+
+@pytest.mark.parametrize(
+    "experiment", sorted(p.stem for p in (STUDY_CONF / "experiment").glob("*.yaml"))
+)
+def test_every_study_experiment_composes_from_beside_its_study(experiment):
+    """The study's configs compose with their folder on Hydra's search path (make study's
+    --config-dir), and the user-facing experiments of hds/conf/experiment/ stay in reach of
+    theirs (the swing-up study builds on swingup_sim2real)."""
+    cfg = make_config(f"hydra.searchpath=[file://{STUDY_CONF}]", f"+experiment={experiment}")
+    assert_values_landed(cfg, STUDY_CONF / "experiment" / f"{experiment}.yaml")
+    assert not (CONF / "experiment" / f"{experiment}.yaml").exists()
 
 
 LAUNCHERS = {

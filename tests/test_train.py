@@ -253,7 +253,7 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
 def test_the_corrected_simulator_excites_harder_until_the_data_can_identify(tmp_path):
     """80 N of rail friction: the gentle default excitation never moves the cart, so the
     corrected simulator records more at doubled amplitude, until the data move it, before
-    discovery runs (which law it then names is the study's to judge: README)."""
+    discovery runs (which law it then names is the study's to judge)."""
     from hds.data import load
     from hds.discover import identifiability
     from hds.envs import make_env

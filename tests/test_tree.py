@@ -377,7 +377,7 @@ TINY = (
 def test_a_short_training_improves_the_return():
     """PODS, 6 epochs of 16 rollouts of 30 steps, 2 seeds, on the tree engine, on the double
     cart-pole (one system: a trainer's compile is the cost; at this budget the Furuta balance
-    and acrobot swing-up returns barely move, see the README)."""
+    and acrobot swing-up returns barely move: experiments/systems/README.md)."""
     task = "double_cartpole_balance"
     from hds.algo.pods import make_train
     from hds.envs import make_env
