@@ -18,7 +18,7 @@ import pytest
 
 import hds
 from hds.experiment import Hooks
-from tests.conftest import ROOT, wandb_keys, wandb_records
+from tests.conftest import ROOT, command_main, wandb_keys, wandb_records
 
 # Two step sizes x two seeds: four runs in one program.
 SWEEP = (
@@ -54,7 +54,7 @@ def test_a_sweep_of_two_step_sizes_is_labelled_everywhere(sweep_run, tmp_path):
         (0, 0.01), (0, 0.04), (1, 0.01), (1, 0.04)
     ]  # fmt: skip
     # report.md and report.csv: a row per setting (not averaged as seeds), a step_size column
-    proc = cli("hds.report", str(out), "--out", str(tmp_path))
+    proc = cli("hds.report", f"dir={out}", f"out={tmp_path}")
     assert proc.returncode == 0, proc.stderr[-2000:]
     report = (tmp_path / "report.md").read_text()
     assert "| pods step_size=0.01 | coulomb_friction@slider | 2 |" in report
@@ -184,8 +184,8 @@ def test_hds_evaluate_runs_a_policy_through_a_learned_model(sweep_run, tmp_path)
     """model=: through a model that is the simulator the policy trained on, it scores its
     simulator return from the same initial states; the model's errors along its episodes."""
     from hds import dynamics
-    from hds.evaluate import main
 
+    main = command_main("hds.evaluate")
     out, _ = sweep_run
     policy = hds.load_policy(out, seed=0, step_size=0.04)
     exact = dynamics.save(tmp_path / "model", dynamics.zero_residual(policy.simulator))

@@ -284,7 +284,7 @@ def test_hds_report_elsewhere_with_an_animation(restarted_sweep, tmp_path):
     from hds.report import main
 
     sweep, *_ = restarted_sweep
-    main([str(sweep), "--out", str(tmp_path), "--gif", "1"])
+    main([f"dir={sweep}", f"out={tmp_path}", "gif=1"])
     assert (tmp_path / "report.md").read_text().count("| pods |") == 1
     assert (tmp_path / "report.csv").is_file()
     gif = tmp_path / "plots" / "pods_sim_vs_real.gif"
@@ -422,10 +422,10 @@ def test_a_policy_is_evaluated_on_further_plants_and_reported_per_plant(tmp_path
     _, curves = collect_rows(tmp_path / "once")
     assert {column for _, column, _, _ in curves} >= {("coulomb_friction@slider", 3.0)}
     OmegaConf.save(OmegaConf.structured(cfg), tmp_path / "once" / "config.yaml")
-    with pytest.raises(ValueError, match=r"--gif-plant x9: .* choose one of \['delay'"):
+    with pytest.raises(ValueError, match=r"gif_plant=x9: .* choose one of \['delay'"):
         animate_run(tmp_path / "once", eval_plant="x9")
     elsewhere = tmp_path / "report_elsewhere"
-    for bad in (["--gif", "--gif-plant", "x9"], ["--gif-plant", "x3"]):  # refused before writing
-        with pytest.raises(ValueError, match="--gif-plant"):
-            report_main([str(tmp_path / "once"), "--out", str(elsewhere), *bad])
+    for bad in (["gif=true", "gif_plant=x9"], ["gif_plant=x3"]):  # refused before writing
+        with pytest.raises(ValueError, match="gif_plant"):
+            report_main([f"dir={tmp_path / 'once'}", f"out={elsewhere}", *bad])
         assert not elsewhere.exists()

@@ -1,0 +1,124 @@
+"""The commands hds installs (`[project.scripts]`: hds-run, hds-loop, hds-discover,
+hds-evaluate, hds-export, hds-report, hds-dynamics), and what the Hydra commands (hds.run,
+hds.loop, hds.discover) check before Hydra composes anything (docs/cli.md).
+
+Each script runs its command's module as `python -m` does (runpy, as `__main__`): one
+behaviour for both forms, and no command module imported under its package name, where it
+would hide the API function of the same name (`hds.evaluate`, `hds.export`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import runpy
+import sys
+
+from hds.utils import cli
+
+SCRIPTS = {  # script: the module it runs
+    "hds-run": "hds.run",
+    "hds-loop": "hds.loop",
+    "hds-discover": "hds.discover",
+    "hds-evaluate": "hds.evaluate",
+    "hds-export": "hds.export",
+    "hds-report": "hds.report",
+    "hds-dynamics": "hds.dynamics",
+}
+
+
+def _run_module(name: str) -> None:
+    runpy.run_module(name, run_name="__main__", alter_sys=True)
+
+
+def run() -> None:
+    _run_module("hds.run")
+
+
+def loop() -> None:
+    _run_module("hds.loop")
+
+
+def discover() -> None:
+    _run_module("hds.discover")
+
+
+def evaluate() -> None:
+    _run_module("hds.evaluate")
+
+
+def export() -> None:
+    _run_module("hds.export")
+
+
+def report() -> None:
+    _run_module("hds.report")
+
+
+def dynamics() -> None:
+    _run_module("hds.dynamics")
+
+
+def before_hydra(config_name: str = "config") -> None:
+    """What a Hydra command does before handing sys.argv to Hydra: take out `--debug`, then
+    refuse unknown keys and, for a multirun, every job's invalid value (one line each)."""
+    cli.strip_debug_flag()
+    with cli.one_line_errors():
+        check_command_line(sys.argv[1:], config_name)
+    if bad := invalid_jobs(sys.argv[1:], config_name):
+        for line in bad:
+            print(f"error: {line}", file=sys.stderr)
+        sys.exit(1)
+
+
+def check_command_line(argv: list[str], config_name: str = "config") -> None:
+    """Unknown keys in a Hydra command line's overrides: a ValueError naming the keys allowed
+    there, before Hydra composes anything."""
+    from hds.config import check_override_keys, cli_overrides, config_groups, schema_of
+
+    check_override_keys(cli_overrides(argv), schema_of(config_name), config_groups())
+
+
+def invalid_jobs(argv: list[str], config_name: str = "config") -> list[str]:
+    """For a multirun (-m): one line per job whose configuration is refused, naming the job's
+    swept values and why, so that a sweep with a bad value launches no job at all. Empty for a
+    single run (validated in its main) and for sweeps the basic sweeper does not expand
+    (interval sweeps of an optimizing sweeper)."""
+    if not {"-m", "--multirun"} & set(argv):
+        return []
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from hds.config import cli_overrides, compose
+
+    config_name = _config_name(argv, config_name)
+    fixed, swept = [], []
+    for override in OverridesParser.create().parse_overrides(cli_overrides(argv)):
+        if override.key_or_group.startswith("hydra"):
+            continue  # Hydra's own settings: no job's configuration
+        key = override.get_key_element()
+        if not override.is_sweep_override():
+            fixed.append(f"{key}={override.get_value_element_as_str()}")
+            continue
+        try:
+            values = list(override.sweep_string_iterator())
+        except Exception:  # an interval: the optimizing sweeper draws the values
+            return []
+        swept.append([f"{key}={v}" for v in values])
+    lines = []
+    for number, job in enumerate(itertools.product(*swept)):
+        try:
+            compose([*fixed, *job], config_name)
+        except cli.USER_ERRORS as err:
+            lines.append(f"job {number} ({' '.join(job)}): {cli.describe(err)}")
+    if lines:
+        jobs = max(1, len(list(itertools.product(*swept))))
+        lines.append(f"{len(lines)} of {jobs} jobs refused, none launched: fix the values above")
+    return lines
+
+
+def _config_name(argv: list[str], default: str) -> str:
+    for i, arg in enumerate(argv):
+        if arg in ("--config-name", "-cn") and i + 1 < len(argv):
+            return argv[i + 1]
+        if arg.startswith("--config-name="):
+            return arg.partition("=")[2]
+    return default
