@@ -277,7 +277,12 @@ def test_an_unwritable_run_directory_is_named_with_the_fix(tmp_path):
 
 
 def test_a_sweep_with_failed_jobs_exits_non_zero_naming_them(tmp_path):
-    proc = hds_run_cli("-m", *S, "real.friction_gap=-1,-2", f"hydra.sweep.dir={tmp_path}")
+    """Jobs that fail once launched (here: each job's directory finished with another
+    configuration; invalid values refuse the whole sweep before any job, tests/test_cli.py)."""
+    for job in ("0", "1"):
+        with rundir.claim(tmp_path / job, composed(*S, "real.friction_gap=5")):
+            (tmp_path / job / "summary.json").write_text('{"rows": []}')
+    proc = hds_run_cli("-m", *S, "real.friction_gap=1,2", f"hydra.sweep.dir={tmp_path}")
     assert proc.returncode == 1
     assert "2 of 2 jobs failed: 0, 1" in proc.stderr
     assert all((tmp_path / job / "failed.txt").is_file() for job in ("0", "1"))
