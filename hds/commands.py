@@ -60,14 +60,21 @@ def dynamics() -> None:
 
 def before_hydra(config_name: str = "config") -> None:
     """What a Hydra command does before handing sys.argv to Hydra: take out `--debug`, then
-    refuse unknown keys and, for a multirun, every job's invalid value (one line each)."""
+    refuse unknown keys and every invalid job (a single run: its configuration; a multirun:
+    each job's, one line each), before Hydra composes anything or launches a job."""
     cli.strip_debug_flag()
+    argv = sys.argv[1:]
+    if INFO_FLAGS & set(argv) or cli.debug():
+        return  # Hydra's help and printouts need no valid config; --debug: Hydra's traceback
     with cli.one_line_errors():
-        check_command_line(sys.argv[1:], config_name)
-    if bad := invalid_jobs(sys.argv[1:], config_name):
+        check_command_line(argv, config_name)
+    if bad := invalid_jobs(argv, config_name):
         for line in bad:
             print(f"error: {line}", file=sys.stderr)
         sys.exit(1)
+
+
+INFO_FLAGS = {"-h", "--help", "--hydra-help", "-i", "--info", "-c", "--cfg", "--shell-completion"}
 
 
 def check_command_line(argv: list[str], config_name: str = "config") -> None:
@@ -79,22 +86,27 @@ def check_command_line(argv: list[str], config_name: str = "config") -> None:
 
 
 def invalid_jobs(argv: list[str], config_name: str = "config") -> list[str]:
-    """For a multirun (-m): one line per job whose configuration is refused, naming the job's
-    swept values and why, so that a sweep with a bad value launches no job at all. Empty for a
-    single run (validated in its main) and for sweeps the basic sweeper does not expand
-    (interval sweeps of an optimizing sweeper)."""
-    if not {"-m", "--multirun"} & set(argv):
-        return []
+    """One line per job whose configuration is refused (Hydra's composition errors, an unknown
+    option of a group or a value of the wrong type, included), naming a multirun's job by its
+    swept values: a sweep with a bad value launches no job at all. Empty for sweeps the basic
+    sweeper does not expand (interval sweeps of an optimizing sweeper)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
 
     from hds.config import cli_overrides, compose
 
+    multirun = bool({"-m", "--multirun"} & set(argv))
     config_name = _config_name(argv, config_name)
     fixed, swept = [], []
     for override in OverridesParser.create().parse_overrides(cli_overrides(argv)):
         if override.key_or_group.startswith("hydra"):
             continue  # Hydra's own settings: no job's configuration
         key = override.get_key_element()
+        if override.is_sweep_override() and not multirun:
+            return [
+                f"{override.input_line} sweeps several values: add -m (a multirun), or give "
+                f"one value (a list is written in brackets: {key}=[...])"
+            ]
         if not override.is_sweep_override():
             fixed.append(f"{key}={override.get_value_element_as_str()}")
             continue
@@ -103,15 +115,16 @@ def invalid_jobs(argv: list[str], config_name: str = "config") -> list[str]:
         except Exception:  # an interval: the optimizing sweeper draws the values
             return []
         swept.append([f"{key}={v}" for v in values])
+    jobs = list(itertools.product(*swept))
     lines = []
-    for number, job in enumerate(itertools.product(*swept)):
+    for number, job in enumerate(jobs):
         try:
             compose([*fixed, *job], config_name)
-        except cli.USER_ERRORS as err:
-            lines.append(f"job {number} ({' '.join(job)}): {cli.describe(err)}")
-    if lines:
-        jobs = max(1, len(list(itertools.product(*swept))))
-        lines.append(f"{len(lines)} of {jobs} jobs refused, none launched: fix the values above")
+        except (*cli.USER_ERRORS, HydraException) as err:
+            named = f"job {number} ({' '.join(job)}): " if multirun else ""
+            lines.append(named + cli.describe(err))
+    if lines and multirun:
+        lines.append(f"{len(lines)} of {len(jobs)} jobs refused, none launched: fix the values")
     return lines
 
 

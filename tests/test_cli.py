@@ -262,7 +262,26 @@ def test_a_multirun_with_bad_values_launches_nothing_and_names_each(tmp_path, ca
 
 def test_a_multirun_of_good_values_passes_and_a_single_run_is_not_expanded():
     assert commands.invalid_jobs(["-m", *S, "real.friction_gap=0,2", "seed=0,1"]) == []
-    assert commands.invalid_jobs([*S, "real.friction_gap=-1"]) == []  # checked in main
+    assert commands.invalid_jobs(["-m", *S, "algo.step_size=interval(0.01,0.1)"]) == []
+    (line,) = commands.invalid_jobs([*S, "real.friction_gap=0,2"])  # a sweep without -m
+    assert line.startswith("real.friction_gap=0,2 sweeps several values: add -m")
+
+
+@pytest.mark.parametrize(
+    "override, fragments",
+    [
+        ("env=nonexist", ("Could not find 'env/nonexist'", "cartpole_balance")),
+        ("algo.epochs=abc", ("algo.epochs", "abc")),
+    ],
+)
+def test_hydras_own_composition_errors_are_one_line(override, fragments, capsys, monkeypatch):
+    monkeypatch.setattr(sys, "argv", ["hds.run", override])
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    with pytest.raises(SystemExit) as ended:
+        commands.before_hydra()
+    assert ended.value.code == 1
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("error: ") and all(f in line for f in fragments), line
 
 
 # --- hds.evaluate, hds.export, hds.report, hds.dynamics: the key=value commands ------------
