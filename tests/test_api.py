@@ -156,6 +156,21 @@ def test_the_exported_policy_gives_the_in_process_return_on_c_mujoco(sweep_run, 
     np.testing.assert_allclose(returns, in_process.returns, rtol=1e-4)
 
 
+def test_hds_export_into_a_place_it_cannot_write_is_one_line(sweep_run, tmp_path, capsys):
+    """out= below a file (a read-only directory reads the same, but root writes into those)."""
+    from hds.utils import cli
+
+    out, _ = sweep_run
+    (tmp_path / "a_file").write_text("")
+    args = [f"run={out}", "seed=1", "step_size=0.01", f"out={tmp_path / 'a_file' / 'policy'}"]
+    with pytest.raises(SystemExit) as ended:
+        cli.run(command_main("hds.export"), args)
+    err = capsys.readouterr().err
+    assert ended.value.code == 1 and "Traceback" not in err
+    (line,) = err.strip().splitlines()
+    assert str(tmp_path / "a_file") in line and "fix the path" in line, line
+
+
 def test_hds_evaluate_runs_a_saved_policy_on_another_plant(sweep_run, tmp_path):
     out, _ = sweep_run
     args = (f"run={out}", "seed=0", "step_size=0.04", "eval_episodes=4", f"out={tmp_path}")

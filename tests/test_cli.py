@@ -7,6 +7,7 @@ functions, wrapped as the commands wrap them (hds.utils.cli)."""
 from __future__ import annotations
 
 import errno
+import logging
 import os
 import subprocess
 import sys
@@ -344,6 +345,41 @@ def test_writing_under_a_file_is_one_line(tmp_path, capsys):
     (tmp_path / "a_file").write_text("")
     line = one_line(capsys, atomic_write_json, tmp_path / "a_file" / "out" / "x.json", {})
     assert "a_file" in line and "fix the path" in line, line
+
+
+def test_a_full_disk_at_a_checkpoint_is_one_error_without_orbaxs_log(tmp_path, caplog):
+    """Orbax's threads log a traceback per failed write (hundreds of lines on a full disk)
+    before the save raises; the save raises ENOSPC naming the directory, and drops that log.
+    (The real thing, on a 1.5 MB tmpfs: one line, and the run resumed once space was freed.)"""
+    import absl.logging  # noqa: F401  (the logger Orbax writes to)
+    import jax.numpy as jnp
+
+    from hds.checkpoint import Checkpoints
+
+    ckpt = Checkpoints(tmp_path / "ckpt")
+
+    def full_disk(*args, **kwargs):
+        logging.getLogger("absl").error("_SignalingThread.run() raised an exception: ...")
+        raise ValueError("RESOURCE_EXHAUSTED: Failed to write: No space left on device [28]")
+
+    def other_failure(*args, **kwargs):
+        logging.getLogger("absl").error("a failure Orbax explains in its log")
+        raise RuntimeError("not a full disk")
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(ckpt.manager, "save", full_disk)
+        with pytest.raises(OSError) as raised:
+            ckpt.save(2, {"w": jnp.zeros(3)}, {})
+        assert raised.value.errno == errno.ENOSPC
+        assert cli.describe(raised.value).startswith(f"{tmp_path / 'ckpt'}: No space left")
+        assert "_SignalingThread" not in caplog.text
+        patch.setattr(ckpt.manager, "save", other_failure)
+        with pytest.raises(RuntimeError, match="not a full disk"):
+            ckpt.save(2, {"w": jnp.zeros(3)}, {})
+        assert "a failure Orbax explains in its log" in caplog.text  # kept for a real failure
+    ckpt.save(2, {"w": jnp.zeros(3)}, {})  # and a save that works still works
+    assert ckpt.latest() == 2
+    ckpt.close()
 
 
 # --- the convention itself ------------------------------------------------------------------
