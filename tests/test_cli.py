@@ -367,19 +367,20 @@ def test_a_full_disk_at_a_checkpoint_is_one_error_without_orbaxs_log(tmp_path, c
         raise RuntimeError("not a full disk")
 
     with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(ckpt.manager, "save", other_failure)
+        with pytest.raises(RuntimeError, match="not a full disk"):
+            ckpt.save(2, {"w": jnp.zeros(3)}, {})
+        assert "a failure Orbax explains in its log" in caplog.text  # kept for a real failure
         patch.setattr(ckpt.manager, "save", full_disk)
         with pytest.raises(OSError) as raised:
             ckpt.save(2, {"w": jnp.zeros(3)}, {})
         assert raised.value.errno == errno.ENOSPC
         assert cli.describe(raised.value).startswith(f"{tmp_path / 'ckpt'}: No space left")
         assert "_SignalingThread" not in caplog.text
-        patch.setattr(ckpt.manager, "save", other_failure)
-        with pytest.raises(RuntimeError, match="not a full disk"):
-            ckpt.save(2, {"w": jnp.zeros(3)}, {})
-        assert "a failure Orbax explains in its log" in caplog.text  # kept for a real failure
-    ckpt.save(2, {"w": jnp.zeros(3)}, {})  # and a save that works still works
-    assert ckpt.latest() == 2
-    ckpt.close()
+    again = Checkpoints(tmp_path / "ckpt")  # started again, with space: saving works
+    again.save(2, {"w": jnp.zeros(3)}, {})
+    assert again.latest() == 2
+    again.close()
 
 
 # --- the convention itself ------------------------------------------------------------------
