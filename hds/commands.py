@@ -119,7 +119,9 @@ def invalid_jobs(argv: list[str], config_name: str = "config") -> list[str]:
     lines = []
     for number, job in enumerate(jobs):
         try:
-            compose([*fixed, *job], config_name)
+            # a sweep's jobs may run elsewhere (joblib's processes, SLURM's nodes): each checks
+            # its memory where it runs, and this process keeps off the device (a GPU's memory)
+            compose([*fixed, *job], config_name, check_memory=not multirun)
         except (*cli.USER_ERRORS, HydraException) as err:
             named = f"job {number} ({' '.join(job)}): " if multirun else ""
             lines.append(named + cli.describe(err))

@@ -658,8 +658,10 @@ def _check_effect_targets(config) -> None:
             raise ValueError(f"{key}: {err}") from None
 
 
-def validate(cfg: DictConfig) -> Config:
-    """Build the typed config and run every range check; raise ValueError naming the key."""
+def validate(cfg: DictConfig, check_memory: bool = True) -> Config:
+    """Build the typed config and run every range check; raise ValueError naming the key.
+    `check_memory=False` skips the check against this machine's device memory (a sweep's jobs
+    checked before their launch, which may run them on other devices)."""
     try:
         _check_known_keys(cfg)
     except ValueError as err:
@@ -677,7 +679,8 @@ def validate(cfg: DictConfig) -> Config:
         _check_finite_numbers(OmegaConf.to_container(cfg, resolve=True))
         _check_all(config)
         _check_effect_targets(config)
-        _check_memory(config)
+        if check_memory:
+            _check_memory(config)
     except ValueError as err:
         raise ValueError(f"invalid config: {err}") from None
     return config
@@ -841,7 +844,7 @@ def schema_of(config_name: str) -> type:
     return Config
 
 
-def compose(overrides=(), config_name: str = "config"):
+def compose(overrides=(), config_name: str = "config", check_memory: bool = True):
     """The validated config of `python -m hds.run <overrides>` (config_name="config") or of
     `python -m hds.discover <overrides>` ("discover"), composed without the command line:
 
@@ -852,7 +855,7 @@ def compose(overrides=(), config_name: str = "config"):
 
     check_override_keys(overrides, schema_of(config_name), config_groups())
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return validate(hydra_compose(config_name, overrides=list(overrides)))
+        return validate(hydra_compose(config_name, overrides=list(overrides)), check_memory)
 
 
 def env_config(env: dict) -> EnvConfig:
