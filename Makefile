@@ -99,13 +99,13 @@ study: $(STAMP)
 	$(STUDY_HDS_LOOP) real.friction_gap=4 hydra.run.dir=$(STUDY_RUN)/loop/hds_x4
 	for plant in $(STUDY_EFFECT_PLANTS); do \
 		$(STUDY_LOOP) real=$$plant hydra.run.dir=$(STUDY_RUN)/loop/$$plant || exit 1; done
-	$(BIN)/python -m hds.report $(STUDY_RUN) --out experiments/sim2real_friction/results \
-		--gif plant_free/1 --gif-plant x4
+	$(BIN)/python -m hds.report dir=$(STUDY_RUN) out=experiments/sim2real_friction/results \
+		gif=plant_free/1 gif_plant=x4
 	$(BIN)/python -m hds.run $(STUDY_CONF) +experiment=sim2real_study $(STUDY_ORACLE_BUDGET) \
 		real.friction_gap=1,4,2 hydra.sweep.dir=$(STUDY_ORACLE)
 	$(BIN)/python -m hds.run $(STUDY_CONF) +experiment=sim2real_study_effects $(STUDY_ORACLE_BUDGET) \
 		hydra.sweep.dir=$(STUDY_ORACLE)/effects
-	$(BIN)/python -m hds.report $(STUDY_ORACLE) --out experiments/sim2real_friction/results/oracle_450
+	$(BIN)/python -m hds.report dir=$(STUDY_ORACLE) out=experiments/sim2real_friction/results/oracle_450
 	$(BIN)/python -m hds.run $(STUDY_CONF) +experiment=sim2real_study_swingup hydra.sweep.dir=$(STUDY_SWINGUP)
 	$(BIN)/python -m hds.run $(STUDY_CONF) +experiment=sim2real_study_swingup_shared \
 		hydra.sweep.dir=$(STUDY_SWINGUP)/plant_free
@@ -115,7 +115,7 @@ study: $(STAMP)
 	for gap in 1 2 4; do \
 		$(STUDY_SWINGUP_LOOP) real.friction_gap=$$gap hydra.run.dir=$(STUDY_SWINGUP)/loop/x$$gap \
 		|| exit 1; done
-	$(BIN)/python -m hds.report $(STUDY_SWINGUP) --out experiments/sim2real_friction/results/swingup --gif plant_free/0
+	$(BIN)/python -m hds.report dir=$(STUDY_SWINGUP) out=experiments/sim2real_friction/results/swingup gif=plant_free/0
 
 clean:
 	rm -rf $(VENV) outputs/runs outputs/multiruns

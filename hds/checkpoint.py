@@ -10,6 +10,8 @@ damaged: restoring it is refused, naming the arrays that differ."""
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import logging
 from pathlib import Path
 
@@ -36,13 +38,37 @@ class Checkpoints:
         return self.manager.latest_step()
 
     def save(self, epoch: int, state, meta: dict) -> None:
-        self.manager.save(
-            epoch,
-            args=ocp.args.Composite(
-                state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)
-            ),
-        )
-        self.manager.wait_until_finished()
+        """Write `epoch`'s checkpoint. A full disk raises OSError(ENOSPC) naming the directory
+        (one line at the command: free space and start again, it resumes), without the
+        tracebacks Orbax's threads log for it (hundreds of lines); any other failure of the
+        save re-emits what Orbax logged, then raises."""
+        with _held_back(logging.getLogger("absl")) as held:  # Orbax logs through absl
+            try:
+                self.manager.save(
+                    epoch,
+                    args=ocp.args.Composite(
+                        state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)
+                    ),
+                )
+                self.manager.wait_until_finished()
+            except Exception as err:
+                if _disk_full(err):
+                    # let Orbax's threads end before the program does: else each of them
+                    # prints "Event loop is closed" at exit
+                    with contextlib.suppress(Exception):
+                        self.manager.close()
+                    raise OSError(
+                        errno.ENOSPC,
+                        f"No space left on device for checkpoint {epoch}",
+                        str(self.directory),
+                    ) from None
+                failed = err
+            else:
+                failed = None
+        for record in held:
+            logging.getLogger(record.name).handle(record)
+        if failed is not None:
+            raise failed
 
     def restore(self, like, epoch: int | None = None, resuming: bool = False):
         """(state, meta) of `epoch` (default: the latest readable one); `like` gives the
@@ -126,3 +152,28 @@ class StructureError(ValueError):
 def _name(path) -> str:
     keys = (getattr(k, "name", getattr(k, "key", getattr(k, "idx", k))) for k in path)
     return ".".join(str(k) for k in keys)
+
+
+@contextlib.contextmanager
+def _held_back(logger: logging.Logger):
+    """The records `logger` emits inside, held back (for the caller to emit or drop)."""
+    held: list[logging.LogRecord] = []
+
+    def hold(record: logging.LogRecord) -> bool:
+        held.append(record)
+        return False
+
+    logger.addFilter(hold)
+    try:
+        yield held
+    finally:
+        logger.removeFilter(hold)
+
+
+def _disk_full(err: BaseException) -> bool:
+    """Whether a save failed on a full disk (TensorStore reports ENOSPC in its message)."""
+    while err is not None:
+        if getattr(err, "errno", None) == errno.ENOSPC or "No space left on device" in str(err):
+            return True
+        err = err.__cause__ or err.__context__
+    return False

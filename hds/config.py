@@ -21,6 +21,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import MissingMandatoryValue
 
 from hds.effects import apply as _effects
 from hds.effects.library import candidate_effects, check_params, effect_type
@@ -329,6 +330,9 @@ class DiscoverConfig:
     seed: int = 0  # the split of episodes into identification and held-out sets
     bins: int = 8  # bins of each feature when locating where the residual depends on it
     plot_episodes: int = 2  # held-out episodes drawn in the trajectory plot
+    # most recorded steps (episodes x steps) discovery takes on; larger data is refused before
+    # it is processed, with its memory estimate (hds.discover's command): window or resample it
+    max_steps: int = 200_000
 
     def check(self):
         if self.backend not in ("auto", "env", *BACKENDS):
@@ -361,6 +365,8 @@ class DiscoverConfig:
         _in_range("discover.min_motion", self.min_motion, 0.0, 1.0)
         _in_range("discover.bins", self.bins, 2)
         _in_range("discover.plot_episodes", self.plot_episodes, 0)
+        _in_range("discover.seed", self.seed, 0, SEED_MAX)
+        _in_range("discover.max_steps", self.max_steps, 1)
         unknown = [e for e in self.effects if e not in candidate_effects()]
         if unknown:
             raise ValueError(
@@ -561,6 +567,21 @@ class Config:
                 f"noise.schedule = {self.noise.schedule}; choose noise=exponential"
             )
         _in_range("seeds", self.seeds, 1)
+        _in_range("seed", self.seed, 0, SEED_MAX - (self.seeds - 1))  # seeds seed .. seed+seeds-1
+        _in_range("eval_seed", self.eval_seed, 0, SEED_MAX)
+        horizon = self.env.task.horizon
+        if self.algo.grad_window > horizon:
+            raise ValueError(
+                f"algo.grad_window = {self.algo.grad_window} is longer than the task's horizon "
+                f"(env.task.horizon = {horizon}); give at most {horizon}, or 0 for the whole "
+                "horizon"
+            )
+        if self.anneal.horizon_start > horizon:
+            raise ValueError(
+                f"anneal.horizon_start = {self.anneal.horizon_start} is longer than the task's "
+                f"horizon (env.task.horizon = {horizon}); give at most {horizon}, or 0 for the "
+                "whole horizon from the start"
+            )
         if self.vmap_runs is not None:
             _in_range("vmap_runs", self.vmap_runs, 0)
         _in_range("eval_episodes", self.eval_episodes, 1)
@@ -681,7 +702,7 @@ def _check_effect_targets(config) -> None:
         raise ValueError(f"env.xml: {err}") from None
     if not any(effects for _, effects in groups):
         return
-    names = target_names(load_spec(xml).compile())
+    names = target_names(_env_model(xml))
     for key, effects in groups:
         try:
             _effects.check(effects, names)
@@ -689,31 +710,50 @@ def _check_effect_targets(config) -> None:
             raise ValueError(f"{key}: {err}") from None
 
 
-def validate(cfg: DictConfig) -> Config:
-    """Build the typed config and run every range check; raise ValueError naming the key."""
+def validate(cfg: DictConfig, check_memory: bool = True) -> Config:
+    """Build the typed config and run every range check; raise ValueError naming the key.
+    `check_memory=False` skips the check against this machine's device memory (a sweep's jobs
+    checked before their launch, which may run them on other devices)."""
     try:
         _check_known_keys(cfg)
     except ValueError as err:
         raise ValueError(f"invalid config: {err}") from None
     try:
         config = OmegaConf.to_object(cfg)
-    except Exception as err:  # e.g. a required value left as ???
+    except MissingMandatoryValue as err:  # a required value left as ???
+        raise ValueError(
+            f"invalid config: {err.full_key} has no value (???): give it, {err.full_key}=<value>"
+            + (" (an MJCF file's path)" if err.full_key == "env.xml" else "")
+        ) from None
+    except Exception as err:
         raise ValueError(f"invalid config: {err}") from None
     try:
         _check_finite_numbers(OmegaConf.to_container(cfg, resolve=True))
         _check_all(config)
         _check_effect_targets(config)
-        _check_memory(config)
+        if check_memory:
+            _check_memory(config)
     except ValueError as err:
         raise ValueError(f"invalid config: {err}") from None
     return config
 
 
+FLOAT32_MAX = 3.4028234663852886e38  # numpy.finfo(numpy.float32).max, without importing numpy
+SEED_MAX = 2**31 - 1  # seeds go into int32 arrays (JAX's PRNG keys, the batch's seed vector)
+
+
 def _check_finite_numbers(node, where: str = "") -> None:
-    """Refuse NaN and inf anywhere: no setting means anything at them (an infinite friction gap
-    or noise scale passes every range check, and its results are meaningless)."""
+    """Refuse NaN and inf anywhere, and numbers beyond float32 (inf once in an array): no
+    setting means anything at them (an infinite friction gap or noise scale passes every range
+    check, and its results are meaningless)."""
     if isinstance(node, float) and not math.isfinite(node):
         raise ValueError(f"{where} = {node} is not a finite number; give a finite value")
+    if isinstance(node, int | float) and not isinstance(node, bool) and abs(node) > FLOAT32_MAX:
+        # every number ends up in float32 arrays, where it would be inf
+        raise ValueError(
+            f"{where} = {node} is beyond float32's range (+-{FLOAT32_MAX:.4g}), in which the "
+            "simulator and the policy compute; give a smaller value"
+        )
     if isinstance(node, dict):
         for key, child in node.items():
             _check_finite_numbers(child, f"{where}.{key}" if where else str(key))
@@ -734,7 +774,7 @@ def _check_memory(config) -> None:
     from hds.utils.runtime import runs_vmapped
 
     algo, horizon = config.algo, config.env.task.horizon
-    model = load_spec(str(resolve_xml(config.env.xml))).compile()
+    model = _env_model(config.env.xml)
     numbers = 32 + algo.line_search + sum(algo.hidden) + 4 * (model.nq + model.nv + model.nu)
     runs = config.seeds * math.prod(len(v) for _, v in config.sweep.items())
     at_once = runs_vmapped(config.vmap_runs, runs)
@@ -747,6 +787,19 @@ def _check_memory(config) -> None:
             f"bytes), and the device has {have / 1e9:.3g} GB: lower algo.rollouts, "
             "env.task.horizon or algo.hidden (or vmap_runs, to train fewer runs at once)"
         )
+
+
+def _env_model(xml: str):
+    """env.xml's compiled MuJoCo model; a file MuJoCo cannot parse or compile is refused naming
+    the key and the file (MuJoCo's own errors name neither)."""
+    path = resolve_xml(xml)
+    try:
+        return load_spec(str(path)).compile()
+    except ValueError as err:
+        text = " ".join(str(err).split())
+        if str(path) not in text:  # a compile error (load_spec's parse errors name the file)
+            text = f"{path} does not compile as an MJCF model ({text}): fix it, or give another"
+        raise ValueError(f"env.xml: {text} (env.xml=<path>)") from None
 
 
 def _memory_available() -> float:
@@ -834,19 +887,30 @@ def config_groups() -> list[str]:
     return sorted(p.name for p in CONF_DIR.iterdir() if p.is_dir() and p.name != "hydra")
 
 
-def compose(overrides=(), config_name: str = "config"):
+def schema_of(config_name: str) -> type:
+    """The schema of a top-level config: hds.discover's ("discover") or the others' (Config)."""
+    return DiscoverAppConfig if config_name == "discover" else Config
+
+
+def compose(
+    overrides=(), config_name: str = "config", check_memory: bool = True, config_dirs=()
+):
     """The validated config of `python -m hds.run <overrides>` (config_name="config") or of
     `python -m hds.discover <overrides>` ("discover"), composed without the command line:
 
         cfg = hds.compose(["method=pods_cl", "seeds=3", "env.backend=analytic"])
-    """
+
+    config_dirs: further folders searched for config options, as `--config-dir` adds them
+    (a study's experiments beside the study)."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
-    schema = DiscoverAppConfig if config_name == "discover" else Config
-    check_override_keys(overrides, schema, config_groups())
+    check_override_keys(overrides, schema_of(config_name), config_groups())
+    search = [f"file://{Path(d).resolve()}" for d in config_dirs]
+    extra = [f"hydra.searchpath=[{','.join(search)}]"] if search else []
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return validate(hydra_compose(config_name, overrides=list(overrides)))
+        composed = hydra_compose(config_name, overrides=[*extra, *overrides])
+    return validate(composed, check_memory)
 
 
 def env_config(env: dict) -> EnvConfig:

@@ -22,12 +22,11 @@ from __future__ import annotations
 
 import os
 import re
-import sys
 from pathlib import Path
 
 os.environ.setdefault("WANDB_MODE", "offline")
 
-from hds.config import SWEEP_KEYS
+from hds.config import SEED_MAX, SWEEP_KEYS
 from hds.utils import cli  # noqa: E402
 
 KEYS = {
@@ -43,6 +42,13 @@ KEYS |= {"out": Path, "gif": cli.boolean, "model": Path}
 
 def main(argv: list[str]) -> Path:
     args, real_overrides = cli.parse(argv, KEYS, "hds.evaluate", passthrough=("real",))
+    if args.get("eval_episodes", 1) < 1:
+        raise ValueError(
+            f"eval_episodes = {args['eval_episodes']} evaluates nothing: give at least 1, or "
+            "leave it out for the run's own count"
+        )
+    if not 0 <= args.get("eval_seed", 0) <= SEED_MAX:
+        raise ValueError(f"eval_seed = {args['eval_seed']} must lie in [0, {SEED_MAX}]")
     setting = {k: args.pop(k) for k in SWEEP_KEYS if k in args}
     from hds.config import compose
     from hds.policy import evaluate, load_policy
@@ -131,13 +137,5 @@ def write_evaluation(
     return out
 
 
-def _evaluate():
-    from hds.policy import evaluate
-
-    return evaluate
-
-
-cli.callable_module(__name__, _evaluate)
-
 if __name__ == "__main__":
-    print(f"wrote {cli.one_line_errors(main, sys.argv[1:])}")
+    print(f"wrote {cli.run(main)}")

@@ -10,7 +10,6 @@ how observations enter the network), the system's MJCF and numpy_policy.py:
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 from hds.config import SWEEP_KEYS
@@ -30,13 +29,5 @@ def main(argv: list[str]) -> Path:
     return export(policy, out)
 
 
-def _export():
-    from hds.policy import export
-
-    return export
-
-
-cli.callable_module(__name__, _export)
-
 if __name__ == "__main__":
-    print(f"wrote {cli.one_line_errors(main, sys.argv[1:])}")
+    print(f"wrote {cli.run(main)}")

@@ -18,7 +18,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-import sys
 from pathlib import Path
 
 os.environ.setdefault("WANDB_MODE", "offline")
@@ -31,13 +30,14 @@ from hydra.core.hydra_config import HydraConfig  # noqa: E402
 
 from hds import experiment, plots, rundir  # noqa: E402
 from hds.algo.pods import make_train  # noqa: E402
+from hds.commands import before_hydra  # noqa: E402
 from hds.config import Config, env_config, validate  # noqa: E402
 from hds.data import collect, initial_states  # noqa: E402
 from hds.data.format import Dataset, concatenate, load, save  # noqa: E402
 from hds.envs import make_env  # noqa: E402
 from hds.evaluation import mean_ci  # noqa: E402
 from hds.logger import print_table  # noqa: E402
-from hds.utils.cli import check_command_line  # noqa: E402
+from hds.utils import cli  # noqa: E402
 from hds.utils.io import atomic_write_json, read_json  # noqa: E402
 
 log = logging.getLogger("hds")
@@ -260,16 +260,12 @@ def round_row(report: dict) -> dict:
 def main(dcfg) -> float:
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     hydra_dir = out_dir / HydraConfig.get().output_subdir
-    try:
-        with rundir.claim(out_dir, dcfg, hydra_dir):  # locked; its config.yaml is dcfg's
-            cfg = validate(dcfg)  # every range check, before anything compiles
-            rounds = run_loop(cfg, out_dir)
-    except Exception as err:
-        rundir.print_one_line(err)
-        raise
+    with cli.one_line_errors(), rundir.claim(out_dir, dcfg, hydra_dir):  # locked
+        cfg = validate(dcfg)  # every range check, before anything compiles
+        rounds = run_loop(cfg, out_dir)
     return float(rounds[-1]["real_return"][0])
 
 
 if __name__ == "__main__":
-    check_command_line(sys.argv[1:])
+    before_hydra()
     main()

@@ -1,11 +1,12 @@
-"""`python -m hds.report DIR`: a markdown report of a run or a sweep directory.
+"""`python -m hds.report dir=DIR`: a markdown report of a run or a sweep directory.
 
 It reads every summary.json below DIR (one per run or job) and writes, into DIR:
   report.md      a table of mean and 95% interval over seeds per method and friction gap, figures
   report.csv     one row per method, friction gap and seed, for people who plot their own
   plots/report_*.png
-and, with --gif, an animation of the same policy on the simulator and on the real plant (of the
-run, or of a sweep's first job; --gif-plant: on one of its eval_plants instead).
+and, with gif=true, an animation of the same policy on the simulator and on the real plant (of
+the run, or of a sweep's first job; gif=JOB: of that job; gif_plant=KEY: on one of its
+eval_plants instead). out=DIR writes the report there instead (figures copied).
 A gap-discovery run's report (report.json) is linked with its before/after errors and figures;
 DIR may also be a `python -m hds.discover` output directory alone, whose report then goes to
 DIR/report/ (discovery's own report.md stays as it is).
@@ -13,11 +14,9 @@ DIR/report/ (discovery's own report.md stays as it is).
 
 from __future__ import annotations
 
-import argparse
 import csv
 import io
 import os
-import sys
 from collections import defaultdict
 from pathlib import Path
 
@@ -442,15 +441,15 @@ def animated_plant(cfg, run_dir: Path, eval_plant: str | None):
         return cfg.real
     if eval_plant not in cfg.eval_plants:
         raise ValueError(
-            f"--gif-plant {eval_plant}: {run_dir} has no such eval_plants entry; choose one of "
-            f"{sorted(cfg.eval_plants)}, or leave --gif-plant out for the run's own plant"
+            f"gif_plant={eval_plant}: {run_dir} has no such eval_plants entry; choose one of "
+            f"{sorted(cfg.eval_plants)}, or leave gif_plant out for the run's own plant"
         )
     return cfg.eval_plants[eval_plant]
 
 
 def run_to_animate(directory: Path, job: str) -> Path:
-    """The run directory `--gif [JOB]` names: the run itself, or a sweep's job JOB (default
-    its first job)."""
+    """The run directory `gif=JOB` names: the run itself, or a sweep's job JOB (`gif=true`,
+    job "": its first job)."""
     if job:
         return directory / job
     if (directory / "config.yaml").is_file():
@@ -496,44 +495,27 @@ def animate_run(
     )
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(
-        prog="python -m hds.report", description=__doc__.splitlines()[0]
-    )
-    parser.add_argument(
-        "directory",
-        help="a run or sweep directory (python -m hds.run) or a discovery one (hds.discover)",
-    )
-    parser.add_argument(
-        "--gif",
-        nargs="?",
-        const="",
-        metavar="JOB",
-        help="also animate one episode, sim beside real, of the run (of a sweep: of its job "
-        "JOB, default its first job)",
-    )
-    parser.add_argument(
-        "--gif-plant",
-        metavar="KEY",
-        help="animate the run on this plant of its eval_plants instead of its own",
-    )
-    parser.add_argument(
-        "--out", help="write the report here instead of into the directory (figures copied)"
-    )
-    args = parser.parse_args(argv)
-    if args.gif_plant is not None and args.gif is None:
-        raise ValueError("--gif-plant chooses the plant of --gif's animation: add --gif [JOB]")
+KEYS = {"dir": Path, "out": Path, "gif": str, "gif_plant": str}
+
+
+def main(argv: list[str]) -> None:
+    args, _ = cli.parse(argv, KEYS, "hds.report", required=("dir",))
+    directory, out_dir = args["dir"], args.get("out")
+    gif = {"true": "", "false": None}.get(args.get("gif", "false").lower(), args.get("gif"))
+    gif_plant = args.get("gif_plant")
+    if gif_plant is not None and gif is None:
+        raise ValueError("gif_plant chooses the plant of gif's animation: add gif=true (or JOB)")
     animated = None
-    if args.gif is not None:  # a bad JOB or plant is refused before the report is written
-        animated = run_to_animate(Path(args.directory), args.gif)
+    if gif is not None:  # a bad JOB or plant is refused before the report is written
+        animated = run_to_animate(directory, gif)
         from hds.policy import run_config
 
-        animated_plant(run_config(animated), animated, args.gif_plant)
-    print(f"wrote {build(args.directory, args.out)}")
+        animated_plant(run_config(animated), animated, gif_plant)
+    print(f"wrote {build(directory, out_dir)}")
     if animated is not None:
-        out = Path(args.out) / "plots" if args.out else None
-        print(f"wrote {animate_run(animated, out_dir=out, eval_plant=args.gif_plant)}")
+        out = out_dir / "plots" if out_dir else None
+        print(f"wrote {animate_run(animated, out_dir=out, eval_plant=gif_plant)}")
 
 
 if __name__ == "__main__":
-    cli.one_line_errors(main, sys.argv[1:])
+    cli.run(main)

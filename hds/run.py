@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import logging
 import os
-import sys
 import traceback
 from pathlib import Path
 
@@ -24,10 +23,11 @@ from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from hydra.types import RunMode  # noqa: E402
 
 from hds import rundir  # noqa: E402
+from hds.commands import before_hydra  # noqa: E402
 from hds.config import validate  # noqa: E402
 from hds.evaluation import no_finite_result  # noqa: E402
 from hds.experiment import Hooks, run  # noqa: E402
-from hds.utils.cli import check_command_line  # noqa: E402
+from hds.utils import cli  # noqa: E402
 from hds.utils.io import atomic_write_bytes  # noqa: E402
 from hds.utils.runtime import enable_compilation_cache  # noqa: E402
 
@@ -67,7 +67,7 @@ def main(dcfg) -> float:
             raise FloatingPointError(failure)
     except Exception as err:
         if hydra_cfg.mode != RunMode.MULTIRUN:
-            rundir.print_one_line(err)
+            cli.exit_if_user_error(err)
             raise
         # One failed job must not stop the sweep: record why, let the others run. Starting
         # the sweep again reruns this job and skips the finished ones.
@@ -80,5 +80,5 @@ def main(dcfg) -> float:
 
 
 if __name__ == "__main__":
-    check_command_line(sys.argv[1:])
+    before_hydra()
     main()

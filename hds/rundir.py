@@ -37,7 +37,6 @@ LOCK = ".lock"
 ACCEPTED = "accepted"  # in .hydra/: Hydra's files of the accepted configuration
 RESULTS = ("summary.json", "checkpoints", "dynamics", "discovery")  # what a run leaves behind
 IGNORED = ("logger", "resume_changed")  # keys that change no result
-ONE_LINE = (ValueError, FileNotFoundError, FloatingPointError)  # errors whose message says all
 
 
 class RunDirectoryError(ValueError):
@@ -108,13 +107,6 @@ def differences(before: DictConfig, after: DictConfig) -> list[str]:
         for key in sorted(old.keys() | new.keys())
         if changed(key) and key.split(".")[0] not in IGNORED
     ]
-
-
-def print_one_line(err: BaseException) -> None:
-    """For a refused configuration or input (`ONE_LINE`): print its message alone and exit 1,
-    unless HYDRA_FULL_ERROR=1 asks for the traceback. Any other error: return (to re-raise)."""
-    if isinstance(err, ONE_LINE) and os.environ.get("HYDRA_FULL_ERROR") != "1":
-        sys.exit(f"error: {err}")
 
 
 def _schema_defaults() -> DictConfig:

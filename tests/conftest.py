@@ -4,6 +4,7 @@ function once per session (session-scoped fixtures), with the persistent compila
 from __future__ import annotations
 
 import os
+import runpy
 import struct
 from pathlib import Path
 
@@ -63,6 +64,13 @@ def make_config(*overrides: str, config_name: str = "config"):
     """Compose a primary config (conf/config.yaml: `python -m hds.run`; conf/discover.yaml:
     `python -m hds.discover`) with overrides and validate it, as the command does."""
     return compose(list(overrides), config_name)
+
+
+def command_main(module: str):
+    """A command's main(argv), without importing its module under its name: `import
+    hds.evaluate` would make the package's attribute `hds.evaluate` that module, hiding the
+    API function of the same name for the rest of the session (as `import hds.export`)."""
+    return runpy.run_module(module)["main"]
 
 
 def trained(*args, **kwargs):

@@ -18,7 +18,7 @@ import pytest
 
 import hds
 from hds.experiment import Hooks
-from tests.conftest import ROOT, wandb_keys, wandb_records
+from tests.conftest import ROOT, command_main, wandb_keys, wandb_records
 
 # Two step sizes x two seeds: four runs in one program.
 SWEEP = (
@@ -54,7 +54,7 @@ def test_a_sweep_of_two_step_sizes_is_labelled_everywhere(sweep_run, tmp_path):
         (0, 0.01), (0, 0.04), (1, 0.01), (1, 0.04)
     ]  # fmt: skip
     # report.md and report.csv: a row per setting (not averaged as seeds), a step_size column
-    proc = cli("hds.report", str(out), "--out", str(tmp_path))
+    proc = cli("hds.report", f"dir={out}", f"out={tmp_path}")
     assert proc.returncode == 0, proc.stderr[-2000:]
     report = (tmp_path / "report.md").read_text()
     assert "| pods step_size=0.01 | coulomb_friction@slider | 2 |" in report
@@ -156,6 +156,21 @@ def test_the_exported_policy_gives_the_in_process_return_on_c_mujoco(sweep_run, 
     np.testing.assert_allclose(returns, in_process.returns, rtol=1e-4)
 
 
+def test_hds_export_into_a_place_it_cannot_write_is_one_line(sweep_run, tmp_path, capsys):
+    """out= below a file (a read-only directory reads the same, but root writes into those)."""
+    from hds.utils import cli
+
+    out, _ = sweep_run
+    (tmp_path / "a_file").write_text("")
+    args = [f"run={out}", "seed=1", "step_size=0.01", f"out={tmp_path / 'a_file' / 'policy'}"]
+    with pytest.raises(SystemExit) as ended:
+        cli.run(command_main("hds.export"), args)
+    err = capsys.readouterr().err
+    assert ended.value.code == 1 and "Traceback" not in err
+    (line,) = err.strip().splitlines()
+    assert str(tmp_path / "a_file") in line and "fix the path" in line, line
+
+
 def test_hds_evaluate_runs_a_saved_policy_on_another_plant(sweep_run, tmp_path):
     out, _ = sweep_run
     args = (f"run={out}", "seed=0", "step_size=0.04", "eval_episodes=4", f"out={tmp_path}")
@@ -184,8 +199,8 @@ def test_hds_evaluate_runs_a_policy_through_a_learned_model(sweep_run, tmp_path)
     """model=: through a model that is the simulator the policy trained on, it scores its
     simulator return from the same initial states; the model's errors along its episodes."""
     from hds import dynamics
-    from hds.evaluate import main
 
+    main = command_main("hds.evaluate")
     out, _ = sweep_run
     policy = hds.load_policy(out, seed=0, step_size=0.04)
     exact = dynamics.save(tmp_path / "model", dynamics.zero_residual(policy.simulator))

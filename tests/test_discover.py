@@ -722,7 +722,7 @@ def test_command_line_writes_the_report_and_hds_run_accepts_the_corrected_model(
     # after, figures) in DIR/report/, discovery's own report.md left as it was
     from hds.report import main as report_main
 
-    report_main([str(out)])
+    report_main([f"dir={out}"])
     assert (out / "report.md").read_text() == text
     summary = (out / "report" / "report.md").read_text()
     assert "### Gap discovery: run" in summary and "coulomb_friction@slider" in summary

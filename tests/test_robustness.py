@@ -94,9 +94,14 @@ def test_a_refused_rerun_prints_one_line_and_keeps_hydras_record(tmp_path):
     first = hds_run_cli(*S, "real.friction_gap=-1", f"hydra.run.dir={out}")  # refused fast
     assert first.returncode == 1 and len(first.stderr.strip().splitlines()) == 1, first.stderr
     assert first.stderr.startswith("error: invalid config: real.friction_gap = -1.0")
-    (out / "summary.json").write_text("{}")  # as if it had finished with these settings
+    assert not out.exists()  # refused before Hydra wrote anything
+    hydra_dir = out / ".hydra"
+    hydra_dir.mkdir(parents=True)
+    OmegaConf.save(composed(*S), hydra_dir / "config.yaml")  # as Hydra writes it
+    with rundir.claim(out, composed(*S), hydra_dir):
+        (out / "summary.json").write_text("{}")  # as if it had finished with these settings
     before = (out / ".hydra" / "config.yaml").read_text()
-    second = hds_run_cli(*S, "real.friction_gap=-1", "algo.epochs=10", f"hydra.run.dir={out}")
+    second = hds_run_cli(*S, "algo.epochs=10", f"hydra.run.dir={out}")
     assert second.returncode == 1 and "Traceback" not in second.stderr
     assert "algo.epochs: 4 -> 10" in second.stderr
     assert (out / ".hydra" / "config.yaml").read_text() == before
@@ -277,7 +282,12 @@ def test_an_unwritable_run_directory_is_named_with_the_fix(tmp_path):
 
 
 def test_a_sweep_with_failed_jobs_exits_non_zero_naming_them(tmp_path):
-    proc = hds_run_cli("-m", *S, "real.friction_gap=-1,-2", f"hydra.sweep.dir={tmp_path}")
+    """Jobs that fail once launched (here: each job's directory finished with another
+    configuration; invalid values refuse the whole sweep before any job, tests/test_cli.py)."""
+    for job in ("0", "1"):
+        with rundir.claim(tmp_path / job, composed(*S, "real.friction_gap=5")):
+            (tmp_path / job / "summary.json").write_text('{"rows": []}')
+    proc = hds_run_cli("-m", *S, "real.friction_gap=1,2", f"hydra.sweep.dir={tmp_path}")
     assert proc.returncode == 1
     assert "2 of 2 jobs failed: 0, 1" in proc.stderr
     assert all((tmp_path / job / "failed.txt").is_file() for job in ("0", "1"))

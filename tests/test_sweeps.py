@@ -21,7 +21,6 @@ import pytest
 from hds import experiment
 from hds import run as hds_run
 from hds.envs import make_env
-from hds.envs.system import ASSETS
 from tests.conftest import ROOT, make_config, trained, wandb_records
 
 TINY = (
@@ -179,20 +178,28 @@ def test_the_batch_is_sharded_across_two_host_devices(tmp_path):
 
 @pytest.fixture(scope="module")
 def restarted_sweep(tmp_path_factory):
-    """A basic-launcher sweep whose second job fails (its MJCF is missing), then the same sweep
-    started again once the file exists."""
+    """A basic-launcher sweep whose second job fails once launched (its directory holds a run
+    finished with another configuration; an invalid value would refuse the whole sweep before
+    any job), then the same sweep started again once that directory is cleared."""
+    from hydra import compose, initialize_config_dir
+
+    from hds import rundir
+
     tmp = tmp_path_factory.mktemp("sweep")
-    late = tmp / "late.xml"
-    args = ["-m", *TINY, f"env.xml=cartpole.xml,{late}", f"hydra.sweep.dir={tmp / 'sweep'}"]
-    first = hds_run_cli(*args, returncode=1)  # a sweep with a failed job exits non-zero
     sweep = tmp / "sweep"
+    with initialize_config_dir(config_dir=str(ROOT / "hds" / "conf"), version_base="1.3"):
+        other = compose("config", overrides=[*TINY, "seed=7"])
+    with rundir.claim(sweep / "1", other):
+        (sweep / "1" / "summary.json").write_text('{"rows": []}')
+    args = ["-m", *TINY, "seed=0,1", f"hydra.sweep.dir={sweep}"]
+    first = hds_run_cli(*args, returncode=1)  # a sweep with a failed job exits non-zero
     state = {
         "first_failed": (sweep / "1" / "failed.txt").is_file(),
         "first_summary": json.loads((sweep / "summary.json").read_text()),
         "job0_mtime": (sweep / "0" / "summary.json").stat().st_mtime_ns,
         "first_stdout": first.stdout,
     }
-    shutil.copy(ASSETS / "cartpole.xml", late)
+    shutil.rmtree(sweep / "1")
     second = hds_run_cli(*args)
     return sweep, state, second
 
@@ -284,7 +291,7 @@ def test_hds_report_elsewhere_with_an_animation(restarted_sweep, tmp_path):
     from hds.report import main
 
     sweep, *_ = restarted_sweep
-    main([str(sweep), "--out", str(tmp_path), "--gif", "1"])
+    main([f"dir={sweep}", f"out={tmp_path}", "gif=1"])
     assert (tmp_path / "report.md").read_text().count("| pods |") == 1
     assert (tmp_path / "report.csv").is_file()
     gif = tmp_path / "plots" / "pods_sim_vs_real.gif"
@@ -422,10 +429,10 @@ def test_a_policy_is_evaluated_on_further_plants_and_reported_per_plant(tmp_path
     _, curves = collect_rows(tmp_path / "once")
     assert {column for _, column, _, _ in curves} >= {("coulomb_friction@slider", 3.0)}
     OmegaConf.save(OmegaConf.structured(cfg), tmp_path / "once" / "config.yaml")
-    with pytest.raises(ValueError, match=r"--gif-plant x9: .* choose one of \['delay'"):
+    with pytest.raises(ValueError, match=r"gif_plant=x9: .* choose one of \['delay'"):
         animate_run(tmp_path / "once", eval_plant="x9")
     elsewhere = tmp_path / "report_elsewhere"
-    for bad in (["--gif", "--gif-plant", "x9"], ["--gif-plant", "x3"]):  # refused before writing
-        with pytest.raises(ValueError, match="--gif-plant"):
-            report_main([str(tmp_path / "once"), "--out", str(elsewhere), *bad])
+    for bad in (["gif=true", "gif_plant=x9"], ["gif_plant=x3"]):  # refused before writing
+        with pytest.raises(ValueError, match="gif_plant"):
+            report_main([f"dir={tmp_path / 'once'}", f"out={elsewhere}", *bad])
         assert not elsewhere.exists()

@@ -340,6 +340,8 @@ def save(dataset: Dataset, path: str | os.PathLike) -> Path:
 def load(path: str | os.PathLike) -> Dataset:
     """Read a dataset from .npz or .csv (by extension). Malformed files raise a ValueError."""
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path} is a directory: give a dataset file ({', '.join(FORMATS)})")
     suffix = _suffix(path)
     if not path.is_file():
         raise FileNotFoundError(f"no dataset file at {path}")

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import logging
 import os
-import sys
 from pathlib import Path
 
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
@@ -18,30 +17,68 @@ import hydra  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
+from hds.commands import before_hydra  # noqa: E402
 from hds.config import validate  # noqa: E402
 from hds.discover import config as _schema  # noqa: E402,F401  (registers discover_schema)
+from hds.discover.data import check_size  # noqa: E402
 from hds.discover.io import load_dataset  # noqa: E402
 from hds.discover.report import corrected_env, write_report  # noqa: E402
 from hds.discover.workflow import discover  # noqa: E402
-from hds.rundir import print_one_line  # noqa: E402
-from hds.utils.cli import check_command_line  # noqa: E402
+from hds.utils import cli  # noqa: E402
 from hds.utils.runtime import enable_compilation_cache  # noqa: E402
 
 log = logging.getLogger("hds")
 
 
+# Discovery's memory grows with the recorded steps: 2 episodes of a million steps took it to
+# 10.5 GB (issue 41), about 5 kB a step.
+BYTES_PER_STEP = 5_000
+
+
 @hydra.main(config_path="../conf", config_name="discover", version_base="1.3")
 def main(dcfg) -> float:
-    try:
-        cfg = validate(dcfg)  # every range check, before anything compiles
-    except ValueError as err:
-        print_one_line(err)
-        raise
+    with cli.one_line_errors():  # bad config or data: one line (docs/cli.md)
+        return run(dcfg, Path(HydraConfig.get().runtime.output_dir))
+
+
+def load_data(cfg):
+    """The dataset and the validation dataset of a validated config, each checked against the
+    env and within discover.max_steps, before anything compiles."""
+    from hds.data.format import validate as check_data
+    from hds.envs.system import data_interface
+
+    sim = data_interface(cfg.env.xml, cfg.env.timestep)
+    datasets = []
+    for key in ("data", "validation"):
+        path = getattr(cfg, key)
+        if path is None:
+            datasets.append(None)
+            continue
+        dataset = check_data(load_dataset(path, cfg.emps), sim, where=f"{key} = {path}")
+        check_steps(dataset, f"{key} = {path}", cfg.discover.max_steps)
+        datasets.append(dataset)
+    return datasets
+
+
+def check_steps(dataset, where: str, max_steps: int) -> None:
+    """Refuse data discovery cannot hold in memory in reasonable time, with the numbers."""
+    steps = dataset.n_episodes * dataset.horizon
+    if steps > max_steps:
+        raise ValueError(
+            f"{where} holds {steps} steps ({dataset.n_episodes} episodes x {dataset.horizon}), "
+            f"more than discover.max_steps = {max_steps}: discovery would need about "
+            f"{steps * BYTES_PER_STEP / 1e9:.2g} GB of memory. Give it a window of the data "
+            "(fewer or shorter episodes) or resample it to a coarser dt, or raise "
+            "discover.max_steps if the machine has the memory"
+        )
+
+
+def run(dcfg, out_dir: Path) -> float:
+    cfg = validate(dcfg)  # every range check, before anything compiles
+    dataset, validation = load_data(cfg)
+    check_size(dataset, cfg.discover.horizon, f"data = {cfg.data}")  # enough to identify
     enable_compilation_cache()
-    out_dir = Path(HydraConfig.get().runtime.output_dir)
     OmegaConf.save(dcfg, out_dir / "config.yaml", resolve=True)
-    dataset = load_dataset(cfg.data, cfg.emps)
-    validation = load_dataset(cfg.validation, cfg.emps) if cfg.validation else None
     result = discover(dataset, cfg.env, cfg.discover, validation)
     gaps = None
     if cfg.retrain:
@@ -68,5 +105,5 @@ def main(dcfg) -> float:
 
 
 if __name__ == "__main__":
-    check_command_line(sys.argv[1:], "discover")
+    before_hydra("discover")
     main()

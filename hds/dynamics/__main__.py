@@ -1,38 +1,36 @@
-"""`python -m hds.dynamics [--out DIR] [overrides...]`: fit the configured dynamics model on data
-from the configured plant and print its open-loop errors on fresh held-out episodes, next to
-constant velocity and the simulator alone. Overrides are Hydra's, as for `python -m hds.run`:
+"""`python -m hds.dynamics [out=DIR] [test_episodes=N] [json=FILE] [overrides...]`: fit the
+configured dynamics model on data from the configured plant and print its open-loop errors on
+fresh held-out episodes, next to constant velocity and the simulator alone. The overrides are
+Hydra's, as for `python -m hds.run`:
 
   python -m hds.dynamics dynamics=residual real=brax
-  python -m hds.dynamics dynamics=ensemble dynamics.episodes=128 --out models/ensemble
+  python -m hds.dynamics dynamics=ensemble dynamics.episodes=128 out=models/ensemble
+
+out: save the fitted model to this directory; test_episodes: held-out episodes, recorded with
+another seed (default 16); json: write the report and held-out errors to this file.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
+from hds.utils import cli
+
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 
+KEYS = {"out": Path, "test_episodes": int, "json": Path}  # the rest: the config's overrides
 
-def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(
-        prog="python -m hds.dynamics", description=__doc__.split("\n")[0]
-    )
-    parser.add_argument("--out", help="save the fitted model to this directory")
-    parser.add_argument(
-        "--test-episodes",
-        type=int,
-        default=16,
-        help="held-out episodes, recorded with another seed (default 16)",
-    )
-    parser.add_argument("--json", help="write the report and held-out errors to this file")
-    parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. dynamics=residual")
-    args = parser.parse_args(argv)
+
+def main(argv: list[str]) -> dict:
+    own = [a for a in argv if a.partition("=")[0] in KEYS or a in ("-h", "--help")]
+    overrides = [a for a in argv if a not in own]
+    args, _ = cli.parse(own, KEYS, "hds.dynamics", required=())
+    test_episodes = args.get("test_episodes", 16)
+    if test_episodes < 1:
+        raise ValueError(f"test_episodes = {test_episodes} must be at least 1")
 
     import jax
 
@@ -40,12 +38,10 @@ def main(argv=None) -> dict:
     from hds.config import compose
     from hds.envs import make_env
     from hds.real import make_plant
+    from hds.utils.io import atomic_write_json
     from hds.utils.runtime import enable_compilation_cache
 
-    try:
-        cfg = compose(args.overrides)  # unknown keys and range errors: one line
-    except ValueError as err:
-        sys.exit(f"error: {err}")
+    cfg = compose(overrides)  # unknown keys and range errors: one line (cli.run)
     enable_compilation_cache()
     dcfg = cfg.dynamics if cfg.dynamics.model != "none" else replace(cfg.dynamics, model="mlp")
     env = make_env(cfg.env)
@@ -55,12 +51,12 @@ def main(argv=None) -> dict:
 
     start = time.perf_counter()
     train = dynamics.collect_data(dcfg, env, plant, k_train)
-    test = dynamics.collect_data(replace(dcfg, episodes=args.test_episodes), env, plant, k_test)
+    test = dynamics.collect_data(replace(dcfg, episodes=test_episodes), env, plant, k_test)
     collect_s = time.perf_counter() - start
     model, report = dynamics.fit(dcfg, env, train, key=k_fit)
     held_out = dynamics.evaluate(model, test.obs, test.actions, dcfg.eval_steps, env)
-    if args.out:
-        report["path"] = str(dynamics.save(args.out, model, dcfg, report))
+    if args.get("out"):
+        report["path"] = str(dynamics.save(args.get("out"), model, dcfg, report))
 
     print(
         f"{dcfg.model} ({report['members']} member(s), hidden {report['hidden']}) on "
@@ -68,7 +64,7 @@ def main(argv=None) -> dict:
         f"collected in {collect_s:.1f} s, fitted in {report['fit_s']:.1f} s "
         f"({report['epochs_run']} epochs, best {report['best_epoch']})"
     )
-    print(f"open-loop nrmse on {args.test_episodes} held-out episodes (lower is better):")
+    print(f"open-loop nrmse on {test_episodes} held-out episodes (lower is better):")
     print(f"{'k':>4} {'model':>9} {'const-vel':>10} {'simulator':>10}")
     for k, row in held_out.items():
         print(
@@ -78,9 +74,9 @@ def main(argv=None) -> dict:
                 for n, w in (("model", 9), ("baseline", 10), ("simulator", 10))
             )
         )
-    result = {"report": report, "held_out": held_out, "overrides": args.overrides}
-    if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+    result = {"report": report, "held_out": held_out, "overrides": overrides}
+    if args.get("json"):
+        atomic_write_json(args["json"], result)
     return result
 
 
@@ -89,4 +85,4 @@ def _fmt(x) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

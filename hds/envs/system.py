@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
@@ -33,7 +34,14 @@ def resolve_xml(xml: str) -> Path:
 
 
 def load_spec(xml: str, timestep: float | None = None) -> mujoco.MjSpec:
-    spec = mujoco.MjSpec.from_file(str(resolve_xml(xml)))
+    path = resolve_xml(xml)
+    try:
+        spec = mujoco.MjSpec.from_file(str(path))
+    except ValueError as err:  # MuJoCo's parse errors name neither the file nor a fix
+        raise ValueError(
+            f"{path} is not a valid MJCF file ({' '.join(str(err).split())}): fix the file, "
+            "or give another"
+        ) from None
     if timestep is not None:
         spec.option.timestep = timestep
     return spec
@@ -87,6 +95,30 @@ def link_angles(model: mujoco.MjModel) -> np.ndarray:
         if model.jnt_type[k] == hinge and abs(abs(along) - 1.0) < 1e-6:
             rows[model.jnt_qposadr[j]] += np.sign(along) * rows[model.jnt_qposadr[k]]
     return rows
+
+
+def control_range(model: mujoco.MjModel) -> np.ndarray:
+    """[n_act, 2] float32 range of each actuator's control; unlimited ones: [-inf, inf]."""
+    ctrl_range = np.array(model.actuator_ctrlrange, dtype=np.float32)
+    ctrl_range[model.actuator_ctrllimited == 0] = [-np.inf, np.inf]
+    return ctrl_range
+
+
+def action_names(model: mujoco.MjModel) -> tuple[str, ...]:
+    return tuple(model.actuator(a).name for a in range(model.nu))
+
+
+def data_interface(xml: str, timestep: float | None = None) -> SimpleNamespace:
+    """What data recorded on the system of `xml` must match (hds.data.format.validate): its
+    obs_names, action_names, physics timestep and ctrl_range, from MuJoCo's compile alone
+    (milliseconds, no brax), so that bad data is refused before anything is built."""
+    model = load_spec(xml, timestep).compile()
+    return SimpleNamespace(
+        obs_names=tuple(state_names(model)),
+        action_names=action_names(model),
+        timestep=float(model.opt.timestep),
+        ctrl_range=control_range(model),
+    )
 
 
 def target_names(model: mujoco.MjModel) -> dict[str, dict[str, int]]:
@@ -211,8 +243,6 @@ def make_simulator(
         sys = sys.tree_replace({"opt.iterations": 1})
     if backend in _OWN_BACKENDS:  # refuse unsupported models here, once
         importlib.import_module(f"hds.envs.{backend}").check(sys)
-    ctrl_range = np.array(model.actuator_ctrlrange, dtype=np.float32)
-    ctrl_range[model.actuator_ctrllimited == 0] = [-np.inf, np.inf]
     sim = Simulator(
         sys=sys,
         pipeline=importlib.import_module(
@@ -223,9 +253,9 @@ def make_simulator(
         effects=effect_set,
         sharpness=sharpness,
         force_dofs=np.array(list(targets["joint"].values()), dtype=np.int32),
-        ctrl_range=ctrl_range,
+        ctrl_range=control_range(model),
         obs_names=tuple(state_names(model)),
-        action_names=tuple(model.actuator(a).name for a in range(model.nu)),
+        action_names=action_names(model),
         targets=targets,
         angular=hinge_mask(model),
         link_angles=link_angles(model),
