@@ -176,6 +176,10 @@ def published_effects(arms: int) -> list[dict]:
     law being exactly MuJoCo's joint damping."""
     p = PUBLISHED[arms]
     return [
-        {"name": "viscous_damping", "target": f"arm{i + 1}", "params": {"coefficient": p[f"k{i + 1}"]}}
+        {
+            "name": "viscous_damping",
+            "target": f"arm{i + 1}",
+            "params": {"coefficient": p[f"k{i + 1}"]},
+        }
         for i in range(arms)
     ]
