@@ -200,11 +200,125 @@ def figure(system: str, scorer: Scorer, curves: dict, path: Path):
     plt.close(fig)
 
 
+def tables(results: dict) -> str:
+    """The README's tables (markdown) from results.json: held-out errors in mrad, discoveries."""
+    lines = []
+    for system in ("single", "double"):
+        if system not in results:
+            continue
+        out = results[system]
+        rows = dict(out["rows"])
+        for key, name in (("nominal", "nominal (b)"), ("corrected", "hds corrected (b)")):
+            draws = [d[key] for d in out["discoveries"]["b"]]
+            for field in ("whole_rms_rad", "holds_ms"):
+                values = np.array([d[field] for d in draws])
+                rows.setdefault(name, {})[field] = values
+            for k in KS:
+                values = np.array([d["kstep_rms_rad"][str(k)] for d in draws])
+                rows[name].setdefault("kstep_rms_rad", {})[str(k)] = values
+
+        def cell(v, scale=1e3):
+            v = np.atleast_1d(np.asarray(v, dtype=np.float64)) * scale
+            if len(v) == 1:
+                return f"{v[0]:.3g}"
+            return f"{v.mean():.3g} [{v.min():.3g}, {v.max():.3g}]"
+
+        lines += [
+            f"\n{system} pendulum, held-out Y_vad (RMS world-angle error, mrad; (b): mean "
+            f"[min, max] over {len(out['discoveries']['b'])} draws)\n",
+            "| model | whole segment | k = 10 | k = 100 | k = 1000 | holds (ms, RMS < "
+            f"{results['hold_rad']:g} rad) |",
+            "| --- | --- | --- | --- | --- | --- |",
+        ]
+        for name, r in rows.items():
+            ks = [cell(r["kstep_rms_rad"][str(k)]) for k in KS]
+            lines.append(
+                f"| {name} | {cell(r['whole_rms_rad'])} | {' | '.join(ks)} | "
+                f"{holds(r['holds_ms'])} |"
+            )
+        lines += ["", "| start | named (95% CI) | discovery s |", "| --- | --- | --- |"]
+        for label, infos in (("a", [out["discoveries"]["a"]]), ("b", out["discoveries"]["b"])):
+            for i, info in enumerate(infos):
+                named = (
+                    "; ".join(
+                        f"{e['effect']}@{e['target']} "
+                        + ", ".join(
+                            f"{p} = {v:.4g} [{e['ci95'][p][0]:.4g}, {e['ci95'][p][1]:.4g}]"
+                            for p, v in e["params"].items()
+                        )
+                        for e in info["named"]
+                    )
+                    or "nothing"
+                )
+                tag = label if label == "a" else f"b, draw {i} {_factors(info['factors'])}"
+                lines.append(f"| {tag} | {named} | {info['seconds']:.0f} |")
+    return "\n".join(lines)
+
+
+def diagnostics() -> str:
+    """What the recordings are (numpy only, seconds): each segment's swing amplitude at its start
+    and end, and, for the single pendulum, the viscous k1 that minimises each segment's
+    whole-segment error in the authors' equation integrated as the simulator does (semi-implicit
+    Euler, 1 ms) with their other parameters."""
+    lines = ["\n| segment | amplitude at start, end (rad from hanging, per arm) | end / start |"]
+    lines.append("| --- | --- | --- |")
+    for system in ("single", "double"):
+        ident, held = multiarm.load(DATA / FILES[system])
+        for name, d in (("Y_id", ident), ("Y_vad", held)):
+            w = multiarm.to_world(d.obs)[..., : ARMS[system]] - np.pi
+            first, last = np.abs(w[:, :800]).max(axis=1), np.abs(w[:, -800:]).max(axis=1)
+            for e in range(d.n_episodes):
+                amp = ", ".join(f"{a:.2f} -> {b:.2f}" for a, b in zip(first[e], last[e]))
+                ratio = ", ".join(f"{b / a:.3f}" for a, b in zip(first[e], last[e]))
+                lines.append(f"| {system} {name}[{e}] | {amp} | {ratio} |")
+    p = multiarm.PUBLISHED[1]
+    J, G = p["m1"] * p["a1"] ** 2 + p["I1"], p["m1"] * p["g"] * p["a1"]
+    ks = np.arange(1.2, 3.01, 0.1) * 1e-4
+    lines += ["", "| single segment | k1 minimising its whole-segment error (N m s/rad) |"]
+    lines.append("| --- | --- |")
+    ident, held = multiarm.load(DATA / FILES["single"])
+    for name, d in (("Y_id", ident), ("Y_vad", held)):
+        th = np.repeat(d.obs[:, 0, :1], len(ks), 1)
+        w = np.repeat(d.obs[:, 0, 1:], len(ks), 1)
+        err = np.zeros_like(th)
+        for t in range(1, d.horizon + 1):
+            w = w + 1e-3 * (G * np.sin(th) - ks * w) / J
+            th = th + 1e-3 * w
+            err += (th - d.obs[:, t, :1]) ** 2
+        for e in range(d.n_episodes):
+            best = ks[np.argmin(err[e])]
+            edge = " (the grid's edge)" if best in (ks[0], ks[-1]) else ""
+            lines.append(f"| {name}[{e}] | {best:.2e}{edge} |")
+    return "\n".join(lines)
+
+
+def holds(ms) -> str:
+    """How long the k-step predictions hold; '> 1000' where they never crossed within max(KS)."""
+    ms = np.atleast_1d(np.asarray(ms, dtype=np.float64))
+    text = [f"> {max(KS)}" if m >= max(KS) else f"{m:.0f}" for m in ms]
+    return text[0] if len(text) == 1 else ", ".join(text)
+
+
+def _factors(factors: dict) -> str:
+    return (
+        "("
+        + ", ".join(
+            f"{b}: m {f['mass']:g} c {f['com']:g} I {f['inertia']:g}" for b, f in factors.items()
+        )
+        + ")"
+    )
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--systems", nargs="+", default=["single", "double"])
     parser.add_argument("--draws", type=int, default=None, help="draws of (b); default DRAWS")
+    parser.add_argument("--tables", action="store_true", help="print results.json's tables")
     args = parser.parse_args(argv)
+    if args.tables:
+        print(tables(json.loads((HERE / "results.json").read_text())))
+        print(diagnostics())
+        return
     results = {"date": "2026-11-27", "discover": DISCOVER, "ks": KS, "hold_rad": HOLD}
     for system in args.systems:
         arms = ARMS[system]
@@ -244,7 +358,12 @@ def main(argv=None):
         results[system] = out
         print(system, json.dumps(rows, indent=1))
         print(system, "(a)", json.dumps(out["discoveries"]["a"]))
-    atomic_write_json(HERE / "results.json", results)
+    path = HERE / "results.json"  # systems run apart (--systems) merge into one file
+    if path.is_file() and set(args.systems) != set(ARMS):
+        results = json.loads(path.read_text()) | results
+    atomic_write_json(path, results)
+    print(tables(results))
+    print(diagnostics())
 
 
 if __name__ == "__main__":

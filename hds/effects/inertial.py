@@ -95,7 +95,7 @@ class InertiaScale(Effect):
     params = (Param("scale", "1 = nominal", 1.0, lower=0.0, fit_bounds=(0.05, 20.0)),)
     stage, order = SYSTEM, 1
     mjcf = "body inertia"
-    mujoco_field = ("body", "inertia", None, "scale")
+    mujoco_field = "MuJoCo's body inertia is a vector (principal moments), not one number"
     default_candidate = False  # opt-in: discover.effects names it
 
     def modify_system(self, site, p, sys):
