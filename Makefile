@@ -8,7 +8,7 @@ export WANDB_SILENT ?= true
 export XLA_PYTHON_CLIENT_PREALLOCATE ?= false
 export NO_MKDOCS_2_WARNING ?= 1
 
-.PHONY: install run test test-slow docs bench lint sweep study clean
+.PHONY: install run test test-slow docs bench lint sweep study pendulum clean
 
 $(STAMP): pyproject.toml
 	@test -d $(VENV) || $(PY) -m venv $(VENV)
@@ -116,6 +116,11 @@ study: $(STAMP)
 		$(STUDY_SWINGUP_LOOP) real.friction_gap=$$gap hydra.run.dir=$(STUDY_SWINGUP)/loop/x$$gap \
 		|| exit 1; done
 	$(BIN)/python -m hds.report dir=$(STUDY_SWINGUP) out=experiments/sim2real_friction/results/swingup gif=plant_free/0
+
+# Gap discovery on the real multi-arm pendulum against its authors' fit
+# (experiments/multiarm_pendulum/README.md; needs ../shared/data/multiarm_pendulum)
+pendulum: $(STAMP)
+	$(BIN)/python experiments/multiarm_pendulum/run.py
 
 clean:
 	rm -rf $(VENV) outputs/runs outputs/multiruns

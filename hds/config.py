@@ -24,7 +24,7 @@ from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue
 
 from hds.effects import apply as _effects
-from hds.effects.library import candidate_effects, check_params, effect_type
+from hds.effects.library import candidate_effects, check_params, default_candidates, effect_type
 from hds.envs.system import BACKENDS, load_spec, resolve_xml, target_names
 
 log = logging.getLogger(__name__)
@@ -308,7 +308,7 @@ class DiscoverConfig:
     stride: int = 1  # a k-step window starts every `stride` steps
     warmup: int = 25  # past actions replayed into stateful effects (delay, lag) before a window
     max_delay: int = 5  # action delays of 1 .. max_delay steps are enumerated; 0: none
-    effects: list[str] = field(default_factory=candidate_effects)  # candidate effect types
+    effects: list[str] = field(default_factory=default_candidates)  # candidate effect types
     max_effects: int = 4  # most effects named
     # Fits of up to b effects at once (the selected ones and a candidate) compile for b slots
     # for each b listed, and for max_effects: fewer sizes, fewer compiles; a slot more costs a

@@ -35,7 +35,7 @@ from hds.discover import DiscoverConfig, discover, identifiability, load_dataset
 from hds.discover.fit import confidence_intervals
 from hds.discover.model import Candidate
 from hds.effects import place
-from hds.effects.library import candidate_effects
+from hds.effects.library import default_candidates
 from hds.envs import make_env
 from hds.real.brax_plant import BraxPlant
 from hds.real.mujoco_plant import MujocoPlant
@@ -173,7 +173,7 @@ def shrink(before, after) -> float:
 
 
 def test_the_cases_cover_every_effect_of_the_library():
-    assert {HIDDEN[key]["name"] for key in EVERY_EFFECT} == set(candidate_effects())
+    assert {HIDDEN[key]["name"] for key in EVERY_EFFECT} == set(default_candidates())
 
 
 @pytest.mark.parametrize("kind, key", CASES, ids=[f"{k}-{e}" for k, e in CASES])

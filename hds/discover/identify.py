@@ -29,7 +29,7 @@ import numpy as np
 from hds.data.format import Dataset, concatenate
 from hds.discover.data import noise_level
 from hds.effects.base import ACTUATOR, BODY, JOINT, OBSERVATION
-from hds.effects.library import candidate_effects, effect_type
+from hds.effects.library import default_candidates, effect_type
 from hds.envs.system import load_spec, one_dof_joints, state_names
 
 MIN_SPAN = 0.05  # share of the actuator's range the control must span to show a gain
@@ -113,7 +113,7 @@ def identifiability(
     model = load_spec(env_cfg.xml, env_cfg.timestep).compile()
     facts = _Facts(dataset, model, min_motion)
     rows = []
-    for name in effects or candidate_effects():
+    for name in effects or default_candidates():
         kind = effect_type(name).target_kind
         for target in facts.targets[kind]:
             reason, excitation = CHECKS[kind](facts, name, target)

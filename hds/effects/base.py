@@ -66,6 +66,9 @@ class Effect:
     shifts_actions: bool = False
     # one of discovery's candidates; False: a generic effect it fits otherwise (force terms)
     candidate: bool = True
+    # in discover.effects' default list; False: a candidate a user names (each added candidate
+    # costs every discovery a fit per place, and changes what the existing studies measured)
+    default_candidate: bool = True
 
     def check_site(self, target: str, values: dict, names: dict, where: str) -> None:
         """Refuse, with one line, what its parameters cannot mean on this model; `names`: the

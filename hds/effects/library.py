@@ -21,6 +21,7 @@ from hds.effects.base import STAGES, TARGET_KINDS, Effect, Param
 from hds.effects.body import MassScale
 from hds.effects.force_terms import JointForceTerms
 from hds.effects.friction import CoulombFriction, ViscousDamping
+from hds.effects.inertial import ComScale, InertiaScale
 from hds.effects.sensor import SensorBias
 
 LIBRARY: dict[str, Effect] = {}
@@ -55,6 +56,8 @@ register(ActuatorDeadzone())
 register(ActionDelay())
 register(ActuatorLag())
 register(MassScale())
+register(ComScale())
+register(InertiaScale())
 register(SensorBias())
 register(JointForceTerms())
 
@@ -62,6 +65,11 @@ register(JointForceTerms())
 def candidate_effects() -> list[str]:
     """The effects gap discovery fits as candidates (the generic force terms it fits apart)."""
     return [name for name, effect in LIBRARY.items() if effect.candidate]
+
+
+def default_candidates() -> list[str]:
+    """discover.effects' default: the candidates not marked opt-in (`default_candidate`)."""
+    return [name for name in candidate_effects() if LIBRARY[name].default_candidate]
 
 
 def effect_type(name: str) -> Effect:

@@ -166,8 +166,15 @@ def _tuples(x):
 
 
 def _geometry(sys) -> list[dict]:
-    """Per body, its frame and joint relative to its parent (effects never edit them)."""
+    """Per body, its frame and joint relative to its parent. Only the centres of mass are
+    edited by effects (com_scale): when they alone are traced, everything else stays folded
+    (a traced frame multiplies a step's operations, and its compile time, several times)."""
     parts, xp = system_geometry(sys)
+    if xp is not np:
+        rest = [k for k in parts if k != "ipos"]
+        known = concrete([parts[k] for k in rest])
+        if known is not None:
+            parts, xp = dict(zip(rest, known)) | {"ipos": parts["ipos"]}, np
     bodies = []
     for i, parent in enumerate(int(p) for p in sys.link_parents):
         hinge = bool(np.any(np.asarray(sys.dof.motion.ang)[i] != 0))

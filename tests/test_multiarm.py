@@ -1,0 +1,271 @@
+"""The multi-arm pendulum (Kaheman et al. 2022): the reader of the published files, the MJCFs
+against the authors' equations of motion, the inertial effects, and discovery on a recording
+generated from the single pendulum's MJCF."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+
+from hds.data import multiarm
+from hds.envs.system import load_spec
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "multiarm_pendulum"
+SINGLE = SHARED / "SinglePendulumDataForParameterEstimation.mat"
+DOUBLE = SHARED / "DoublePendulumDataForParameterEstimation.mat"
+needs_data = pytest.mark.skipif(not SINGLE.is_file(), reason="no ../shared/data/multiarm_pendulum")
+
+
+# -- the authors' equations of motion, in numpy (README of the data) --------------------------
+
+
+def single_eom(p):
+    def f(x):
+        theta, dtheta = x
+        J = p["m1"] * p["a1"] ** 2 + p["I1"]
+        return np.array(
+            [dtheta, (p["m1"] * p["g"] * p["a1"] * np.sin(theta) - p["k1"] * dtheta) / J]
+        )
+
+    return f
+
+
+def double_eom(p):
+    """World angles phi from the upright; Lagrangian of two rigid arms on hinges; viscous
+    torques k1 dphi1 on the first pivot and k2 (dphi2 - dphi1) on the second (relative)."""
+    m1, m2, a1, a2, L1, I1, I2, k1, k2, g = (p[k] for k in multiarm.DOUBLE)
+
+    def f(x):
+        p1, p2, w1, w2 = x
+        c, s = np.cos(p1 - p2), np.sin(p1 - p2)
+        M = np.array(
+            [[m1 * a1**2 + I1 + m2 * L1**2, m2 * L1 * a2 * c], [m2 * L1 * a2 * c, m2 * a2**2 + I2]]
+        )
+        rhs = np.array(
+            [
+                -m2 * L1 * a2 * s * w2**2
+                + g * (m1 * a1 + m2 * L1) * np.sin(p1)
+                - k1 * w1
+                + k2 * (w2 - w1),
+                m2 * L1 * a2 * s * w1**2 + g * m2 * a2 * np.sin(p2) - k2 * (w2 - w1),
+            ]
+        )
+        return np.r_[w1, w2, np.linalg.solve(M, rhs)]
+
+    return f
+
+
+def rk4(f, x, h, steps):
+    out = [x]
+    for _ in range(steps):
+        k1 = f(x)
+        k2 = f(x + h / 2 * k1)
+        k3 = f(x + h / 2 * k2)
+        k4 = f(x + h * k3)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        out.append(x)
+    return np.array(out)
+
+
+def mujoco_rk4(xml, arms, world0, h, steps):
+    """C MuJoCo on the MJCF with the published damping (the plant's exact law of the
+    viscous_damping effect: joint damping), RK4 at h; returns world angles and velocities."""
+    from hds.effects.apply import Site
+    from hds.effects.library import effect_type
+
+    spec = load_spec(xml, h)
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_RK4
+    for i, e in enumerate(multiarm.published_effects(arms)):
+        effect_type(e["name"]).write_mjcf(spec, Site(e["name"], e["target"], i), e["params"])
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    x = multiarm.to_joint(world0)
+    data.qpos[:], data.qvel[:] = x[:arms], x[arms:]
+    out = [world0]
+    for _ in range(steps):
+        mujoco.mj_step(model, data)
+        out.append(multiarm.to_world(np.r_[data.qpos, data.qvel]))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("arms", [1, 2])
+def test_mjcf_with_published_damping_follows_the_authors_equations(arms):
+    """Over 1 s of a large swing (the second arm whipping round), both integrated by RK4 at
+    1 ms: the MJCF's state agrees with the authors' equations to 1e-6."""
+    p = multiarm.PUBLISHED[arms]
+    f, xml = (
+        (single_eom(p), "multiarm_single.xml")
+        if arms == 1
+        else (double_eom(p), "multiarm_double.xml")
+    )
+    world0 = np.array([2.0, 1.5]) if arms == 1 else np.array([2.2, 1.0, 3.0, -4.0])
+    ref = rk4(f, world0, 1e-3, 1000)
+    sim = mujoco_rk4(xml, arms, world0, 1e-3, 1000)
+    assert np.abs(ref[-1] - ref[0]).max() > 0.5  # it moved
+    np.testing.assert_allclose(sim, ref, atol=1e-6, rtol=0)
+
+
+# -- the reader ------------------------------------------------------------------------------
+
+
+@needs_data
+def test_reads_the_published_files_in_joint_coordinates():
+    ident, held = multiarm.load(SINGLE)
+    assert (ident.n_episodes, held.n_episodes, ident.dt) == (4, 2, 1e-3)
+    assert ident.obs_names == ("q_arm1", "qd_arm1") and ident.action_names == ("pivot",)
+    assert held.horizon == 9165 and not held.actions.any()  # cut to the shorter segment, no control
+    from scipy.io import loadmat
+
+    raw = loadmat(str(DOUBLE), squeeze_me=True)
+    ident2, held2 = multiarm.load(DOUBLE, dt=0.005)
+    assert (ident2.n_episodes, held2.n_episodes, ident2.dt) == (26, 4, 0.005)
+    world = raw["Y_id"][3][:, ::5].T
+    np.testing.assert_allclose(
+        ident2.obs[3, :, 1], world[: ident2.horizon + 1, 1] - world[: ident2.horizon + 1, 0]
+    )
+    np.testing.assert_allclose(multiarm.to_world(ident2.obs[3]), world[: ident2.horizon + 1])
+    # hanging still is q = (pi, 0): the relative hinge is near 0 at rest
+    assert abs(np.median(ident2.obs[:, -1, 1])) < 0.5
+
+
+def _write(tmp_path, **arrays):
+    from scipy.io import savemat
+
+    path = tmp_path / "bad.mat"
+    savemat(str(path), arrays)
+    return path
+
+
+def _segments(*arrays):
+    out = np.empty(len(arrays), dtype=object)
+    for i, a in enumerate(arrays):
+        out[i] = a
+    return out
+
+
+def test_reads_any_number_of_arms_and_refuses_another_layout(tmp_path):
+    rng = np.random.default_rng(0)
+    three = _segments(rng.normal(size=(6, 50)), rng.normal(size=(6, 51)))
+    ident, held = multiarm.load(_write(tmp_path, Y_id=three, Y_vad=three, dt=0.001))
+    assert ident.obs_names[:3] == ("q_arm1", "q_arm2", "q_arm3") and ident.horizon == 49
+    with pytest.raises(ValueError, match=r"lacks \['Y_vad'\].*layout is Y_id and Y_vad"):
+        multiarm.load(_write(tmp_path, Y_id=three, dt=0.001))
+    odd = _segments(rng.normal(size=(3, 50)), rng.normal(size=(3, 50)))
+    with pytest.raises(ValueError, match=r"segment 0 has shape \(3, 50\).*even number of rows"):
+        multiarm.load(_write(tmp_path, Y_id=odd, Y_vad=odd, dt=0.001))
+    mixed = _segments(rng.normal(size=(4, 50)), rng.normal(size=(6, 50)))
+    with pytest.raises(ValueError, match=r"\[4, 6\] rows"):
+        multiarm.load(_write(tmp_path, Y_id=mixed, Y_vad=three, dt=0.001))
+    with pytest.raises(ValueError, match="whole multiple"):
+        multiarm.load(_write(tmp_path, Y_id=three, Y_vad=three, dt=0.001), dt=0.0015)
+    with pytest.raises(FileNotFoundError, match="multi-arm pendulum"):
+        multiarm.load(tmp_path / "missing.mat")
+
+
+# -- the inertial effects: the simulator's law against the plant's MJCF law --------------------
+
+
+@pytest.mark.parametrize("name, scale", [("com_scale", 1.2), ("inertia_scale", 0.7)])
+def test_inertial_effect_matches_its_mujoco_law(name, scale):
+    """The double pendulum with arm2's COM or inertia changed: hds's tree engine (the effect's
+    System edit) and C MuJoCo (the effect's MJCF edit) follow each other for 0.3 s (Euler,
+    1 ms), and both differ clearly from the unchanged model."""
+    import jax
+    import jax.numpy as jnp
+
+    from hds.effects.apply import Site
+    from hds.effects.library import effect_type
+    from hds.envs.system import make_simulator
+
+    effect = {"name": name, "target": "arm2", "params": {"scale": scale}}
+    sim, params = make_simulator("multiarm_double.xml", backend="tree", effects=[effect])
+    x0 = np.array([2.5, 0.8, 1.0, -2.0])
+    steps = 300
+
+    @jax.jit
+    def run(x):
+        def body(s, _):
+            s = sim.step(params, s, jnp.zeros(1))
+            return s, sim.observe(params, s)
+
+        return jax.lax.scan(body, sim.init(x[:2], x[2:], params), None, length=steps)[1]
+
+    tree = np.asarray(run(jnp.asarray(x0, jnp.float32)))
+
+    def c_mujoco(edit: bool):
+        spec = load_spec("multiarm_double.xml")
+        if edit:
+            effect_type(name).write_mjcf(spec, Site(name, "arm2", 1), {"scale": scale})
+        model = spec.compile()
+        data = mujoco.MjData(model)
+        data.qpos[:], data.qvel[:] = x0[:2], x0[2:]
+        out = []
+        for _ in range(steps):
+            mujoco.mj_step(model, data)
+            out.append(np.r_[data.qpos, data.qvel])
+        return np.array(out)
+
+    plant, unchanged = c_mujoco(True), c_mujoco(False)
+    assert np.abs(plant - unchanged)[:, :2].max() > 0.02
+    np.testing.assert_allclose(tree[:, :2], plant[:, :2], atol=1e-4)
+
+
+# -- discovery on a recording generated from the single pendulum's MJCF ------------------------
+
+
+def generated_single(noise: float, seed: int = 0):
+    """Free swings of C MuJoCo on multiarm_single.xml with the published damping (Euler, 1 ms,
+    9 s from 1.0 to 1.6 rad off hanging, like the recordings), with Gaussian noise of `noise`
+    times each signal's std, sampled as the recordings (1 ms, zero actions)."""
+    from hds.data.format import Dataset
+    from hds.effects.apply import Site
+    from hds.effects.library import effect_type
+
+    spec = load_spec("multiarm_single.xml")
+    (damping,) = multiarm.published_effects(1)
+    effect_type("viscous_damping").write_mjcf(
+        spec, Site("viscous_damping", "arm1", 0), damping["params"]
+    )
+    model = spec.compile()
+    rng = np.random.default_rng(seed)
+    episodes = []
+    for offset in (1.0, 1.2, 1.4, 1.6, -1.1, -1.5):
+        data = mujoco.MjData(model)
+        data.qpos[0], data.qvel[0] = np.pi + offset, rng.normal(0, 0.1)
+        out = [np.r_[data.qpos, data.qvel]]
+        for _ in range(9000):
+            mujoco.mj_step(model, data)
+            out.append(np.r_[data.qpos, data.qvel])
+        episodes.append(np.array(out))
+    obs = np.array(episodes)
+    obs = obs + noise * obs.reshape(-1, 2).std(axis=0) * rng.normal(size=obs.shape)
+    return Dataset(
+        obs, np.zeros((len(obs), 9000, 1)), 1e-3, multiarm.obs_names(1), multiarm.ACTION_NAMES
+    )
+
+
+@pytest.mark.slow
+def test_discovery_names_the_published_damping_on_a_generated_recording():
+    """The single pendulum's MJCF with the authors' damping, 0.5% noise: discovery from the
+    undamped MJCF names viscous damping within 10% of k1, and nothing else (the experiment's
+    sampling and windows: 10 ms, 3 s windows every 0.5 s)."""
+    from hds.config import compose
+    from hds.data.format import Dataset
+    from hds.discover import DiscoverConfig, discover
+
+    full = generated_single(0.005)
+    data = Dataset(
+        full.obs[:, ::10], full.actions[:, ::10], 0.01, full.obs_names, full.action_names
+    )
+    env = compose(["env=multiarm_single", "data=unused"], "discover").env
+    cfg = DiscoverConfig(
+        horizon=300, stride=50, effects=["viscous_damping", "coulomb_friction"], max_delay=0
+    )
+    result = discover(data, env, cfg)
+    named = {(e.name, e.target): e for e in result.missing_effects}
+    assert list(named) == [("viscous_damping", "arm1")], result.stopped
+    k1 = multiarm.PUBLISHED[1]["k1"]
+    assert named[("viscous_damping", "arm1")].params["coefficient"] == pytest.approx(k1, rel=0.1)
