@@ -26,7 +26,7 @@ from hds.discover.explain import (
 from hds.discover.fit import Engine, confidence_intervals, get_engine
 from hds.discover.identify import Identifiability, identifiability
 from hds.discover.locate import Location, locate
-from hds.discover.terms import Term, compensations, fit_terms, with_terms
+from hds.discover.terms import Reading, Term, compensations, fit_terms, with_terms
 from hds.effects.base import ACTUATOR
 from hds.effects.library import effect_type
 
@@ -101,6 +101,8 @@ class Result:
     correlations: list[dict] = field(default_factory=list)  # between the named effects' params
     law_mismatch: list[NamedEffect] = field(default_factory=list)  # see `discover`
     terms: list[Term] = field(default_factory=list)  # sparse force terms beyond the library
+    # how the term fit read each hinge's angle: unwrapped (q offered) or periodic
+    angle_readings: list[Reading] = field(default_factory=list)
     # per set, the corrected simulator's (named effects and terms) residuals and errors; empty
     # when no term is found
     after_terms: dict[str, tuple[Residuals, Errors]] = field(default_factory=dict)
@@ -142,6 +144,7 @@ class Result:
             "dropped_proxies": [c.key for c in self.selection.dropped],
             "correlations": self.correlations,
             "terms_beyond_the_library": [t.to_json() for t in self.terms],
+            "angle_readings": [r.to_json() for r in self.angle_readings],
             "errors_with_terms": {
                 s: errors.to_json(names) for s, (_, errors) in self.after_terms.items()
             },
@@ -284,7 +287,7 @@ def discover(
     # cannot identify (a cart that friction holds still), which terms would only compensate
     if unexplained > cfg.unexplained_warning and not selection.unidentified:
         t0 = time.perf_counter()
-        result.terms = fit_terms(
+        result.terms, result.angle_readings = fit_terms(
             env_cfg, data, after["identification"][0], after["heldout"][0], cfg.stop_margin
         )
         if result.terms:  # the corrected simulator, terms included, on the same windows
@@ -475,6 +478,11 @@ def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
                 f"{share} stays unexplained, with no structure any feature reveals: "
                 "measurement noise, or an effect the features do not show"
             )
+    if result.angle_readings:  # terms were fitted: how each hinge's angle was read
+        out.append(
+            "hinge angles read by the term fit: "
+            + "; ".join(r.describe() for r in result.angle_readings)
+        )
     out += compensations(result.missing_effects, result.terms)
     for e in result.law_mismatch:
         out.append(
