@@ -729,6 +729,28 @@ def test_a_hinge_spring_is_a_term_in_the_hinges_own_angle(hinge_spring_result, e
     assert "unwrapped angle q offered" in (tmp_path / "report.md").read_text()
 
 
+def test_a_hinge_spring_within_a_turn_is_not_taken_for_hinge_friction(env_cfg, task, tmp_path):
+    """A stiffer hinge spring (5 N m/rad) and poles started within half a turn either way:
+    the angles stay within a turn, and hinge friction (11 N m) stands in for most of the
+    spring, so little is left for terms. The terms of the whole gap, before any effect, are
+    a spring in the hinge's own angle that predicts the held-out episodes far better: the
+    friction is a compensation, reported as tentative, and the spring is the term."""
+    spec = load_spec(env_cfg.xml)
+    spec.joint("hinge").stiffness[0] = 5.0
+    path = tmp_path / "cartpole_hinge_spring.xml"
+    path.write_text(spec.to_xml())
+    result = discover(
+        record(MujocoPlant(dataclasses.replace(env_cfg, xml=str(path))), task), env_cfg, CFG
+    )
+    assert named(result) == []
+    assert ("coulomb_friction", "hinge") in [(e.name, e.target) for e in result.tentative]
+    (spring,) = [t for t in result.terms if t.joint == "hinge"]
+    assert spring.term == "q" and -spring.coefficient == pytest.approx(5.0, rel=0.10)
+    (reading,) = result.angle_readings
+    assert reading.unwrapped and reading.span_turns < 1.0 and "within one turn" in reading.why
+    assert result.after_terms["heldout"][1].normalized < 0.2 * result.error("before").normalized
+
+
 def test_a_wrapped_or_limited_hinge_angle_is_read_as_such(env_cfg):
     """A record that wraps the angle (a jump of about a turn between two samples) is read as
     periodic: q would be a step at the wrap, not the angle the plant integrates. A joint
