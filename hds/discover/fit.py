@@ -297,7 +297,7 @@ def confidence_intervals(
     participated = np.any(g != 0, axis=1)  # the episodes that took part
     g = g[participated]
     n, m = len(g), len(theta)
-    inv, weak = _inverse(h)
+    inv, weak = curvature_inverse(h)
     # no episode pulls on a fit the data determine: its residual is exactly zero (noise-free
     # data, an exact law), and so is the noise part of its intervals
     exact = n == 0 and not weak.all()
@@ -317,7 +317,7 @@ def confidence_intervals(
     return Intervals(t * se + bias, se, bias, corr)
 
 
-def _inverse(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def curvature_inverse(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """H's pseudo-inverse, computed at unit diagonal, and which entries the data do not
     determine (`weak`: no curvature, or a share in a direction of no curvature)."""
     d = np.sqrt(np.maximum(np.diag(h), 0.0))
@@ -339,7 +339,7 @@ def _view_disagreement(inv, g, view_h, view_g) -> np.ndarray:
     influence = g @ inv  # each episode's pull on the fit (H symmetric)
     out = np.zeros(len(inv))
     for hv, gv in zip(view_h, view_g, strict=True):
-        inv_v, weak_v = _inverse(hv)
+        inv_v, weak_v = curvature_inverse(hv)
         shift = inv_v @ gv.sum(axis=0)
         noise = np.sum((gv @ inv_v - influence) ** 2, axis=0) * n / (n - 1)
         excess = np.sqrt(np.maximum(shift**2 - noise, 0.0))

@@ -171,6 +171,9 @@ def _terms_section(result: Result) -> list[str]:
             f"| {t.joint} | {t.term} | {_fmt(t.coefficient)} {t.unit} | {t.reading} | "
             f"{t.share:.1%} |"
         )
+    if result.angle_readings:  # which reading of each hinge's angle the fit took
+        lines += ["", "Hinge angles:", ""]
+        lines += [f"- {r.describe()}" for r in result.angle_readings]
     return lines + [""]
 
 

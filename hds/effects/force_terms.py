@@ -41,13 +41,15 @@ class Feature:
 UNITS = {SLIDE: {"F": "N", "Q": "m"}, HINGE: {"F": "N m", "Q": "rad"}}
 
 FEATURES = (
+    # on a hinge, the unwrapped angle as the plant integrates it (a torsional spring -k q):
+    # discovery offers it there only where the record does not wrap the angle
+    # (hds.discover.terms.angle_reading)
     Feature(
         "q",
         "q",
         "{F}/{Q}",
         "a spring (stiffness k = -coefficient)",
         lambda xp, q, qd, s, u: q,
-        (SLIDE,),
     ),
     Feature(
         "sin_q",
