@@ -502,6 +502,10 @@ class Config:
     # episode) into plots/<method>_sim_vs_real.gif, and log it to W&B
     gif: bool = False
     checkpoints_kept: int = 3
+    # what `python -m hds.run` returns to Hydra's sweeper (hydra/sweeper=optuna maximizes it):
+    # the mean over the runs of their real_return, or of their sim_return (tuning without the
+    # plant's returns)
+    objective: str = "real_return"
     # continue a run directory whose run had another configuration (hds/rundir.py refuses
     # that otherwise): the epochs before and after the change ran with different settings
     resume_changed: bool = False
@@ -524,6 +528,7 @@ class Config:
 
     def check(self):
         _one_of("simulator", self.simulator, ("nominal", "corrected", "real", "randomized"))
+        _one_of("objective", self.objective, ("real_return", "sim_return"))
         if self.simulator == "randomized" and not self.dr.effects:
             raise ValueError(
                 "simulator = randomized (method=dr) draws effect parameters from dr.effects, "

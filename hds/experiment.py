@@ -225,19 +225,24 @@ def simulator_of(cfg: Config, run_dir: Path, method: str | None = None) -> tuple
     method = method or method_name(cfg)
     if cfg.simulator == "real" or method == "oracle":
         return real_dynamics(cfg)
-    if cfg.simulator == "corrected":  # the env config gap discovery wrote into the run
-        from omegaconf import OmegaConf
-
-        found = sorted((Path(run_dir) / "discovery" / "conf" / "env").glob("*.yaml"))
-        if not found:
-            raise FileNotFoundError(
-                f"{run_dir}/discovery/conf/env/ holds no corrected env config: the run did not "
-                "finish its gap discovery; train it again on the same directory"
-            )
-        return make_env(env_config(OmegaConf.to_container(OmegaConf.load(found[0])))), None
+    if cfg.simulator == "corrected":
+        return make_env(corrected_env_config(run_dir)), None
     if cfg.simulator == "randomized":
         return randomized_env(cfg), None
     return make_env(cfg.env), None
+
+
+def corrected_env_config(run_dir: Path):
+    """The env config gap discovery wrote into a finished corrected-simulator run."""
+    from omegaconf import OmegaConf
+
+    found = sorted((Path(run_dir) / "discovery" / "conf" / "env").glob("*.yaml"))
+    if not found:
+        raise FileNotFoundError(
+            f"{run_dir}/discovery/conf/env/ holds no corrected env config: the run did not "
+            "finish its gap discovery; train it again on the same directory"
+        )
+    return env_config(OmegaConf.to_container(OmegaConf.load(found[0])))
 
 
 def methods_of(cfg: Config, out_dir: Path, plant):

@@ -26,7 +26,7 @@ from hydra.types import RunMode  # noqa: E402
 from hds import rundir  # noqa: E402
 from hds.config import validate  # noqa: E402
 from hds.evaluation import no_finite_result  # noqa: E402
-from hds.experiment import Hooks, run  # noqa: E402
+from hds.experiment import Hooks, method_name, run  # noqa: E402
 from hds.utils.cli import check_command_line  # noqa: E402
 from hds.utils.io import atomic_write_bytes  # noqa: E402
 from hds.utils.runtime import enable_compilation_cache  # noqa: E402
@@ -76,7 +76,10 @@ def main(dcfg) -> float:
         return float("nan")
     (out_dir / "failed.txt").unlink(missing_ok=True)
     log.info("wrote %s", out_dir / "summary.json")
-    return float(np.mean([r["real_return"] for r in result.rows]))
+    # the sweeper's objective (hydra/sweeper=optuna: docs/sweeps.md) over the runs of the
+    # run's own method (not the oracle trained beside it); NaN when a run diverged
+    own = [r for r in result.rows if r["method"] == method_name(cfg)]
+    return float(np.mean([r[cfg.objective] for r in own]))
 
 
 if __name__ == "__main__":
