@@ -581,6 +581,7 @@ def cli_overrides(argv: list[str]) -> list[str]:
     """The overrides of a Hydra command line (what is not a flag nor a flag's value)."""
     with_value = {"--config-dir", "-cd", "--config-name", "-cn", "--config-path", "-cp"}
     with_value |= {"--cfg", "-c", "--package", "-p"}  # --cfg job|hydra|all: what to print
+    with_value |= {"--shell-completion", "-sc"}  # install=bash, query=bash: not overrides
     out, skip = [], False
     for arg in argv:
         if skip or arg.startswith("-"):

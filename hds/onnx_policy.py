@@ -47,7 +47,8 @@ def build(
         return output
 
     def columns(name: str, index) -> str:
-        return node("Gather", [INPUT, const(f"{name}_index", np.asarray(index, np.int64))], name)
+        index = const(f"{name}_index", np.asarray(index, np.int64))
+        return node("Gather", [INPUT, index], name, axis=-1)
 
     # the features of hds.networks.features; an empty part is left out (Gather of nothing)
     parts = []

@@ -21,6 +21,9 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
+import numpy as np
+from omegaconf import OmegaConf
+
 from hds import plots
 from hds.animate import animate_episodes
 from hds.config import load_config
@@ -323,6 +326,63 @@ def loop_sections(found: list[tuple], root: Path, out: Path) -> list[str]:
     return sections
 
 
+def optuna_sections(root: Path) -> list[str]:
+    """A section per Optuna study below root (hydra/sweeper=optuna writes
+    optimization_results.yaml into its sweep directory): the best trial, and each trial's
+    sampled settings and objective (what its job returned: the mean over its seeds of
+    `objective`), best first."""
+    sections = []
+    for path in sorted(root.rglob("optimization_results.yaml")):
+        study = OmegaConf.load(path)
+        keys = list(study.best_params)
+        trials = [t for job in sorted(path.parent.iterdir()) if (t := optuna_trial(job, keys))]
+        if not trials:
+            continue
+        objective = trials[0]["objective"]
+        trials.sort(key=lambda t: -t["value"].mean if np.isfinite(t["value"].mean) else np.inf)
+        best = ", ".join(f"{k}={v:.4g}" for k, v in study.best_params.items())
+        rel = path.parent.relative_to(root) if path.parent != root else Path(root.name)
+        fmt = lambda c: f"{number(c.mean)} [{number(c.low)}, {number(c.high)}]"  # noqa: E731
+        lines = [
+            f"### Optuna study: {rel}",
+            "",
+            f"Best: {best}, mean {objective} {number(float(study.best_value))}. Its "
+            f"{len(trials)} trials, best first (the tables above pool every trial's runs):",
+            "",
+            "| trial | " + " | ".join(keys) + f" | {objective} [95%] | real return [95%] |",
+            "| ---: |" + " ---: |" * (len(keys) + 2),
+        ]
+        for t in trials:
+            cells = [f"{t['params'][k]:.4g}" if k in t["params"] else "-" for k in keys]
+            lines.append(
+                f"| {t['job']} | "
+                + " | ".join(cells)
+                + f" | {fmt(t['value'])} | {fmt(t['real'])} |"
+            )
+        sections.append("\n".join(lines) + "\n")
+    return sections
+
+
+def optuna_trial(job: Path, keys: list[str]) -> dict | None:
+    """One finished trial of an Optuna study: its sampled `keys` (its Hydra overrides), the
+    objective over the runs of its own method and their real return; None if unfinished."""
+    from hds.experiment import method_name
+
+    overrides = job / ".hydra" / "overrides.yaml"
+    if not all(p.is_file() for p in (overrides, job / "summary.json", job / "config.yaml")):
+        return None
+    cfg = load_config(job / "config.yaml")
+    own = [r for r in read_json(job / "summary.json")["rows"] if r["method"] == method_name(cfg)]
+    given = dict(o.split("=", 1) for o in OmegaConf.load(overrides))
+    return {
+        "job": job.name,
+        "params": {k: float(given[k]) for k in keys if k in given},
+        "objective": cfg.objective,
+        "value": mean_ci([r[cfg.objective] for r in own]),
+        "real": mean_ci([r["real_return"] for r in own]),
+    }
+
+
 def discovery_errors(report: dict) -> str:
     """k-step (rollout) RMSE per state variable before and after the named effects were added,
     on each data set of the discovery (identification, held-out, validation)."""
@@ -429,6 +489,7 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
     text += (
         [""]
         + unused_models(root)
+        + optuna_sections(root)
         + loop_sections(found_loops, root, out)
         + discovery_sections(root, out)
     )

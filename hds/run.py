@@ -82,6 +82,12 @@ def main(dcfg) -> float:
     return float(np.mean([r[cfg.objective] for r in own]))
 
 
-if __name__ == "__main__":
+def cli() -> None:
+    """The `hds-run` command (pyproject's scripts): `python -m hds.run`, under a name Hydra's
+    tab completion recognizes (`eval "$(hds-run -sc install=bash)"`; docs/sweeps.md)."""
     check_command_line(sys.argv[1:])
     main()
+
+
+if __name__ == "__main__":
+    cli()

@@ -1,0 +1,78 @@
+"""Hyperparameter search as Hydra users do it: hydra/sweeper=optuna (conf/experiment/optuna.yaml)
+maximizes what `python -m hds.run` returns, and hds.report shows its trials."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from hds.config import compose
+from tests.conftest import ROOT
+
+ENV = {**os.environ, "WANDB_MODE": "offline"}
+
+
+def hds_run(*args):
+    proc = subprocess.run(
+        [sys.executable, "-m", "hds.run", *args], cwd=ROOT, env=ENV, capture_output=True, text=True
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc.stdout
+
+
+def test_the_optuna_experiment_composes_a_maximizing_search():
+    cfg = compose(["+experiment=optuna", "objective=sim_return"])
+    assert (cfg.objective, cfg.noise.schedule, cfg.algo.improve_in) == (
+        "sim_return",
+        "exponential",
+        "closed_loop",
+    )
+    sweeper = yaml.safe_load(hds_run("+experiment=optuna", "--cfg", "hydra"))["hydra"]["sweeper"]
+    assert sweeper["_target_"].endswith("OptunaSweeper") and sweeper["direction"] == "maximize"
+    assert set(sweeper["params"]) == {"algo.step_size", "noise.scale", "noise.decay"}
+    with pytest.raises(ValueError, match="objective"):
+        compose(["objective=return"])
+
+
+@pytest.mark.slow  # three trials of a tiny run: ~1 min on 2 cores
+def test_three_optuna_trials_maximize_the_returned_real_return(tmp_path):
+    out = tmp_path / "study"
+    hds_run(
+        "+experiment=optuna", "debug=fast", "seeds=2", "logger=none",
+        "hydra.sweeper.n_trials=3", f"hydra.sweep.dir={out}",
+    )  # fmt: skip
+    study = yaml.safe_load((out / "optimization_results.yaml").read_text())
+    trials = {}
+    for job in sorted(p for p in out.iterdir() if (p / "summary.json").is_file()):
+        rows = json.loads((job / "summary.json").read_text())["rows"]
+        overrides = yaml.safe_load((job / ".hydra" / "overrides.yaml").read_text())
+        sampled = dict(o.split("=", 1) for o in overrides)
+        trials[job.name] = (
+            float(sampled["algo.step_size"]),
+            np.mean([r["real_return"] for r in rows]),
+        )
+        assert {r["seed"] for r in rows} == {0, 1} and {r["method"] for r in rows} == {"pods_cl"}
+    assert len(trials) == 3 and len({s for s, _ in trials.values()}) == 3  # three settings
+    best = max(trials.values(), key=lambda t: t[1])
+    assert study["best_value"] == pytest.approx(best[1], rel=1e-6)
+    assert study["best_params"]["algo.step_size"] == pytest.approx(best[0])
+    assert all(0.005 <= s <= 0.2 for s, _ in trials.values())
+    # the report: the study's best, and a row per trial, best first
+    proc = subprocess.run(
+        [sys.executable, "-m", "hds.report", str(out)], cwd=ROOT, env=ENV, capture_output=True
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    report = (out / "report.md").read_text()
+    section = report[report.index("### Optuna study") :]
+    assert f"algo.step_size={best[0]:.4g}" in section
+    rows = [line for line in section.splitlines() if line.startswith("| ") and "---" not in line]
+    assert [r.split(" | ")[0] for r in rows[1:]][0] == "| " + max(
+        trials, key=lambda j: trials[j][1]
+    )
+    assert len(rows) == 4  # the heading and three trials
