@@ -42,6 +42,7 @@ log = logging.getLogger("hds")
 
 EXPORT_FORMAT = "hds-policy/1"
 FORMATS = ("json", "onnx")  # hds.export's format=: json (policy.json + npz), onnx (also .onnx)
+KB = ("kernel", "bias")  # each layer's arrays, as policy.npz names them: Dense_0_kernel, ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -238,7 +239,7 @@ def _describe(real: RealConfig) -> dict:
     return {"plant": real.plant, "friction_gap": real.friction_gap, "effects": effects}
 
 
-def trained_on(policy: Policy) -> tuple[dict, object, float]:
+def trained_on(policy: Policy) -> tuple[dict, EnvConfig, list[dict]]:
     """What `policy` trained on, as policy.json records it (the simulator's kind: nominal,
     corrected by gap discovery, randomized or the plant's own dynamics for the oracle; its
     effects with the values applied), and that system's env config and effects, for its MJCF."""
@@ -330,9 +331,6 @@ def export(policy: Policy, out_dir: str | Path, format: str = "json") -> Path:
     atomic_write_bytes(out_dir / mjcf_name, mjcf)
     shutil.copyfile(Path(__file__).with_name("numpy_policy.py"), out_dir / "numpy_policy.py")
     return out_dir
-
-
-KB = ("kernel", "bias")
 
 
 def check_format(format: str) -> None:

@@ -228,6 +228,8 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
     """simulator=corrected trains on the effects gap discovery names on plant data, and
     simulator=real (the oracle) on the plant's own: both then predict the plant's return far
     better than the nominal simulator does (20 N of Coulomb friction on the rail, C MuJoCo)."""
+    from omegaconf import OmegaConf
+
     from hds.experiment import run, simulator_of
 
     small_data = ("dynamics.episodes=16", "dynamics.horizon=60", "discover.stride=2")
@@ -235,6 +237,7 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
     for simulator in ("nominal", "corrected", "real"):
         cfg = make_config(*TINY, *small_data, f"simulator={simulator}", "seeds=2")
         result = run(cfg, tmp_path / simulator)
+        OmegaConf.save(OmegaConf.structured(cfg), tmp_path / simulator / "config.yaml")
         gaps[simulator] = np.mean([abs(r["gap"]) for r in result.rows])
         if simulator == "corrected":
             assert {r["method"] for r in result.rows} == {"pods+corrected"}
