@@ -90,7 +90,7 @@ def test_the_wheel_installs_into_a_fresh_venv_and_composes_and_runs(fresh_venv):
         python, "-m", "hds.run", "+experiment=optuna", "hydra/launcher=slurm", "--cfg", "hydra",
         cwd=cwd,
     )  # fmt: skip
-    assert "OptunaSweeper" in hydra and "submitit_plugin" in hydra
+    assert "OptunaSweeper" in hydra and "submitit_launcher.SlurmLauncher" in hydra
     # the console script, and its tab completion
     script = run(venv / "bin" / "hds-run", "--shell-completion", "install=bash", cwd=cwd)
     assert "complete -o nospace -o default -F hydra_bash_completion hds-run" in script
