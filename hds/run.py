@@ -65,6 +65,14 @@ def main(dcfg) -> float:
             result = run(cfg, out_dir, Hooks(live_progress=one_job_at_a_time(hydra_cfg)))
         if failure := no_finite_result(result.rows):
             raise FloatingPointError(failure)
+        # the sweeper's objective (hydra/sweeper=optuna: docs/sweeps.md) over the runs of the
+        # run's own method (not the oracle trained beside it)
+        own = [r for r in result.rows if r["method"] == method_name(cfg)]
+        objective = float(np.mean([r[cfg.objective] for r in own]))
+        if not np.isfinite(objective) and optimizing(hydra_cfg):
+            raise FloatingPointError(
+                f"{cfg.objective} is not finite ({objective}): a run of this trial diverged"
+            )
     except Exception as err:
         if hydra_cfg.mode != RunMode.MULTIRUN:
             rundir.print_one_line(err)
@@ -73,13 +81,18 @@ def main(dcfg) -> float:
         # the sweep again reruns this job and skips the finished ones.
         atomic_write_bytes(out_dir / "failed.txt", traceback.format_exc().encode())
         log.exception("job %s failed; see %s", hydra_cfg.job.num, out_dir / "failed.txt")
+        if optimizing(hydra_cfg):  # Optuna records the trial as failed and goes on; a NaN
+            raise  # returned would stop its study (optuna rejects NaN values)
         return float("nan")
     (out_dir / "failed.txt").unlink(missing_ok=True)
     log.info("wrote %s", out_dir / "summary.json")
-    # the sweeper's objective (hydra/sweeper=optuna: docs/sweeps.md) over the runs of the
-    # run's own method (not the oracle trained beside it); NaN when a run diverged
-    own = [r for r in result.rows if r["method"] == method_name(cfg)]
-    return float(np.mean([r[cfg.objective] for r in own]))
+    return objective
+
+
+def optimizing(hydra_cfg) -> bool:
+    """Whether the job is a trial of Optuna's sweeper (hydra/sweeper=optuna)."""
+    sweeper = hydra_cfg.get("sweeper") or {}
+    return str(sweeper.get("_target_", "")).endswith("OptunaSweeper")
 
 
 def cli() -> None:
