@@ -330,7 +330,7 @@ def optuna_sections(root: Path) -> list[str]:
     """A section per Optuna study below root (hydra/sweeper=optuna writes
     optimization_results.yaml into its sweep directory): the best trial, and each trial's
     sampled settings and objective (what its job returned: the mean over its seeds of
-    `objective`), best first."""
+    `objective`) beside the other return, best first; failed trials counted."""
     sections = []
     for path in sorted(root.rglob("optimization_results.yaml")):
         study = OmegaConf.load(path)
@@ -339,7 +339,9 @@ def optuna_sections(root: Path) -> list[str]:
         if not trials:
             continue
         objective = trials[0]["objective"]
-        trials.sort(key=lambda t: -t["value"].mean if np.isfinite(t["value"].mean) else np.inf)
+        other = "sim_return" if objective == "real_return" else "real_return"
+        trials.sort(key=lambda t: -t[objective].mean if np.isfinite(t[objective].mean) else np.inf)
+        failed = sorted(p.parent.name for p in path.parent.glob("*/failed.txt"))
         best = ", ".join(f"{k}={v:.4g}" for k, v in study.best_params.items())
         rel = path.parent.relative_to(root) if path.parent != root else Path(root.name)
         fmt = lambda c: f"{number(c.mean)} [{number(c.low)}, {number(c.high)}]"  # noqa: E731
@@ -347,25 +349,24 @@ def optuna_sections(root: Path) -> list[str]:
             f"### Optuna study: {rel}",
             "",
             f"Best: {best}, mean {objective} {number(float(study.best_value))}. Its "
-            f"{len(trials)} trials, best first (the tables above pool every trial's runs):",
+            f"{len(trials)} finished trials, best first (the tables above pool every trial's "
+            "runs)" + (f"; failed: {', '.join(failed)} (their failed.txt)" if failed else "") + ":",
             "",
-            "| trial | " + " | ".join(keys) + f" | {objective} [95%] | real return [95%] |",
+            "| trial | " + " | ".join(keys) + f" | {objective} [95%] | {other} [95%] |",
             "| ---: |" + " ---: |" * (len(keys) + 2),
         ]
         for t in trials:
             cells = [f"{t['params'][k]:.4g}" if k in t["params"] else "-" for k in keys]
-            lines.append(
-                f"| {t['job']} | "
-                + " | ".join(cells)
-                + f" | {fmt(t['value'])} | {fmt(t['real'])} |"
-            )
+            values = f" | {fmt(t[objective])} | {fmt(t[other])} |"
+            lines.append(f"| {t['job']} | " + " | ".join(cells) + values)
         sections.append("\n".join(lines) + "\n")
     return sections
 
 
 def optuna_trial(job: Path, keys: list[str]) -> dict | None:
-    """One finished trial of an Optuna study: its sampled `keys` (its Hydra overrides), the
-    objective over the runs of its own method and their real return; None if unfinished."""
+    """One finished trial of an Optuna study: its sampled `keys` (its Hydra overrides), its
+    objective's name, and the real and simulator returns of its own method's runs (mean and
+    95% interval over seeds); None if unfinished."""
     from hds.experiment import method_name
 
     overrides = job / ".hydra" / "overrides.yaml"
@@ -378,8 +379,7 @@ def optuna_trial(job: Path, keys: list[str]) -> dict | None:
         "job": job.name,
         "params": {k: float(given[k]) for k in keys if k in given},
         "objective": cfg.objective,
-        "value": mean_ci([r[cfg.objective] for r in own]),
-        "real": mean_ci([r["real_return"] for r in own]),
+        **{key: mean_ci([r[key] for r in own]) for key in ("real_return", "sim_return")},
     }
 
 

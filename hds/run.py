@@ -69,7 +69,7 @@ def main(dcfg) -> float:
         # run's own method (not the oracle trained beside it)
         own = [r for r in result.rows if r["method"] == method_name(cfg)]
         objective = float(np.mean([r[cfg.objective] for r in own]))
-        if not np.isfinite(objective) and optimizing(hydra_cfg):
+        if not np.isfinite(objective) and rundir.optimizing(hydra_cfg):
             raise FloatingPointError(
                 f"{cfg.objective} is not finite ({objective}): a run of this trial diverged"
             )
@@ -81,18 +81,12 @@ def main(dcfg) -> float:
         # the sweep again reruns this job and skips the finished ones.
         atomic_write_bytes(out_dir / "failed.txt", traceback.format_exc().encode())
         log.exception("job %s failed; see %s", hydra_cfg.job.num, out_dir / "failed.txt")
-        if optimizing(hydra_cfg):  # Optuna records the trial as failed and goes on; a NaN
+        if rundir.optimizing(hydra_cfg):  # Optuna records the trial as failed and goes on; a NaN
             raise  # returned would stop its study (optuna rejects NaN values)
         return float("nan")
     (out_dir / "failed.txt").unlink(missing_ok=True)
     log.info("wrote %s", out_dir / "summary.json")
     return objective
-
-
-def optimizing(hydra_cfg) -> bool:
-    """Whether the job is a trial of Optuna's sweeper (hydra/sweeper=optuna)."""
-    sweeper = hydra_cfg.get("sweeper") or {}
-    return str(sweeper.get("_target_", "")).endswith("OptunaSweeper")
 
 
 def cli() -> None:
