@@ -11,8 +11,11 @@ import sys
 import numpy as np
 import pytest
 import yaml
+from hydra import compose as hydra_compose
+from hydra import initialize_config_dir
+from omegaconf import OmegaConf
 
-from hds.config import compose
+from hds.config import CONF_DIR, compose
 from tests.conftest import ROOT
 
 ENV = {**os.environ, "WANDB_MODE": "offline"}
@@ -33,7 +36,9 @@ def test_the_optuna_experiment_composes_a_maximizing_search():
         "exponential",
         "closed_loop",
     )
-    sweeper = yaml.safe_load(hds_run("+experiment=optuna", "--cfg", "hydra"))["hydra"]["sweeper"]
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        composed = hydra_compose("config", ["+experiment=optuna"], return_hydra_config=True)
+    sweeper = OmegaConf.to_container(composed.hydra.sweeper)
     assert sweeper["_target_"].endswith("OptunaSweeper") and sweeper["direction"] == "maximize"
     assert set(sweeper["params"]) == {"algo.step_size", "noise.scale", "noise.decay"}
     with pytest.raises(ValueError, match="objective"):
