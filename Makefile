@@ -8,7 +8,7 @@ export WANDB_SILENT ?= true
 export XLA_PYTHON_CLIENT_PREALLOCATE ?= false
 export NO_MKDOCS_2_WARNING ?= 1
 
-.PHONY: install run test test-slow docs bench lint sweep study pendulum clean
+.PHONY: install run test test-install test-slow docs bench lint sweep study pendulum clean
 
 $(STAMP): pyproject.toml
 	@test -d $(VENV) || $(PY) -m venv $(VENV)
@@ -34,6 +34,11 @@ run: $(STAMP)
 TEST_WORKERS ?= 2
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not slow"
+
+# A wheel of this checkout installed into a fresh venv (its dependencies read from .venv's)
+# composes and runs from another directory: tests/test_install.py (CI runs it after make test)
+test-install: $(STAMP)
+	$(BIN)/python -m pytest -q -n 0 tests/test_install.py
 
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m slow

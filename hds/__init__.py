@@ -43,6 +43,11 @@ _API = {  # public name: (module, attribute)
 __all__ = list(_API)
 
 
+def __dir__() -> list[str]:
+    """The lazy API names beside the module's own (tab completion, dir(hds))."""
+    return sorted(set(globals()) | set(_API))
+
+
 def __getattr__(name: str):
     if name not in _API:
         raise AttributeError(f"module 'hds' has no attribute '{name}'")

@@ -113,8 +113,8 @@ def animate_episodes(sim, real, names, plant: str, dt: float, path: Path, xml: s
         dt,
         path,
         titles=(
-            f"simulator: return {sim.returns[0]:.0f}",
-            f"{plant} plant: return {real.returns[0]:.0f}",
+            f"simulator: return {sim.returns[0]:.4g}",
+            f"{plant} plant: return {real.returns[0]:.4g}",
         ),
         xml=xml,
     )

@@ -10,7 +10,7 @@ from pathlib import Path
 from hydra.experimental.callback import Callback
 
 from hds.logger import print_table
-from hds.rundir import check_writable
+from hds.rundir import check_writable, optimizing
 from hds.utils.io import atomic_write_json, read_json
 
 log = logging.getLogger("hds")
@@ -41,6 +41,15 @@ class SweepSummary(Callback):
         if failed := summary["failed_jobs"]:
             # a finished job refused on a restart (another configuration) has both files
             total = len({*failed, *(j["job"] for j in summary["jobs"])})
+            if optimizing(config.hydra):  # a failed trial is part of a search, not an error
+                log.warning(
+                    "%d of %d trials failed: %s (see their failed.txt); Optuna recorded them "
+                    "as failed trials",
+                    len(failed),
+                    total,
+                    ", ".join(failed),
+                )
+                return
             sys.exit(
                 f"error: {len(failed)} of {total} jobs failed: "
                 f"{', '.join(failed)} (see their failed.txt); run the same sweep again, with "

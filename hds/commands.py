@@ -74,7 +74,17 @@ def before_hydra(config_name: str = "config") -> None:
         sys.exit(1)
 
 
-INFO_FLAGS = {"-h", "--help", "--hydra-help", "-i", "--info", "-c", "--cfg", "--shell-completion"}
+INFO_FLAGS = {
+    "-h",
+    "--help",
+    "--hydra-help",
+    "-i",
+    "--info",
+    "-c",
+    "--cfg",
+    "--shell-completion",
+    "-sc",
+}
 
 
 def check_command_line(argv: list[str], config_name: str = "config") -> None:

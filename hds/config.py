@@ -508,6 +508,10 @@ class Config:
     # episode) into plots/<method>_sim_vs_real.gif, and log it to W&B
     gif: bool = False
     checkpoints_kept: int = 3
+    # what `python -m hds.run` returns to Hydra's sweeper (hydra/sweeper=optuna maximizes it):
+    # the mean over the runs of their real_return, or of their sim_return (tuning without the
+    # plant's returns)
+    objective: str = "real_return"
     # continue a run directory whose run had another configuration (hds/rundir.py refuses
     # that otherwise): the epochs before and after the change ran with different settings
     resume_changed: bool = False
@@ -530,6 +534,7 @@ class Config:
 
     def check(self):
         _one_of("simulator", self.simulator, ("nominal", "corrected", "real", "randomized"))
+        _one_of("objective", self.objective, ("real_return", "sim_return"))
         if self.simulator == "randomized" and not self.dr.effects:
             raise ValueError(
                 "simulator = randomized (method=dr) draws effect parameters from dr.effects, "
@@ -648,6 +653,7 @@ def cli_overrides(argv: list[str]) -> list[str]:
     """The overrides of a Hydra command line (what is not a flag nor a flag's value)."""
     with_value = {"--config-dir", "-cd", "--config-name", "-cn", "--config-path", "-cp"}
     with_value |= {"--cfg", "-c", "--package", "-p"}  # --cfg job|hydra|all: what to print
+    with_value |= {"--shell-completion", "-sc"}  # install=bash, query=bash: not overrides
     out, skip = [], False
     for arg in argv:
         if skip or arg.startswith("-"):
@@ -892,9 +898,7 @@ def schema_of(config_name: str) -> type:
     return DiscoverAppConfig if config_name == "discover" else Config
 
 
-def compose(
-    overrides=(), config_name: str = "config", check_memory: bool = True, config_dirs=()
-):
+def compose(overrides=(), config_name: str = "config", check_memory: bool = True, config_dirs=()):
     """The validated config of `python -m hds.run <overrides>` (config_name="config") or of
     `python -m hds.discover <overrides>` ("discover"), composed without the command line:
 

@@ -109,6 +109,8 @@ def write_evaluation(
     sim_vs_real.gif."""
     from hds import plots
     from hds.animate import animate
+    from hds.config import run_label
+    from hds.evaluation import mean_ci
     from hds.policy import evaluate
     from hds.utils.io import atomic_write_json
 
@@ -116,13 +118,15 @@ def write_evaluation(
     names, dt = policy.obs_names, policy.dt
     sim_obs, real_obs = sim_eval.episodes.obs[0], real_eval.episodes.obs[0]
     titles = (
-        f"simulator: return {sim_eval.returns[0]:.0f}",
-        f"plant: return {real_eval.returns[0]:.0f}",
+        f"simulator: return {sim_eval.returns[0]:.4g}",
+        f"plant: return {real_eval.returns[0]:.4g}",
     )
     plots.save(plots.trajectories(sim_obs, real_obs, names, dt), out / "plots" / "trajectories.png")
     if gif:
         animate(sim_obs, real_obs, names, dt, out / "sim_vs_real.gif", titles, policy.env.xml)
-    (sim_mean, *_), (real_mean, *_) = sim_eval.mean_ci(), real_eval.mean_ci()
+    sim_ci, real_ci = sim_eval.mean_ci(), real_eval.mean_ci()
+    # the episodes start from the same states: the gap's interval is over their differences
+    gap_ci = mean_ci(sim_eval.returns - real_eval.returns)
     summary = {
         "run_dir": str(policy.run_dir),
         "method": policy.method,
@@ -130,11 +134,26 @@ def write_evaluation(
         "epoch": policy.epoch,
         "real": real_eval.to_json(),
         "sim": sim_eval.to_json(),
-        "gap": sim_mean - real_mean,
+        "gap": sim_ci.mean - real_ci.mean,
+        "gap_ci95": [gap_ci.low, gap_ci.high],
         **(extra or {}),
     }
     atomic_write_json(out / "evaluation.json", summary)
+    plant = real_eval.plant
+    effects = ", ".join(
+        f"{e['name']}@{e['target']} {fmt_params(e['params'])}" for e in plant.get("effects", [])
+    )
+    where = f"{plant.get('plant')} plant" + (f" ({effects})" if effects else "")
+    n = len(real_eval.returns)
+    print(f"{policy.method} {run_label(policy.run)}, {n} episodes, mean [95% interval]:")
+    print(f"  return on the {where}: {real_ci}")
+    print(f"  return on the simulator it trained on: {sim_ci}")
+    print(f"  sim2real gap (simulator - plant): {gap_ci}")
     return out
+
+
+def fmt_params(params: dict) -> str:
+    return "{" + ", ".join(f"{k}: {v:g}" for k, v in params.items()) + "}"
 
 
 if __name__ == "__main__":

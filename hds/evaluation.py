@@ -4,6 +4,8 @@ real system than the simulator promised)."""
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,14 +16,25 @@ from hds.data import initial_states
 from hds.real import rollout
 
 
-def mean_ci(values) -> tuple[float, float, float]:
+class MeanCI(NamedTuple):
+    """A mean and its 95% interval; a tuple, so `mean, low, high = ...` unpacks it."""
+
+    mean: float
+    low: float
+    high: float
+
+    def __str__(self) -> str:
+        return f"{self.mean:.4g} [{self.low:.4g}, {self.high:.4g}]"
+
+
+def mean_ci(values) -> MeanCI:
     """Mean and 95% Student-t interval (the interval is the mean alone for one value)."""
     values = np.asarray(values, dtype=float)
     mean = float(values.mean())
     if len(values) < 2:
-        return mean, mean, mean
+        return MeanCI(mean, mean, mean)
     half = float(stats.t.ppf(0.975, len(values) - 1) * stats.sem(values))
-    return mean, mean - half, mean + half
+    return MeanCI(mean, mean - half, mean + half)
 
 
 class Evaluator:

@@ -36,7 +36,7 @@ from hds.animate import animate_episodes
 from hds.checkpoint import Checkpoints
 from hds.config import Config, env_config
 from hds.data import concatenate, save
-from hds.effects.apply import place
+from hds.effects.apply import applied, place
 from hds.envs import Env, make_env
 from hds.evaluation import Evaluator, diverged, gap_rows
 from hds.logger import RunLogger, print_table
@@ -225,19 +225,24 @@ def simulator_of(cfg: Config, run_dir: Path, method: str | None = None) -> tuple
     method = method or method_name(cfg)
     if cfg.simulator == "real" or method == "oracle":
         return real_dynamics(cfg)
-    if cfg.simulator == "corrected":  # the env config gap discovery wrote into the run
-        from omegaconf import OmegaConf
-
-        found = sorted((Path(run_dir) / "discovery" / "conf" / "env").glob("*.yaml"))
-        if not found:
-            raise FileNotFoundError(
-                f"{run_dir}/discovery/conf/env/ holds no corrected env config: the run did not "
-                "finish its gap discovery; train it again on the same directory"
-            )
-        return make_env(env_config(OmegaConf.to_container(OmegaConf.load(found[0])))), None
+    if cfg.simulator == "corrected":
+        return make_env(corrected_env_config(run_dir)), None
     if cfg.simulator == "randomized":
         return randomized_env(cfg), None
     return make_env(cfg.env), None
+
+
+def corrected_env_config(run_dir: Path):
+    """The env config gap discovery wrote into a finished corrected-simulator run."""
+    from omegaconf import OmegaConf
+
+    found = sorted((Path(run_dir) / "discovery" / "conf" / "env").glob("*.yaml"))
+    if not found:
+        raise FileNotFoundError(
+            f"{run_dir}/discovery/conf/env/ holds no corrected env config: the run did not "
+            "finish its gap discovery; train it again on the same directory"
+        )
+    return env_config(OmegaConf.to_container(OmegaConf.load(found[0])))
 
 
 def methods_of(cfg: Config, out_dir: Path, plant):
@@ -489,8 +494,6 @@ def retrain(cfg: Config, corrected_env: dict, out_dir: Path) -> dict:
     correction. PODS is trained on the original simulator and on the corrected one (the same
     config, seeds and budget), and each policy is evaluated on its own simulator and on the
     plant of `real` (the plant that produced the data) from the same initial states."""
-    from omegaconf import OmegaConf
-
     plant = make_plant(cfg.real, cfg.env)
     rows = []
     for method, env_cfg in (("original", cfg.env), ("corrected", env_config(corrected_env))):
@@ -503,7 +506,7 @@ def retrain(cfg: Config, corrected_env: dict, out_dir: Path) -> dict:
     plant_desc = {
         "plant": cfg.real.plant,
         "friction_gap": cfg.real.friction_gap,
-        "effects": [OmegaConf.to_container(OmegaConf.structured(e)) for e in cfg.real.effects],
+        "effects": applied(cfg.real.effects, cfg.real.friction_gap),  # the force it applied
     }
     return {"plant": plant_desc, "rows": rows}
 

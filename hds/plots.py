@@ -39,14 +39,20 @@ def histories_by_setting(rows: list[dict], histories: dict, keys: list[str]) -> 
 
 
 def learning_curves(histories: dict[str, dict]) -> plt.Figure:
-    """histories: {method: {metric: [n_seeds, n_epochs]}}; mean and range over seeds."""
+    """histories: {method: {metric: [n_seeds, n_epochs]}}; mean and range over seeds. The
+    return axis is symlog: the first epochs' returns (thousands) and the last (a few units,
+    where methods differ) both read."""
+    from matplotlib.patches import Patch
+
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    banded = 0
     for method, h in histories.items():
         for ax, key in zip(axes, ("return", "loss", "step_size")):
             values = np.asarray(h[key], dtype=float)
             epochs = np.arange(values.shape[1])
             (line,) = ax.plot(epochs, values.mean(0), label=method)
             if values.shape[0] > 1:
+                banded = max(banded, values.shape[0])
                 ax.fill_between(
                     epochs, values.min(0), values.max(0), alpha=0.2, color=line.get_color()
                 )
@@ -58,8 +64,13 @@ def learning_curves(histories: dict[str, dict]) -> plt.Figure:
             }[key]
             ax.set_title(title)
             ax.set_ylabel(ylabel)
+    axes[0].set_yscale("symlog", linthresh=1.0)  # linear within [-1, 1], log beyond
+    axes[0].set_ylabel("return (symlog)")
     axes[1].set_yscale("log")
     handles, labels = axes[0].get_legend_handles_labels()
+    if banded:  # what the shading is
+        handles.append(Patch(color="0.6", alpha=0.4))
+        labels.append(f"line: mean over seeds; band: min to max ({banded} seeds)")
     fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), frameon=False)
     fig.tight_layout(rect=(0, 0.08 * (1 + (len(labels) - 1) // 6), 1, 1))
     return fig

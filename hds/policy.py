@@ -9,6 +9,7 @@ observations (NumPy or JAX), evaluate it on any plant, export it to run without 
 from __future__ import annotations
 
 import functools
+import json
 import logging
 import shutil
 from dataclasses import dataclass, field
@@ -23,16 +24,25 @@ from hds.algo.pods import make_train
 from hds.checkpoint import Checkpoints
 from hds.config import Config, EnvConfig, RealConfig, load_config, run_label
 from hds.data import initial_states
+from hds.effects.apply import applied
 from hds.envs import Env, make_env
 from hds.envs.system import load_spec, resolve_xml
-from hds.evaluation import mean_ci
-from hds.experiment import abstract_state, method_name, simulator_of
+from hds.evaluation import MeanCI, mean_ci
+from hds.experiment import (
+    abstract_state,
+    corrected_env_config,
+    friction_gap_of,
+    method_name,
+    simulator_of,
+)
 from hds.real import Episodes, make_plant, rollout
 from hds.utils.io import atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger("hds")
 
 EXPORT_FORMAT = "hds-policy/1"
+FORMATS = ("json", "onnx")  # hds.export's format=: json (policy.json + npz), onnx (also .onnx)
+KB = ("kernel", "bias")  # each layer's arrays, as policy.npz names them: Dense_0_kernel, ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -49,6 +59,14 @@ class Policy:
     epoch: int  # the epoch of the checkpoint it was restored from
     config: Config = field(repr=False)  # the whole run's config
     run_dir: Path | None = None
+
+    def __repr__(self) -> str:  # the weights stay out: `policy.params` has them
+        hidden = tuple(self.module.hidden)
+        return (
+            f"Policy(method={self.method!r}, run={self.run}, epoch={self.epoch}, "
+            f"system={Path(self.env.xml).name!r}, {len(self.obs_names)} observations -> "
+            f"{len(self.action_names)} actions, hidden={hidden}, run_dir={str(self.run_dir)!r})"
+        )
 
     def __call__(self, obs):
         if isinstance(obs, jax.Array):
@@ -175,8 +193,8 @@ class Evaluation:
     def returns(self) -> np.ndarray:
         return self.episodes.returns
 
-    def mean_ci(self) -> tuple[float, float, float]:
-        """Mean return and its 95% Student-t interval over episodes."""
+    def mean_ci(self) -> MeanCI:
+        """Mean return and its 95% Student-t interval over episodes: (mean, low, high)."""
         return mean_ci(self.returns)
 
     def to_json(self) -> dict:
@@ -215,36 +233,72 @@ def evaluate(
 
 
 def _describe(real: RealConfig) -> dict:
-    effects = [{"name": e.name, "target": e.target, "params": dict(e.params)} for e in real.effects]
+    """The plant as evaluation.json records it: its effects with the values it applies (a
+    friction at real.friction_gap=2 records twice its configured force)."""
+    effects = applied(real.effects, real.friction_gap)
     return {"plant": real.plant, "friction_gap": real.friction_gap, "effects": effects}
+
+
+def trained_on(policy: Policy) -> tuple[dict, EnvConfig, list[dict]]:
+    """What `policy` trained on, as policy.json records it (the simulator's kind: nominal,
+    corrected by gap discovery, randomized or the plant's own dynamics for the oracle; its
+    effects with the values applied), and that system's env config and effects, for its MJCF."""
+    cfg, env_cfg = policy.config, policy.env
+    if cfg.simulator == "real" or policy.method == "oracle":  # as experiment.real_dynamics
+        kind, effects = "oracle", applied(cfg.real.effects, friction_gap_of(cfg, policy.run))
+    elif cfg.simulator == "corrected":
+        kind, env_cfg = "corrected", corrected_env_config(policy.run_dir)
+        effects = applied(env_cfg.effects)
+    else:
+        kind, effects = cfg.simulator, applied(env_cfg.effects)
+    description = {
+        "simulator": kind,
+        "effects": effects,
+        "about": {
+            "nominal": "the env's MJCF with its own effects (env.effects)",
+            "corrected": "the env's MJCF with the effects gap discovery named on plant data",
+            "randomized": "the env's MJCF with each rollout's effects drawn from ranges",
+            "oracle": "the plant's own effects (real.effects at the run's friction gap)",
+        }[kind],
+    }
+    if kind == "randomized":
+        description["randomized"] = [
+            {"name": e.name, "target": e.target, "ranges": dict(e.ranges)} for e in cfg.dr.effects
+        ]
+    return description, env_cfg, effects
 
 
 # --- export --------------------------------------------------------------------------------------
 
 
-def export(policy: Policy, out_dir: str | Path) -> Path:
+def export(policy: Policy, out_dir: str | Path, format: str = "json") -> Path:
     """Write `policy` as a self-contained directory that runs without JAX: policy.npz (the
     weights), policy.json (the contract: observations, actions, control range, dt, how
-    observations enter the network), the MJCF of its system, and numpy_policy.py (NumPy
-    inference: `numpy_policy.load(dir)(obs)`)."""
+    observations enter the network, what the policy trained on), the MJCF of the system it
+    trained on, and numpy_policy.py (NumPy inference: `numpy_policy.load(dir)(obs)`); with
+    format="onnx" also policy.onnx (input `obs`, output `action`; docs/export.md)."""
+    check_format(format)
     out_dir = Path(out_dir)
     layers = policy.params["params"]
     names = sorted(layers, key=lambda n: int(n.rsplit("_", 1)[1]))  # Dense_0, Dense_1, ...
-    buffer = _npz({f"{n}_{p}": np.asarray(layers[n][p]) for n in names for p in ("kernel", "bias")})
+    weights = [(np.asarray(layers[n]["kernel"]), np.asarray(layers[n]["bias"])) for n in names]
+    buffer = _npz({f"{n}_{p}": w for n, pair in zip(names, weights) for p, w in zip(KB, pair)})
     atomic_write_bytes(out_dir / "policy.npz", buffer)
-    xml = resolve_xml(policy.env.xml)
+    trained, env_cfg, effects = trained_on(policy)
+    mjcf_name, mjcf = _mjcf(policy, trained["simulator"], env_cfg, effects)
     contract = {
         "format": EXPORT_FORMAT,
         "method": policy.method,
         "run": policy.run,
         "epoch": policy.epoch,
+        "trained_on": {**trained, "mjcf": mjcf_name},
         "observations": list(policy.obs_names),
         "actions": list(policy.action_names),
         "control_range": np.asarray(policy.ctrl_range, float).tolist(),
         "dt": policy.dt,
         "timestep": policy.env.timestep,
         "frames_per_step": policy.env.frames_per_step,
-        "mjcf": xml.name,
+        "mjcf": mjcf_name,
         # the network's input: observations as they are (no normalisation), except that each
         # hinge angle enters as (sin, cos): [q of non-hinges, sin(hinges), cos(hinges), qd]
         "normalisation": "none",
@@ -254,10 +308,50 @@ def export(policy: Policy, out_dir: str | Path) -> Path:
         ],
         "output": "mid + half * tanh(last layer): mid, half of each control range",
     }
+    if format == "onnx":
+        from hds import onnx_policy
+
+        metadata = {
+            "format": EXPORT_FORMAT,
+            "method": policy.method,
+            "observations": ",".join(policy.obs_names),
+            "actions": ",".join(policy.action_names),
+            "dt": repr(policy.dt),
+            "trained_on": json.dumps(contract["trained_on"]),
+        }
+        model = onnx_policy.build(weights, policy.module.angular, policy.ctrl_range, metadata)
+        atomic_write_bytes(out_dir / "policy.onnx", model)
+        contract["onnx"] = {
+            "file": "policy.onnx",
+            "input": onnx_policy.INPUT,
+            "output": onnx_policy.OUTPUT,
+            "opset": onnx_policy.OPSET,
+        }
     atomic_write_json(out_dir / "policy.json", contract)
-    atomic_write_bytes(out_dir / xml.name, xml.read_bytes())
+    atomic_write_bytes(out_dir / mjcf_name, mjcf)
     shutil.copyfile(Path(__file__).with_name("numpy_policy.py"), out_dir / "numpy_policy.py")
     return out_dir
+
+
+def check_format(format: str) -> None:
+    if format not in FORMATS:
+        raise ValueError(
+            f"format={format!r} is not an export format; choose json (policy.json, policy.npz, "
+            "numpy_policy.py) or onnx (the same and policy.onnx)"
+        )
+
+
+def _mjcf(policy: Policy, kind: str, env_cfg, effects: list[dict]) -> tuple[str, bytes]:
+    """(file name, bytes) of the MJCF of the system the policy trained on: the env's own file
+    as it is when it trained on that alone, else that MJCF with the MuJoCo-native equivalents
+    of its effects written in and a comment naming those MJCF cannot express."""
+    xml = resolve_xml(env_cfg.xml)
+    if not effects and env_cfg.xml == policy.env.xml:
+        return xml.name, xml.read_bytes()
+    from hds.real.mujoco_plant import mjcf_text
+
+    source = f"The {kind} simulator policy {policy.method} trained on (hds.export)"
+    return f"{xml.stem}_{kind}.xml", mjcf_text(env_cfg, effects, source=source).encode()
 
 
 def _npz(arrays: dict) -> bytes:

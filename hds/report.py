@@ -20,6 +20,9 @@ import os
 from collections import defaultdict
 from pathlib import Path
 
+import numpy as np
+from omegaconf import OmegaConf
+
 from hds import plots
 from hds.animate import animate_episodes
 from hds.config import load_config
@@ -322,6 +325,63 @@ def loop_sections(found: list[tuple], root: Path, out: Path) -> list[str]:
     return sections
 
 
+def optuna_sections(root: Path) -> list[str]:
+    """A section per Optuna study below root (hydra/sweeper=optuna writes
+    optimization_results.yaml into its sweep directory): the best trial, and each trial's
+    sampled settings and objective (what its job returned: the mean over its seeds of
+    `objective`) beside the other return, best first; failed trials counted."""
+    sections = []
+    for path in sorted(root.rglob("optimization_results.yaml")):
+        study = OmegaConf.load(path)
+        keys = list(study.best_params)
+        trials = [t for job in sorted(path.parent.iterdir()) if (t := optuna_trial(job, keys))]
+        if not trials:
+            continue
+        objective = trials[0]["objective"]
+        other = "sim_return" if objective == "real_return" else "real_return"
+        trials.sort(key=lambda t: -t[objective].mean if np.isfinite(t[objective].mean) else np.inf)
+        failed = sorted(p.parent.name for p in path.parent.glob("*/failed.txt"))
+        best = ", ".join(f"{k}={v:.4g}" for k, v in study.best_params.items())
+        rel = path.parent.relative_to(root) if path.parent != root else Path(root.name)
+        fmt = lambda c: f"{number(c.mean)} [{number(c.low)}, {number(c.high)}]"  # noqa: E731
+        lines = [
+            f"### Optuna study: {rel}",
+            "",
+            f"Best: {best}, mean {objective} {number(float(study.best_value))}. Its "
+            f"{len(trials)} finished trials, best first (the tables above pool every trial's "
+            "runs)" + (f"; failed: {', '.join(failed)} (their failed.txt)" if failed else "") + ":",
+            "",
+            "| trial | " + " | ".join(keys) + f" | {objective} [95%] | {other} [95%] |",
+            "| ---: |" + " ---: |" * (len(keys) + 2),
+        ]
+        for t in trials:
+            cells = [f"{t['params'][k]:.4g}" if k in t["params"] else "-" for k in keys]
+            values = f" | {fmt(t[objective])} | {fmt(t[other])} |"
+            lines.append(f"| {t['job']} | " + " | ".join(cells) + values)
+        sections.append("\n".join(lines) + "\n")
+    return sections
+
+
+def optuna_trial(job: Path, keys: list[str]) -> dict | None:
+    """One finished trial of an Optuna study: its sampled `keys` (its Hydra overrides), its
+    objective's name, and the real and simulator returns of its own method's runs (mean and
+    95% interval over seeds); None if unfinished."""
+    from hds.experiment import method_name
+
+    overrides = job / ".hydra" / "overrides.yaml"
+    if not all(p.is_file() for p in (overrides, job / "summary.json", job / "config.yaml")):
+        return None
+    cfg = load_config(job / "config.yaml")
+    own = [r for r in read_json(job / "summary.json")["rows"] if r["method"] == method_name(cfg)]
+    given = dict(o.split("=", 1) for o in OmegaConf.load(overrides))
+    return {
+        "job": job.name,
+        "params": {k: float(given[k]) for k in keys if k in given},
+        "objective": cfg.objective,
+        **{key: mean_ci([r[key] for r in own]) for key in ("real_return", "sim_return")},
+    }
+
+
 def discovery_errors(report: dict) -> str:
     """k-step (rollout) RMSE per state variable before and after the named effects were added,
     on each data set of the discovery (identification, held-out, validation)."""
@@ -428,6 +488,7 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
     text += (
         [""]
         + unused_models(root)
+        + optuna_sections(root)
         + loop_sections(found_loops, root, out)
         + discovery_sections(root, out)
     )

@@ -26,7 +26,7 @@ from hds import rundir  # noqa: E402
 from hds.commands import before_hydra  # noqa: E402
 from hds.config import validate  # noqa: E402
 from hds.evaluation import no_finite_result  # noqa: E402
-from hds.experiment import Hooks, run  # noqa: E402
+from hds.experiment import Hooks, method_name, run  # noqa: E402
 from hds.utils import cli  # noqa: E402
 from hds.utils.io import atomic_write_bytes  # noqa: E402
 from hds.utils.runtime import enable_compilation_cache  # noqa: E402
@@ -65,6 +65,14 @@ def main(dcfg) -> float:
             result = run(cfg, out_dir, Hooks(live_progress=one_job_at_a_time(hydra_cfg)))
         if failure := no_finite_result(result.rows):
             raise FloatingPointError(failure)
+        # the sweeper's objective (hydra/sweeper=optuna: docs/sweeps.md) over the runs of the
+        # run's own method (not the oracle trained beside it)
+        own = [r for r in result.rows if r["method"] == method_name(cfg)]
+        objective = float(np.mean([r[cfg.objective] for r in own]))
+        if not np.isfinite(objective) and rundir.optimizing(hydra_cfg):
+            raise FloatingPointError(
+                f"{cfg.objective} is not finite ({objective}): a run of this trial diverged"
+            )
     except Exception as err:
         if hydra_cfg.mode != RunMode.MULTIRUN:
             cli.exit_if_user_error(err)
@@ -73,10 +81,12 @@ def main(dcfg) -> float:
         # the sweep again reruns this job and skips the finished ones.
         atomic_write_bytes(out_dir / "failed.txt", traceback.format_exc().encode())
         log.exception("job %s failed; see %s", hydra_cfg.job.num, out_dir / "failed.txt")
+        if rundir.optimizing(hydra_cfg):  # Optuna records the trial as failed and goes on; a NaN
+            raise  # returned would stop its study (optuna rejects NaN values)
         return float("nan")
     (out_dir / "failed.txt").unlink(missing_ok=True)
     log.info("wrote %s", out_dir / "summary.json")
-    return float(np.mean([r["real_return"] for r in result.rows]))
+    return objective
 
 
 if __name__ == "__main__":

@@ -183,3 +183,10 @@ def _restore_hydra_files(hydra_dir: str | Path | None) -> None:
         return
     for path in (Path(hydra_dir) / ACCEPTED).glob("*.yaml"):
         shutil.copy2(path, Path(hydra_dir) / path.name)
+
+
+def optimizing(hydra_cfg) -> bool:
+    """Whether a job is a trial of Optuna's sweeper (hydra/sweeper=optuna), whose failed
+    trials are recorded as such rather than stopping or failing the sweep."""
+    sweeper = hydra_cfg.get("sweeper") or {}
+    return str(sweeper.get("_target_", "")).endswith("OptunaSweeper")

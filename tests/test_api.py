@@ -171,6 +171,64 @@ def test_hds_export_into_a_place_it_cannot_write_is_one_line(sweep_run, tmp_path
     assert str(tmp_path / "a_file") in line and "fix the path" in line, line
 
 
+def test_format_onnx_runs_in_onnxruntime_as_the_policy_does_on_c_mujoco(sweep_run, tmp_path):
+    """hds.export format=onnx: policy.onnx in onnxruntime gives the in-process policy's
+    controls (to 1e-5) and its return on the C MuJoCo plant; the JSON contract beside it."""
+    import onnx
+    import onnxruntime
+
+    out, _ = sweep_run
+    args = (f"run={out}", "seed=1", "step_size=0.01", f"out={tmp_path}")
+    proc = cli("hds.export", *args, "format=onnx")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    contract = json.loads((tmp_path / "policy.json").read_text())
+    assert contract["onnx"] == {
+        "file": "policy.onnx",
+        "input": "obs",
+        "output": "action",
+        "opset": 17,
+    }
+    assert (tmp_path / "policy.npz").is_file() and (tmp_path / contract["mjcf"]).is_file()
+    model = onnx.load(tmp_path / "policy.onnx")
+    meta = {p.key: p.value for p in model.metadata_props}
+    assert meta["observations"] == "q_slider,q_hinge,qd_slider,qd_hinge"
+    assert json.loads(meta["trained_on"])["simulator"] == "nominal"
+    session = onnxruntime.InferenceSession(
+        str(tmp_path / "policy.onnx"), providers=["CPUExecutionProvider"]
+    )
+    policy = hds.load_policy(out, seed=1, step_size=0.01)
+    # fixed observations, angles past +-pi too (the hinge enters as sin, cos)
+    obs = (np.random.default_rng(0).normal(size=(256, 4)) * [0.5, 4.0, 2.0, 6.0]).astype(np.float32)
+    (controls,) = session.run(["action"], {"obs": obs})
+    np.testing.assert_allclose(controls, policy(obs), rtol=0, atol=1e-5)
+    assert np.ptp(controls) > 1e-3  # the check above compared controls that vary
+    from hds.data import initial_states
+    from hds.real import make_plant, rollout
+
+    in_process = hds.evaluate(policy, episodes=8)
+    task = policy.simulator.task
+    q0, qd0 = initial_states(task, policy.config.eval_seed, 8)
+    plant = make_plant(policy.config.real, policy.env)
+    act = lambda o: session.run(None, {"obs": np.asarray(o, np.float32)})[0]  # noqa: E731
+    returns = rollout(plant, task, q0, qd0, act, task.horizon).returns
+    np.testing.assert_allclose(returns, in_process.returns, rtol=1e-5)
+    # an unknown format is one line, before any checkpoint is read
+    bad = cli("hds.export", *args, "format=tflite")
+    assert bad.returncode != 0 and "Traceback" not in bad.stderr
+    assert "format='tflite' is not an export format; choose json" in bad.stderr
+
+
+def test_the_api_lists_its_names_and_a_policy_prints_short(sweep_run):
+    out, _ = sweep_run
+    assert {"load_policy", "train", "evaluate", "export", "compose"} <= set(dir(hds))
+    policy = hds.load_policy(out, seed=1, step_size=0.04)
+    text = repr(policy)
+    assert len(text) < 300 and "Array" not in text and "kernel" not in text, text
+    assert "method='pods'" in text and "'step_size': 0.04" in text and "hidden=" in text
+    ci = hds.evaluate(policy, episodes=4).mean_ci()
+    assert ci.low <= ci.mean <= ci.high and tuple(ci) == (ci.mean, ci.low, ci.high)
+
+
 def test_hds_evaluate_runs_a_saved_policy_on_another_plant(sweep_run, tmp_path):
     out, _ = sweep_run
     args = (f"run={out}", "seed=0", "step_size=0.04", "eval_episodes=4", f"out={tmp_path}")
@@ -182,8 +240,22 @@ def test_hds_evaluate_runs_a_saved_policy_on_another_plant(sweep_run, tmp_path):
         "friction_gap": 3.0,
         "effects": result["real"]["plant"]["effects"],
     }
+    # the force the plant applied: 3 x the configured 20 N
+    (friction,) = result["real"]["plant"]["effects"]
+    assert friction["params"] == {"force": 60.0}
     assert len(result["real"]["returns"]) == len(result["sim"]["returns"]) == 4
     assert result["gap"] == pytest.approx(result["sim"]["mean"] - result["real"]["mean"])
+    lo, hi = result["gap_ci95"]
+    assert lo <= result["gap"] <= hi
+    # the console says what came out: returns, gap and their intervals
+    real, sim = result["real"], result["sim"]
+    for line in (
+        f"return on the brax plant (coulomb_friction@slider {{force: 60}}): {real['mean']:.4g} "
+        f"[{real['ci95'][0]:.4g}, {real['ci95'][1]:.4g}]",
+        f"return on the simulator it trained on: {sim['mean']:.4g} [{sim['ci95'][0]:.4g}, ",
+        f"sim2real gap (simulator - plant): {result['gap']:.4g} [{lo:.4g}, {hi:.4g}]",
+    ):
+        assert line in proc.stdout, proc.stdout
     assert (tmp_path / "plots" / "trajectories.png").is_file()
     assert (tmp_path / "sim_vs_real.gif").stat().st_size > 0
     # more friction, a worse return than on the run's own plant

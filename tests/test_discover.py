@@ -19,6 +19,7 @@ import dataclasses
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -913,8 +914,15 @@ def test_command_line_writes_the_report_and_hds_run_accepts_the_corrected_model(
     assert "Coulomb" in text and "plots/trajectories_heldout.png" in text
     for plot in ("locate", "errors_heldout", "trajectories_heldout", "candidates"):
         assert (out / "plots" / f"{plot}.png").stat().st_size > 0
+    # its paths are relative to report.json's directory: a moved report still finds its files
+    moved = tmp_path / "moved"
+    shutil.copytree(out, moved)
+    report = json.loads((moved / "report.json").read_text())
+    assert not Path(report["corrected_config"]).is_absolute()
+    assert (moved / report["sysid_handoff"]["params"]).is_file()
+    assert f"--config-dir {Path(report['corrected_config']).parents[1]} " in report["run_command"]
     # the corrected env is an option `python -m hds.run` composes and validates as it is
-    config_dir = Path(report["corrected_config"]).parents[1]
+    config_dir = moved / Path(report["corrected_config"]).parents[1]
     name = Path(report["corrected_config"]).stem
     with_config = make_config(f"hydra.searchpath=[file://{config_dir}]", f"env={name}")
     assert [(e.name, e.target) for e in with_config.env.effects] == [("coulomb_friction", "slider")]
@@ -922,7 +930,7 @@ def test_command_line_writes_the_report_and_hds_run_accepts_the_corrected_model(
     # the MJCF carries the friction as MuJoCo's own frictionloss
     import mujoco
 
-    model = mujoco.MjModel.from_xml_path(report["corrected_mjcf"])
+    model = mujoco.MjModel.from_xml_path(str(moved / report["corrected_mjcf"]))
     assert model.dof_frictionloss[0] == pytest.approx(found["params"]["force"], rel=1e-4)
     # the hand-off to MuJoCo's own system identification loads in mujoco.sysid
     from mujoco import sysid

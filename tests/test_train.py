@@ -228,6 +228,8 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
     """simulator=corrected trains on the effects gap discovery names on plant data, and
     simulator=real (the oracle) on the plant's own: both then predict the plant's return far
     better than the nominal simulator does (20 N of Coulomb friction on the rail, C MuJoCo)."""
+    from omegaconf import OmegaConf
+
     from hds.experiment import run, simulator_of
 
     small_data = ("dynamics.episodes=16", "dynamics.horizon=60", "discover.stride=2")
@@ -235,6 +237,7 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
     for simulator in ("nominal", "corrected", "real"):
         cfg = make_config(*TINY, *small_data, f"simulator={simulator}", "seeds=2")
         result = run(cfg, tmp_path / simulator)
+        OmegaConf.save(OmegaConf.structured(cfg), tmp_path / simulator / "config.yaml")
         gaps[simulator] = np.mean([abs(r["gap"]) for r in result.rows])
         if simulator == "corrected":
             assert {r["method"] for r in result.rows} == {"pods+corrected"}
@@ -247,6 +250,29 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
             assert [(e.name, e.target) for e in sites] == [("coulomb_friction", "slider")]
     assert gaps["corrected"] < 0.25 * gaps["nominal"], gaps
     assert gaps["real"] < 0.25 * gaps["nominal"], gaps
+    # each exports the MJCF of the system it trained on, and policy.json says what that was
+    import mujoco
+
+    from hds.envs.system import resolve_xml
+    from hds.policy import export, load_policy
+
+    contracts = {}
+    for simulator in ("nominal", "corrected", "real"):
+        policy = load_policy(tmp_path / simulator, seed=0)
+        directory = export(policy, tmp_path / "export" / simulator)
+        contracts[simulator] = json.loads((directory / "policy.json").read_text())
+        contracts[simulator]["xml"] = (directory / contracts[simulator]["mjcf"]).read_bytes()
+    nominal, corrected, oracle = contracts.values()
+    assert nominal["trained_on"]["simulator"] == "nominal" and not nominal["trained_on"]["effects"]
+    assert nominal["xml"] == resolve_xml(make_config().env.xml).read_bytes()
+    assert corrected["trained_on"]["simulator"] == "corrected"
+    (effect,) = corrected["trained_on"]["effects"]
+    assert (effect["name"], effect["params"]) == ("coulomb_friction", found["params"])
+    assert corrected["mjcf"] == corrected["trained_on"]["mjcf"] == "cartpole_corrected.xml"
+    model = mujoco.MjModel.from_xml_string(corrected["xml"].decode())
+    assert model.dof_frictionloss[0] == pytest.approx(found["params"]["force"], rel=1e-5)
+    assert oracle["trained_on"]["simulator"] == "oracle"
+    assert [e["params"] for e in oracle["trained_on"]["effects"]] == [{"force": 20.0}]
 
 
 @pytest.mark.slow  # two rounds of recording and a discovery: ~1 min (make test-slow)

@@ -97,7 +97,8 @@ def run(dcfg, out_dir: Path) -> float:
     from hds.discover.io import print_summary
 
     handoff = report["sysid_handoff"]
-    log.info("mujoco.sysid hand-off: %s (%s)", handoff["params"], ", ".join(handoff["handed_off"]))
+    handed = ", ".join(handoff["handed_off"])
+    log.info("mujoco.sysid hand-off: %s (%s)", out_dir / handoff["params"], handed)
     for line in handoff["not_handed_off"]:
         log.info("not handed off to mujoco.sysid: %s", line)
     print_summary(result, out_dir)

@@ -14,7 +14,6 @@ from omegaconf import OmegaConf
 from hds.discover import plots
 from hds.discover.sysid import write_handoff
 from hds.discover.workflow import Result
-from hds.effects.library import effect_type
 from hds.plots import save as save_figure
 from hds.utils.io import atomic_write_bytes, atomic_write_json
 
@@ -51,23 +50,11 @@ def write_config(env_cfg, result: Result, out_dir: Path) -> Path:
 
 def write_mjcf(env_cfg, result: Result, out_dir: Path) -> Path:
     """out_dir/corrected.xml: the MJCF with the MuJoCo-native equivalents of the effects."""
-    from hds.real.mujoco_plant import mujoco_spec
+    from hds.real.mujoco_plant import mjcf_text
 
-    effects = result.corrected_effects
-    spec = mujoco_spec(env_cfg, effects)
-    xml = spec.to_xml()
-    mjcf = {e["name"]: effect_type(e["name"]).mjcf for e in effects}
-    native = [f"{e['name']}@{e['target']} ({mjcf[e['name']]})" for e in effects if mjcf[e["name"]]]
-    other = [f"{e['name']}@{e['target']} {e['params']}" for e in effects if not mjcf[e["name"]]]
-    comment = (
-        "<!-- Corrected by hds.discover. MuJoCo-native here: "
-        f"{', '.join(native) or 'none'}. Not expressible in MJCF (hds's simulators apply "
-        "them; hds.real.MujocoPlant those with a plant law, in its controller, force or "
-        f"sensor path): "
-        f"{', '.join(other) or 'none'}. -->\n"
-    )
+    text = mjcf_text(env_cfg, result.corrected_effects, source="Corrected by hds.discover")
     path = Path(out_dir) / "corrected.xml"
-    atomic_write_bytes(path, (comment + xml).encode())
+    atomic_write_bytes(path, text.encode())
     return path
 
 
@@ -329,8 +316,8 @@ def markdown(
     lines += [
         "## The corrected model",
         "",
-        f"- config: `{rel}`; train on it with "
-        f"`python -m hds.run --config-dir {config_path.parent.parent} "
+        f"- config: `{rel}`; train on it, from this report's directory, with "
+        f"`python -m hds.run --config-dir {rel.parent.parent} "
         f"env={config_path.stem}`",
         f"- MJCF with the MuJoCo-native equivalents: `{mjcf_path.name}`",
         "",
@@ -378,15 +365,18 @@ def write_report(
         files["sim2real"] = save_figure(fig, out_dir / "plots" / "sim2real.png")
         plt.close(fig)
     report = result.to_json()
-    report["corrected_config"] = str(config_path)
-    report["corrected_mjcf"] = str(mjcf_path)
+    # paths relative to report.json's directory: a report moved or copied elsewhere still
+    # finds its files (read them with `report_dir / report["corrected_config"]`)
+    local = lambda path: Path(path).relative_to(out_dir).as_posix()  # noqa: E731
+    report["corrected_config"] = local(config_path)
+    report["corrected_mjcf"] = local(mjcf_path)
     report["sysid_handoff"] = {
-        "params": str(handoff.params),
+        "params": local(handoff.params),
         "handed_off": handoff.handed_off,
         "not_handed_off": handoff.not_handed_off,
     }
-    report["run_command"] = (
-        f"python -m hds.run --config-dir {config_path.parent.parent} env={config_path.stem}"
+    report["run_command"] = (  # from the report's directory
+        f"python -m hds.run --config-dir {local(config_path.parent.parent)} env={config_path.stem}"
     )
     if retrain:
         report["retrain"] = retrain

@@ -37,6 +37,25 @@ def mujoco_spec(env_cfg, effects=(), friction_gap: float = 1.0) -> mujoco.MjSpec
     return spec
 
 
+def mjcf_text(env_cfg, effects=(), friction_gap: float = 1.0, source: str = "hds") -> str:
+    """The MJCF of `mujoco_spec`, headed by a comment naming which effects it carries as
+    MuJoCo's own elements and which MJCF cannot express (with their values: hds's simulators
+    apply them, and hds.real.MujocoPlant those with a plant law)."""
+    from hds.effects.apply import applied
+
+    effects = applied(effects, friction_gap)
+    xml = mujoco_spec(env_cfg, effects).to_xml()
+    mjcf = {e["name"]: effect_type(e["name"]).mjcf for e in effects}
+    native = [f"{e['name']}@{e['target']} ({mjcf[e['name']]})" for e in effects if mjcf[e["name"]]]
+    other = [f"{e['name']}@{e['target']} {e['params']}" for e in effects if not mjcf[e["name"]]]
+    comment = (
+        f"<!-- {source}. MuJoCo-native here: {', '.join(native) or 'none'}. Not expressible in "
+        "MJCF (hds's simulators apply them; hds.real.MujocoPlant those with a plant law, in its "
+        f"controller, force or sensor path): {', '.join(other) or 'none'}. -->\n"
+    )
+    return comment + xml
+
+
 class MujocoPlant:
     """C MuJoCo on B episodes (one MjData each); see `hds.real` for the interface."""
 
