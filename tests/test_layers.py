@@ -46,7 +46,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
         ),
     ),
     # the experiment layer every tool calls, and saved policies
-    ("experiment", ("hds.experiment", "hds.policy", "hds.numpy_policy")),
+    ("experiment", ("hds.experiment", "hds.policy", "hds.numpy_policy", "hds.onnx_policy")),
     # the command-line tools
     (
         "commands",
