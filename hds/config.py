@@ -329,8 +329,19 @@ class DiscoverConfig:
     seed: int = 0  # the split of episodes into identification and held-out sets
     bins: int = 8  # bins of each feature when locating where the residual depends on it
     plot_episodes: int = 2  # held-out episodes drawn in the trajectory plot
+    # the loop's excitation episodes (hds.loop): steps = random steps (amplitude doubled while
+    # the data cannot identify a candidate); designed = each round optimises them through the
+    # corrected simulator for the effects below (hds.discover.design, docs/design.md), random
+    # steps the fallback where no design keeps the limits
+    excitation: str = "steps"
+    design_effects: list[str] = field(default_factory=lambda: ["coulomb_friction", "actuator_gain"])
 
     def check(self):
+        if self.excitation not in ("steps", "designed"):
+            raise ValueError(
+                f"discover.excitation = {self.excitation!r} is not allowed; choose 'steps' "
+                "(random steps) or 'designed' (hds.discover.design)"
+            )
         if self.backend not in ("auto", "env", *BACKENDS):
             raise ValueError(
                 f"discover.backend = {self.backend!r} is not allowed; choose one of "
@@ -361,10 +372,11 @@ class DiscoverConfig:
         _in_range("discover.min_motion", self.min_motion, 0.0, 1.0)
         _in_range("discover.bins", self.bins, 2)
         _in_range("discover.plot_episodes", self.plot_episodes, 0)
-        unknown = [e for e in self.effects if e not in candidate_effects()]
+        unknown = [e for e in [*self.effects, *self.design_effects] if e not in candidate_effects()]
         if unknown:
             raise ValueError(
-                f"discover.effects has unknown or non-candidate effects {unknown}; the "
+                f"discover.effects or discover.design_effects has unknown or non-candidate "
+                f"effects {unknown}; the "
                 f"candidates are: {', '.join(candidate_effects())}"
             )
 
