@@ -141,3 +141,14 @@ def test_designed_record_narrower_than_random_steps(analytic_cfg):
     assert designed < steps_width
     predicted = float(design.predicted_half(episodes)[0])
     assert 0.5 < predicted / designed < 2.0
+
+
+def test_excitation_key_is_checked():
+    from hds.config import DiscoverConfig
+
+    assert DiscoverConfig().excitation == "steps"  # the old numbers stay the default
+    with pytest.raises(ValueError, match="discover.excitation"):
+        DiscoverConfig(excitation="chirp").check()
+    with pytest.raises(ValueError, match="design_effects"):
+        DiscoverConfig(design_effects=["no_such_effect"]).check()
+    DiscoverConfig(excitation="designed").check()
