@@ -69,6 +69,7 @@ def test_information_matches_finite_differences(small):
     np.testing.assert_allclose(info, expected, rtol=0.03, atol=1e-3 * np.abs(expected).max())
 
 
+@pytest.mark.slow  # compiles the design's nested derivatives: about a minute of CPU
 def test_design_keeps_every_limit(small, analytic_cfg):
     """Half the control range, a speed bound the open-loop optimum would break and the rail's
     ends pulled in: the designed trajectory keeps them all; a design with an LQR feedback too."""

@@ -397,8 +397,13 @@ def main():
         stored = json.loads((out / "results.json").read_text())
         results = stored["cases"]
     else:
-        results = {c: run_case(c, CASES[c], args.repeats, log) for c in args.cases.split(",")}
-        atomic_write_json(out / "results.json", {"cases": results})
+        # each case is written as it ends, beside the cases of earlier runs into `out`
+        # (run the cases apart, e.g. on a loaded machine); --report tabulates them all
+        done = out / "results.json"
+        results = json.loads(done.read_text())["cases"] if done.is_file() else {}
+        for c in args.cases.split(","):
+            results[c] = run_case(c, CASES[c], args.repeats, log)
+            atomic_write_json(done, {"cases": results})
     table, summary = summarise(results)
     meta = stored.get("meta") or {
         "date": time.strftime("%Y-%m-%d"),
