@@ -69,6 +69,23 @@ CASES = {
         "targets": {"coulomb_friction@slider.force": 0.05, "actuator_gain@slide.gain": 0.03},
         "noise": [1e-3, 2e-3, 1e-2, 2e-2],
     },
+    # the control: 80 N on a plant with the simulator's own laws (tanh friction, the fit's
+    # backend): no law mismatch, sensor noise alone, what the prediction models
+    "friction80_own_laws": {
+        "env": "cartpole_balance",
+        "plant": "simulator",
+        "real": {
+            "plant": "brax",
+            "friction_gap": 4.0,
+            "effects": [
+                {"name": "coulomb_friction", "target": "slider", "params": {"force": 20.0}}
+            ],
+        },
+        "rest": [0.0, 3.141592653589793],
+        "keys": ["coulomb_friction@slider"],
+        "targets": {"coulomb_friction@slider.force": 0.05},
+        "noise": [1e-3, 2e-3, 1e-2, 2e-2],
+    },
     # the Furuta (QUBE-Servo 2): a motor 20% weaker and dry friction on the arm (8% of the
     # motor's 0.025 N m)
     "furuta": {
@@ -160,7 +177,14 @@ def run_case(name, spec, repeats, log):
     theta0 = theta_nominal.copy()
     theta0[designer.slots] = start[designer.slots]
     real = OmegaConf.create(spec["real"])
-    plant_base = make_plant(real, env_cfg)
+    if spec.get("plant") == "simulator":  # the fit's own simulator, its smoothed laws
+        from hds.real.brax_plant import BraxPlant
+
+        plant_base = BraxPlant(
+            make_env(fit_cfg, effects=list(real.effects), friction_gap=real.friction_gap)
+        )
+    else:
+        plant_base = make_plant(real, env_cfg)
     truth = {}
     for e in spec["real"]["effects"]:
         for p, v in e["params"].items():
