@@ -333,8 +333,19 @@ class DiscoverConfig:
     # most recorded steps (episodes x steps) discovery takes on; larger data is refused before
     # it is processed, with its memory estimate (hds.discover's command): window or resample it
     max_steps: int = 200_000
+    # the loop's excitation episodes (hds.loop): steps = random steps (amplitude doubled while
+    # the data cannot identify a candidate); designed = each round optimises them through the
+    # corrected simulator for the effects below (hds.discover.design, docs/design.md), random
+    # steps the fallback where no design keeps the limits
+    excitation: str = "steps"
+    design_effects: list[str] = field(default_factory=lambda: ["coulomb_friction", "actuator_gain"])
 
     def check(self):
+        if self.excitation not in ("steps", "designed"):
+            raise ValueError(
+                f"discover.excitation = {self.excitation!r} is not allowed; choose 'steps' "
+                "(random steps) or 'designed' (hds.discover.design)"
+            )
         if self.backend not in ("auto", "env", *BACKENDS):
             raise ValueError(
                 f"discover.backend = {self.backend!r} is not allowed; choose one of "
@@ -367,10 +378,11 @@ class DiscoverConfig:
         _in_range("discover.plot_episodes", self.plot_episodes, 0)
         _in_range("discover.seed", self.seed, 0, SEED_MAX)
         _in_range("discover.max_steps", self.max_steps, 1)
-        unknown = [e for e in self.effects if e not in candidate_effects()]
+        unknown = [e for e in [*self.effects, *self.design_effects] if e not in candidate_effects()]
         if unknown:
             raise ValueError(
-                f"discover.effects has unknown or non-candidate effects {unknown}; the "
+                f"discover.effects or discover.design_effects has unknown or non-candidate "
+                f"effects {unknown}; the "
                 f"candidates are: {', '.join(candidate_effects())}"
             )
 

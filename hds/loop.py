@@ -43,9 +43,10 @@ from hds.utils.io import atomic_write_json, read_json  # noqa: E402
 log = logging.getLogger("hds")
 
 
-def record(cfg: Config, env, plant, params, key, scale: float) -> Dataset:
+def record(cfg: Config, env, plant, params, key, scale: float, env_cfg=None) -> Dataset:
     """One round's data: the policy (the batch's first run) deployed from the task's initial
-    states, and open-loop excitation whose amplitudes rise to `scale` of the half range."""
+    states, and open-loop excitation whose amplitudes rise to `scale` of the half range
+    (discover.excitation = designed: designed on env_cfg, the simulator corrected so far)."""
     from hds.dynamics import excite
 
     k_deploy, k_excite, k_u = jax.random.split(key, 3)
@@ -61,11 +62,24 @@ def record(cfg: Config, env, plant, params, key, scale: float) -> Dataset:
         excitation_scale=scale,
     )
     q0, qd0 = initial_states(env.task, k_excite, cfg.loop.excitation_episodes)
-    excited = collect(plant, env.task, q0, qd0, excite(excitation, env, k_u), horizon)
+    controls = None
+    if cfg.discover.excitation == "designed":
+        from hds.discover.design import designed_controls
+
+        x0s = np.concatenate([q0, qd0], axis=1)[:4]  # the expected information over these
+        try:
+            controls = designed_controls(
+                env_cfg or cfg.env, cfg.discover, env.sim.dt, horizon, len(q0), scale, x0s, deployed
+            )
+        except ValueError as err:  # no design keeps the limits: random steps, as before
+            log.warning("designed excitation failed (%s); random steps instead", err)
+    if controls is None:
+        controls = excite(excitation, env, k_u)
+    excited = collect(plant, env.task, q0, qd0, controls, horizon)
     return concatenate([deployed, excited])
 
 
-def excite_until_identifiable(cfg: Config, env, plant, params, key, data_so_far):
+def excite_until_identifiable(cfg: Config, env, plant, params, key, data_so_far, env_cfg=None):
     """A round's data (`record`), more and stronger while the data so far cannot identify
     what they could (hds.discover.record_until_identifiable). Returns (every dataset so far,
     the last amplitude, notes saying what was done and why)."""
@@ -74,7 +88,7 @@ def excite_until_identifiable(cfg: Config, env, plant, params, key, data_so_far)
     def record_attempt(scale, attempt):
         nonlocal key
         key, sub = jax.random.split(key)
-        return record(cfg, env, plant, params, sub, scale)
+        return record(cfg, env, plant, params, sub, scale, env_cfg)
 
     return record_until_identifiable(
         record_attempt, cfg.env, cfg.discover, cfg.dynamics.excitation_scale, data_so_far
@@ -128,7 +142,7 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
             else:
                 env = make_env(env_cfg)
                 data_all, scale, notes = excite_until_identifiable(
-                    cfg, env, plant, params, round_key, data
+                    cfg, env, plant, params, round_key, data, env_cfg
                 )
                 new = data_all[len(data) :]
                 save(concatenate(new), rdir / "data.npz")

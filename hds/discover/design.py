@@ -1,0 +1,650 @@
+"""Excitation designed through the differentiable simulator (optimal experiment design).
+
+Discovery's fit (`hds.discover.fit`) identifies candidate effects from k-step windows: each
+window starts at a measured state, replays the measured controls for k steps and is compared
+with the measured observations. How well an excitation identifies a parameter is the curvature
+of that fit, J^T J, J the windows' sensitivities to the parameter; hds has J exactly, forward
+mode through the simulator whose candidates' parameters are traced inputs (`Model.params`).
+So the excitation can be optimised before the plant is touched:
+
+  controls   u(t) = clip(u_ff(t) - K (x(t) - x_ref), mid +- amplitude x half range)
+             u_ff(t) = mid + amplitude x half range x tanh(sum_h a_h sin(2 pi f_h t)
+                                                          + b_h cos(2 pi f_h t))
+             f_h = h f_max / H, h = 1..H (a Fourier series squashed by tanh: smooth, bounded
+             by construction, free to saturate into the bang-bang a friction likes); K a
+             stabilising feedback (LQR, `lqr_gain`, or a policy's linearisation) for a system
+             that cannot be excited open loop, zero by default
+  information  I = sum over windows of J_w^T Sigma^-1 J_w, J_w = d(window's prediction)/d theta
+             on the trajectory the current estimate predicts, Sigma the measurement noise
+             (measured on the data so far, `noise_level`), parameters in units of their size
+  criterion  D: -log det I (default); A: trace I^-1; "<effect>@<target>.<param>": that
+             parameter's variance (I^-1)_jj
+  limits     the actuators' range (scaled by the amplitude bound), the joints' range (minus a
+             margin) and a speed bound per joint, as penalties during the optimisation (Adam on
+             the coefficients) and as a check on the predicted trajectory after it: the feed-
+             forward amplitude is shrunk until the trajectory keeps every limit.
+
+`Design.predicted_half` are the 95% half-widths the recorded windows will give discovery's fit
+(measured initial states): the fit's estimator is linear in the noise near the optimum,
+theta_hat - theta = H^-1 J_s^T r_s(n), so its covariance H^-1 B B^T H^-1 (B = d(J_s^T r_s)/dn,
+through the simulator too) holds the windows' overlap exactly; E episodes divide it by E, and
+the half-width takes the t quantile over episodes, as `confidence_intervals` does. The law
+mismatch part of the fit's intervals (a plant whose laws are not the library's) is not
+predicted.
+
+    from hds.discover.design import Designer
+    designer = Designer(env_cfg, ["coulomb_friction@slider"], dt=0.04, steps=100)
+    design = designer.design({"coulomb_friction@slider": {"force": 60.0}}, x0, noise)
+    u = design.controls()            # [T, n_act], or design.controller() for the feedback
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import scipy.linalg
+from scipy import stats
+
+from hds.discover.fit import get_engine
+from hds.envs.system import load_spec
+
+CRITERIA = ("D", "A")
+PENALTY = 1e3  # weight of a limit's squared violation (in units of the limit) against the criterion
+RIDGE = 1e-9  # relative ridge on the information: a parameter no window sees stays finite
+EIVAL_FLOOR = 1e-12
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What the designed record must keep: control bounds [n_act] (the amplitude bound already
+    applied), joint position bounds [nq] (+-inf: none) and speed bounds [nv] (inf: none)."""
+
+    u_low: np.ndarray
+    u_high: np.ndarray
+    q_low: np.ndarray
+    q_high: np.ndarray
+    max_speed: np.ndarray
+
+    def violation(self, obs: np.ndarray, u: np.ndarray) -> dict[str, float]:
+        """The largest excess over each limit on a trajectory (obs [T+1, n_obs], u [T, n_act]);
+        0 where kept."""
+        nq = len(self.q_low)
+        q, qd = obs[..., :nq], obs[..., nq:]
+        return {
+            "control": float(max(np.max(u - self.u_high), np.max(self.u_low - u), 0.0)),
+            "joint": float(max(np.max(q - self.q_high), np.max(self.q_low - q), 0.0)),
+            "speed": float(max(np.max(np.abs(qd) - self.max_speed), 0.0)),
+        }
+
+
+def limits_of(
+    env_cfg, amplitude: float = 1.0, max_speed=None, joint_margin: float = 0.05
+) -> Limits:
+    """The limits of an env's system: its actuators' ctrlrange shrunk to `amplitude` of the
+    half range about the middle, its limited joints' range less `joint_margin` of it at each
+    end (the rail's ends), and `max_speed` per joint (a number or a list over the joints;
+    None: none)."""
+    if not 0 < amplitude <= 1:
+        raise ValueError(f"amplitude = {amplitude} must lie in (0, 1] (share of the half range)")
+    if not 0 <= joint_margin < 0.5:
+        raise ValueError(f"joint_margin = {joint_margin} must lie in [0, 0.5) (share of a range)")
+    model = load_spec(env_cfg.xml, env_cfg.timestep).compile()
+    ctrl = np.array(model.actuator_ctrlrange, dtype=np.float64)
+    if not model.actuator_ctrllimited.all():
+        bad = [model.actuator(a).name for a in range(model.nu) if not model.actuator_ctrllimited[a]]
+        raise ValueError(
+            f"actuator(s) {bad} have no control range: an excitation is designed within "
+            "finite limits; give them a ctrlrange in the MJCF"
+        )
+    mid, half = ctrl.mean(1), 0.5 * (ctrl[:, 1] - ctrl[:, 0]) * amplitude
+    nq = model.nq
+    q_low, q_high = np.full(nq, -np.inf), np.full(nq, np.inf)
+    for j in range(model.njnt):
+        if model.jnt_limited[j]:
+            lo, hi = model.jnt_range[j]
+            pad = joint_margin * (hi - lo)
+            q_low[model.jnt_qposadr[j]], q_high[model.jnt_qposadr[j]] = lo + pad, hi - pad
+    speed = np.full(model.nv, np.inf)
+    if max_speed is not None:
+        speed = np.broadcast_to(np.asarray(max_speed, dtype=np.float64), (model.nv,)).copy()
+        if (speed <= 0).any():
+            raise ValueError(f"max_speed = {max_speed} must be positive (per joint)")
+    return Limits(mid - half, mid + half, q_low, q_high, speed)
+
+
+@dataclass
+class Design:
+    """A designed excitation and what it is predicted to give."""
+
+    coefficients: np.ndarray  # [n_act, 2H] Fourier coefficients (sine, then cosine)
+    amplitude: np.ndarray  # [n_act] the feedforward's half swing (after any shrinking)
+    middle: np.ndarray  # [n_act]
+    frequencies: np.ndarray  # [H] Hz
+    dt: float
+    steps: int
+    gain: np.ndarray  # [n_act, n_obs] feedback K (zeros: open loop)
+    x_ref: np.ndarray  # [n_obs]
+    angular: np.ndarray  # [n_obs] which deviations wrap (hinge angles)
+    limits: Limits
+    keys: list[str]  # fitted parameters, "<effect>@<target>.<param>"
+    predicted_se: np.ndarray  # [M] per episode (divide by sqrt(E) for E episodes)
+    trajectory: np.ndarray  # [T+1, n_obs] predicted at the estimate
+    planned_controls: np.ndarray  # [T, n_act] the controls along it
+    criterion: str = "D"
+    history: list[float] = field(default_factory=list)  # the criterion per iteration
+
+    def feedforward(self) -> np.ndarray:
+        """[T, n_act] the feedforward u_ff."""
+        return np.asarray(
+            _feedforward(self.coefficients, self.frequencies, self.dt, self.steps) * self.amplitude
+            + self.middle
+        )
+
+    def controls(self) -> np.ndarray:
+        """[T, n_act] the controls to apply open loop: the planned ones (with feedback, those
+        it gave on the predicted trajectory; use `controller` to close the loop on a plant)."""
+        return np.array(self.planned_controls)
+
+    def controller(self):
+        """A policy obs [B, n_obs] -> u [B, n_act] for `hds.data.collect`, stepping through the
+        design: u = clip(u_ff(t) - K (obs - x_ref)); t counts calls and restarts after T."""
+        ff, t = self.feedforward(), [0]
+
+        def act(obs):
+            dx = np.asarray(obs, dtype=np.float64) - self.x_ref
+            dx = np.where(self.angular, np.arctan2(np.sin(dx), np.cos(dx)), dx)
+            u = ff[t[0] % self.steps] - dx @ self.gain.T
+            t[0] += 1
+            return np.clip(u, self.limits.u_low, self.limits.u_high)
+
+        return act
+
+    def predicted_half(self, episodes: int, level: float = 0.95) -> np.ndarray:
+        """[M] half-widths of `level` intervals from `episodes` episodes of this design."""
+        if episodes < 2:
+            return np.full(len(self.keys), np.inf)
+        t = stats.t.ppf(0.5 + level / 2, episodes - 1)
+        return t * self.predicted_se / math.sqrt(episodes)
+
+
+def _feedforward(coefficients, frequencies, dt, steps):
+    """tanh of the Fourier series, [T, n_act] in [-1, 1]."""
+    t = jnp.arange(steps) * dt
+    phase = 2 * jnp.pi * t[:, None] * jnp.asarray(frequencies)[None, :]  # [T, H]
+    basis = jnp.concatenate([jnp.sin(phase), jnp.cos(phase)], axis=1)  # [T, 2H]
+    return jnp.tanh(basis @ jnp.asarray(coefficients).T)
+
+
+class Designer:
+    """The compiled pieces for one simulator, one set of fitted parameters and one record
+    length: built once, reused for every design (every round of a sequential design).
+
+    `keys` are candidate effects "<effect>@<target>" (every parameter of each is fitted) of
+    `env_cfg`'s simulator; `steps` the episode length in environment steps of `dt` seconds;
+    `horizon`/`stride` the fit's windows (discover.horizon, discover.stride)."""
+
+    def __init__(
+        self,
+        env_cfg,
+        keys: list[str],
+        dt: float,
+        steps: int,
+        horizon: int = 10,
+        stride: int = 1,
+        harmonics: int = 8,
+        max_frequency: float | None = None,
+    ):
+        if not keys:
+            raise ValueError(
+                "give the candidate effects to design for, e.g. ['coulomb_friction@slider']"
+            )
+        if steps < horizon + 1:
+            raise ValueError(
+                f"steps = {steps} is too short for windows of horizon = {horizon} steps: "
+                "design a longer episode or lower the horizon"
+            )
+        names = sorted({k.split("@", 1)[0] for k in keys})
+        engine = get_engine(env_cfg, dt, names, 0, 0, horizon)
+        self.engine, self.model = engine, engine.model
+        self.sim = self.model.sim
+        by_key = {c.key: c for c in self.model.candidates}
+        unknown = [k for k in keys if k not in by_key]
+        if unknown:
+            raise ValueError(
+                f"no candidate {unknown} on this simulator; candidates of {names}: {sorted(by_key)}"
+            )
+        self.keys = list(keys)
+        self.candidates = [by_key[k] for k in keys]
+        self.slots = np.array([s for c in self.candidates for s in c.slots], np.int32)
+        self.labels = [f"{c.key}.{p}" for c in self.candidates for p in c.params]
+        self.dt, self.steps, self.horizon, self.stride = float(dt), int(steps), horizon, stride
+        nyquist = 0.5 / dt
+        f_max = min(max_frequency or 0.25 * nyquist, nyquist)
+        if harmonics < 1 or not f_max > 0:
+            raise ValueError(f"harmonics = {harmonics} >= 1 and max_frequency > 0 are needed")
+        self.frequencies = f_max * np.arange(1, harmonics + 1) / harmonics
+        self.starts = np.arange(0, steps - horizon + 1, stride, dtype=np.int32)
+        angular = np.zeros(self.sim.n_obs, bool)
+        angular[: self.sim.nq] = self.sim.angular
+        self.angular = angular
+        self._rollout = jax.jit(self._rollout_fn)
+        self._jac = jax.jit(self._jacobian)
+        self._predict = jax.jit(lambda *a: self._parts(*a)[:2])
+        self._step = None  # the optimiser's step, compiled on first use
+
+    # -- parameters -----------------------------------------------------------------------
+
+    def theta(self, estimate: dict | None = None) -> np.ndarray:
+        """theta with every candidate off, but the given estimates {key: {param: value}}."""
+        theta = np.array(self.model.nominal, np.float64)
+        for cand in self.candidates:
+            for p, s in zip(cand.params, cand.slots, strict=True):
+                if estimate and cand.key in estimate and p in estimate[cand.key]:
+                    theta[s] = float(estimate[cand.key][p])
+        return theta
+
+    def reference(self, theta: np.ndarray) -> np.ndarray:
+        """[M] each fitted parameter's size (its estimate, else its nominal, else 1): the
+        information is scaled by it, so A-optimality weighs relative variances."""
+        value = np.abs(theta[self.slots])
+        nominal = np.abs(np.asarray(self.model.nominal, np.float64)[self.slots])
+        return np.where(value > 0, value, np.where(nominal > 0, nominal, 1.0))
+
+    # -- the simulator pieces (traced) --------------------------------------------------------
+
+    def _rollout_fn(self, theta, coefficients, amplitude, middle, gain, x_ref, x0, low, high):
+        """The trajectory the model predicts, [T+1, n_obs], and its controls [T, n_act]."""
+        sim, params = self.sim, self.model.params(theta)
+        ff = _feedforward(coefficients, self.frequencies, self.dt, self.steps) * amplitude + middle
+        state = sim.init(x0[: sim.nq], x0[sim.nq :], params)
+
+        def step(state, u_ff):
+            obs = sim.observe(params, state)
+            dx = obs - x_ref
+            dx = jnp.where(self.angular, jnp.arctan2(jnp.sin(dx), jnp.cos(dx)), dx)
+            u = jnp.clip(u_ff - gain @ dx, low, high)
+            return sim.step(params, state, u), (obs, u)
+
+        last, (obs, u) = jax.lax.scan(step, state, ff)
+        obs = jnp.concatenate([obs, sim.observe(params, last)[None]])
+        return jnp.nan_to_num(obs, nan=1e3, posinf=1e3, neginf=-1e3), u
+
+    def residuals(self, theta, obs, u, weight):
+        """Every window's k-step prediction minus obs, times weight [n_obs], flat."""
+        model, k = self.model, self.horizon
+        params = model.params(theta)
+        empty = jnp.zeros((0, u.shape[-1]), u.dtype)
+
+        def one(s):
+            pred = model.window(params, obs[s], empty, jax.lax.dynamic_slice_in_dim(u, s, k))
+            err = pred - jax.lax.dynamic_slice_in_dim(obs, s + 1, k)
+            return jnp.where(self.angular, jnp.arctan2(jnp.sin(err), jnp.cos(err)), err)
+
+        return (jax.vmap(one)(jnp.asarray(self.starts)) * weight).reshape(-1)
+
+    def _jacobian(self, theta, obs, u, weight):
+        """[R, M] the windows' sensitivities to the fitted parameters (forward mode), the
+        trajectory held as measured (what the fit linearises)."""
+        slots = jnp.asarray(self.slots)
+
+        def res(values):
+            return self.residuals(theta.at[slots].set(values), obs, u, weight)
+
+        return jax.jacfwd(res)(theta[slots])
+
+    def information(self, theta, obs, u, noise) -> np.ndarray:
+        """[M, M] Fisher information of one episode's windows about the fitted parameters
+        (their own units), white measurement noise of std `noise` [n_obs]."""
+        j = self._jac(
+            jnp.asarray(theta, jnp.float32),
+            jnp.asarray(obs, jnp.float32),
+            jnp.asarray(u, jnp.float32),
+            jnp.asarray(1.0 / np.asarray(noise), jnp.float32),
+        )
+        j = np.asarray(j, np.float64)
+        return j.T @ j
+
+    def _sandwich_fn(self, theta, obs, u, noise, scale):
+        """H [M, M] and B [M, (T+1) n_obs] of the fit's linearised estimator on one episode
+        (windows weighted by 1 / scale, as the fit's normalized residuals are) under white
+        measurement noise of std `noise`: the estimate moves by H^-1 B n for noise n."""
+        weight = 1.0 / scale
+        j = self._jacobian(theta, obs, u, weight)
+        h = j.T @ j
+
+        def pulled(n):
+            return j.T @ self.residuals(theta, obs + n * noise, u, weight)
+
+        b = jax.jacrev(pulled)(jnp.zeros_like(obs))
+        return h, b.reshape(len(self.slots), -1)
+
+    def _parts(self, theta, c, amplitude, middle, gain, x_ref, x0s, low, high, noise):
+        """Per episode on average over the initial states x0s [S, n_obs]: H [M, M] and
+        B B^T [M, M] of the fit's estimator; and the trajectories [S, T+1, n_obs], [S, T, n_act]."""
+        obs, u = jax.vmap(
+            lambda x0: self._rollout_fn(theta, c, amplitude, middle, gain, x_ref, x0, low, high)
+        )(x0s)
+        flat = obs.reshape(-1, obs.shape[-1])
+        std = flat.std(axis=0)
+        scale = jnp.maximum(std, 1e-6 * std.max() + 1e-12)  # as the fit's `prepare` does
+        h, b = jax.vmap(lambda o, a: self._sandwich_fn(theta, o, a, noise, scale))(obs, u)
+        meat = jnp.einsum("smp,snp->smn", b, b)
+        return h.mean(0), meat.mean(0), obs, u
+
+    def predicted_se(self, theta, design: Design, x0s, noise) -> np.ndarray:
+        """[M] one episode's standard errors of discovery's fit (measured initial states) of a
+        record of this design from the initial states x0s [S, n_obs] (averaged over them)."""
+        h, meat = self._predict(
+            *_f32(
+                theta,
+                design.coefficients,
+                design.amplitude,
+                design.middle,
+                design.gain,
+                design.x_ref,
+                x0s,
+                design.limits.u_low,
+                design.limits.u_high,
+                noise,
+            )
+        )
+        inv = np.linalg.pinv(np.asarray(h, np.float64))
+        cov = inv @ np.asarray(meat, np.float64) @ inv
+        return np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+    def trajectory(self, theta, design: Design, x0s) -> tuple[np.ndarray, np.ndarray]:
+        """The predicted trajectories [S, T+1, n_obs] and controls [S, T, n_act] from x0s."""
+        obs, u = jax.vmap(self._rollout, in_axes=(None,) * 6 + (0, None, None))(
+            *_f32(
+                theta,
+                design.coefficients,
+                design.amplitude,
+                design.middle,
+                design.gain,
+                design.x_ref,
+                x0s,
+                design.limits.u_low,
+                design.limits.u_high,
+            )
+        )
+        return np.asarray(obs, np.float64), np.asarray(u, np.float64)
+
+    # -- the design -----------------------------------------------------------------------
+
+    def _objective(self, c, theta, noise, ref, pick, amplitude, middle, gain, x_ref, x0s, lim):
+        low, high, q_low, q_high, speed = lim
+        h, meat, obs, _ = self._parts(
+            theta, c, amplitude, middle, gain, x_ref, x0s, low, high, noise
+        )
+        m = h.shape[0]
+        h = h / jnp.outer(ref, ref)  # parameters in units of their size
+        meat = meat / jnp.outer(ref, ref)
+        h = h + RIDGE * (jnp.trace(h) / m + EIVAL_FLOOR) * jnp.eye(m)
+        meat = meat + RIDGE * (jnp.trace(meat) / m + EIVAL_FLOOR) * jnp.eye(m)
+        if pick is None:  # D: log det of the covariance H^-1 B B^T H^-1
+            value = jnp.linalg.slogdet(meat)[1] - 2 * jnp.linalg.slogdet(h)[1]
+        else:  # A (pick all ones) or one parameter's variance (a one-hot pick)
+            inv = jnp.linalg.inv(h)
+            value = jnp.log(jnp.sum(jnp.diag(inv @ meat @ inv) * pick))
+        nq = q_low.shape[0]
+        q, qd = obs[..., :nq], obs[..., nq:]
+        span_q = jnp.where(jnp.isfinite(q_high - q_low), q_high - q_low, 1.0)
+        over_q = jnp.where(jnp.isfinite(q_high), jax.nn.relu(q - q_high), 0.0) + jnp.where(
+            jnp.isfinite(q_low), jax.nn.relu(q_low - q), 0.0
+        )
+        over_v = jnp.where(jnp.isfinite(speed), jax.nn.relu(jnp.abs(qd) - speed), 0.0)
+        span_v = jnp.where(jnp.isfinite(speed), speed, 1.0)
+        penalty = jnp.sum((over_q / span_q) ** 2) + jnp.sum((over_v / span_v) ** 2)
+        return value + PENALTY * penalty / x0s.shape[0]
+
+    def design(
+        self,
+        estimate: dict | None,
+        x0,
+        noise,
+        limits: Limits,
+        criterion: str = "D",
+        iterations: int = 60,
+        learning_rate: float = 0.1,
+        gain=None,
+        x_ref=None,
+        seed: int = 0,
+        start: Design | None = None,
+    ) -> Design:
+        """Optimise the excitation at `estimate` ({key: {param: value}}; missing: the
+        simulator's own value) for episodes from the initial state x0 [n_obs] (or the
+        expectation over initial states [S, n_obs], e.g. draws of the task's); `noise` [n_obs]
+        the measurement noise std (None: 1% of each signal's std along a first trajectory);
+        `gain` [n_act, n_obs] a stabilising feedback about x_ref (default the first x0);
+        `start` a previous design to continue from (a sequential design's last round)."""
+        sim = self.sim
+        x0s = np.atleast_2d(np.asarray(x0, np.float64))
+        if x0s.ndim != 2 or x0s.shape[1] != sim.n_obs:
+            raise ValueError(
+                f"x0 has shape {np.shape(x0)}; give a state [{sim.n_obs}] or states "
+                f"[S, {sim.n_obs}]"
+            )
+        pick = _pick(criterion, self.labels)
+        theta = self.theta(estimate)
+        ref = self.reference(theta)
+        middle = 0.5 * (limits.u_low + limits.u_high)
+        amplitude = 0.5 * (limits.u_high - limits.u_low)
+        gain = np.zeros((sim.n_act, sim.n_obs)) if gain is None else np.asarray(gain, np.float64)
+        if gain.shape != (sim.n_act, sim.n_obs):
+            raise ValueError(
+                f"gain has shape {gain.shape}; it must be [n_act, n_obs] = {[sim.n_act, sim.n_obs]}"
+            )
+        x_ref = x0s[0] if x_ref is None else np.asarray(x_ref, np.float64)
+        n_coef = 2 * len(self.frequencies)
+        if start is not None:
+            c0 = np.asarray(start.coefficients, np.float64)
+        else:
+            rng = np.random.default_rng(seed)
+            c0 = rng.normal(0.0, 1.0 / math.sqrt(len(self.frequencies)), (sim.n_act, n_coef))
+        lim = (limits.u_low, limits.u_high, limits.q_low, limits.q_high, limits.max_speed)
+        if noise is None:
+            obs, _ = self._rollout(
+                *_f32(theta, c0, amplitude, middle, gain, x_ref, x0s[0], *lim[:2])
+            )
+            noise = 0.01 * np.maximum(np.asarray(obs).std(axis=0), 1e-6)
+        noise = np.maximum(np.asarray(noise, np.float64), 1e-9)
+        statics = _f32(theta, noise, ref, amplitude, middle, gain, x_ref, x0s)
+        lim32 = _f32(*lim)
+        pick32 = None if pick is None else jnp.asarray(pick, jnp.float32)
+        optimiser = optax.adam(learning_rate)
+        if self._step is None:
+
+            def step(c, opt_state, *args):
+                value, grad = jax.value_and_grad(self._objective)(c, *args)
+                updates, opt_state = optimiser.update(jnp.nan_to_num(grad), opt_state)
+                return optax.apply_updates(c, updates), opt_state, value
+
+            self._step = jax.jit(step)
+        c = jnp.asarray(c0, jnp.float32)
+        opt_state = optimiser.init(c)
+        history, best, best_value = [], c, np.inf
+        for _ in range(int(iterations)):
+            c_new, opt_state, value = self._step(
+                c, opt_state, *statics[:3], pick32, *statics[3:], lim32
+            )
+            value = float(value)
+            history.append(value)
+            if np.isfinite(value) and value < best_value:  # the value is c's, before the step
+                best, best_value = c, value
+            c = c_new
+        design = Design(
+            coefficients=np.asarray(best, np.float64),
+            amplitude=amplitude,
+            middle=middle,
+            frequencies=self.frequencies,
+            dt=self.dt,
+            steps=self.steps,
+            gain=gain,
+            x_ref=x_ref,
+            angular=self.angular,
+            limits=limits,
+            keys=list(self.labels),
+            predicted_se=np.full(len(self.slots), np.inf),
+            trajectory=np.zeros((self.steps + 1, sim.n_obs)),
+            planned_controls=np.zeros((self.steps, sim.n_act)),
+            criterion=criterion,
+            history=history,
+        )
+        return self.finish(design, theta, x0s, noise)
+
+    def finish(self, design: Design, theta, x0s, noise, shrink: float = 0.8, tries: int = 30):
+        """Shrink the feedforward's swing until the predicted trajectories keep every limit,
+        then fill in the trajectory (from the first initial state) and the predicted
+        standard errors."""
+        x0s = np.atleast_2d(np.asarray(x0s, np.float64))
+        for _ in range(tries):
+            obs, u = self.trajectory(theta, design, x0s)
+            bad = design.limits.violation(obs, u)
+            if max(bad["joint"], bad["speed"]) <= 0:
+                break
+            design.amplitude = design.amplitude * shrink
+        else:
+            raise ValueError(
+                f"no excitation keeps the limits from these initial states (excess {bad}): "
+                "a state starts outside them or the feedback cannot hold the system; "
+                "widen the limits or give a stabilising feedback"
+            )
+        design.trajectory, design.planned_controls = obs[0], u[0]
+        design.predicted_se = self.predicted_se(theta, design, x0s, noise)
+        return design
+
+
+def _f32(*xs):
+    return tuple(jnp.asarray(x, jnp.float32) for x in xs)
+
+
+def _pick(criterion: str, labels: list[str]):
+    """None for D; the weights over the parameters' variances otherwise."""
+    if criterion == "D":
+        return None
+    if criterion == "A":
+        return np.ones(len(labels))
+    if criterion in labels:
+        return (np.array(labels) == criterion).astype(np.float64)
+    raise ValueError(
+        f"criterion {criterion!r} is unknown: choose 'D' (determinant), 'A' (trace) or one "
+        f"fitted parameter of {labels}"
+    )
+
+
+def lqr_gain(designer: Designer, estimate: dict | None, x_ref, u_ref=None, q=None, r=None):
+    """[n_act, n_obs] the discrete LQR gain of the simulator linearised at (x_ref, u_ref) (an
+    equilibrium: pole down or up), at the estimate with the fitted candidates' parameters
+    (smooth laws only: a friction's tanh at rest is not linearised, it is left off). Weights
+    q [n_obs] (default 1) and r [n_act] (default 1 per squared half range)."""
+    sim = designer.sim
+    theta = designer.theta(estimate)
+    theta[designer.slots] = np.asarray(designer.model.nominal)[designer.slots]
+    params = designer.model.params(jnp.asarray(theta, jnp.float32))
+    x_ref = jnp.asarray(x_ref, jnp.float32)
+    u_ref = jnp.zeros(sim.n_act, jnp.float32) if u_ref is None else jnp.asarray(u_ref, jnp.float32)
+
+    def f(x, u):
+        state = sim.init(x[: sim.nq], x[sim.nq :], params)
+        return sim.observe(params, sim.step(params, state, u))
+
+    a = np.asarray(jax.jacfwd(f, argnums=0)(x_ref, u_ref), np.float64)
+    b = np.asarray(jax.jacfwd(f, argnums=1)(x_ref, u_ref), np.float64)
+    half = 0.5 * np.ptp(np.asarray(sim.ctrl_range, np.float64), axis=1)
+    qm = np.diag(np.ones(sim.n_obs) if q is None else np.asarray(q, np.float64))
+    rm = np.diag(1.0 / half**2 if r is None else np.asarray(r, np.float64))
+    p = scipy.linalg.solve_discrete_are(a, b, qm, rm)
+    return np.linalg.solve(rm + b.T @ p @ b, b.T @ p @ a)
+
+
+# -- fitting a record, as discovery's fit does, with one compiled program ------------------
+
+
+class WindowFit:
+    """Discovery's fit (`Engine.fit`, measured initial states) of the designer's parameters on
+    up to `max_episodes` episodes of `steps` steps: the arrays are padded to that many, so one
+    program serves every amount of data. Returns estimates and 95% half-widths
+    (`confidence_intervals`: noise part and law-mismatch part)."""
+
+    def __init__(self, designer: Designer, max_episodes: int, iterations: int = 30):
+        self.d, self.max_episodes, self.iterations = designer, int(max_episodes), iterations
+
+    def data(self, obs: np.ndarray, acts: np.ndarray):
+        e, t1, n_obs = obs.shape
+        if e > self.max_episodes or t1 != self.d.steps + 1:
+            raise ValueError(
+                f"{e} episodes of {t1 - 1} steps: this fit takes at most {self.max_episodes} "
+                f"of {self.d.steps}"
+            )
+        pad = self.max_episodes - e
+        obs_p = np.concatenate([obs, np.zeros((pad, t1, n_obs))])
+        acts_p = np.concatenate([acts, np.zeros((pad, t1 - 1, acts.shape[-1]))])
+        starts = self.d.starts
+        episode = np.repeat(np.arange(self.max_episodes), len(starts)).astype(np.int32)
+        start = np.tile(starts, self.max_episodes).astype(np.int32)
+        mask = (episode < e).astype(np.float32)
+        flat = obs.reshape(-1, n_obs)
+        std = flat.std(axis=0)
+        scale = np.maximum(std, 1e-6 * std.max() + 1e-12)
+        return tuple(
+            jnp.asarray(x, dt)
+            for x, dt in (
+                (obs_p, jnp.float32),
+                (acts_p, jnp.float32),
+                (episode, jnp.int32),
+                (start, jnp.int32),
+                (mask, jnp.float32),
+                (scale, jnp.float32),
+            )
+        ), scale
+
+    def __call__(self, obs, acts, theta0, noise=None) -> dict:
+        from hds.discover.data import noise_level
+        from hds.discover.fit import confidence_intervals
+
+        d = self.d
+        data, scale = self.data(np.asarray(obs, np.float64), np.asarray(acts, np.float64))
+        slots = d.slots[None, :]
+        delay = np.zeros((1, d.sim.n_act), np.int32)
+        theta, loss, h, g, _, vh, vg = d.engine.fit(
+            np.asarray(theta0, np.float64)[None], slots, delay, data, self.iterations
+        )
+        noise = noise_level(np.asarray(obs, np.float64)) if noise is None else noise
+        floor2 = float(np.mean((np.asarray(noise) / scale) ** 2))
+        count = float(len(obs) * len(d.starts) * d.horizon * d.sim.n_obs)
+        misfit = max(float(loss[0]) - floor2, 0.0) * count
+        values = np.asarray(theta[0], np.float64)[d.slots]
+        full = confidence_intervals(values, h[0], g[0], misfit, (vh[0], vg[0]))
+        return {
+            "values": values,
+            "half": full.half,  # noise and law mismatch: what discovery reports
+            "noise_half": full.half - full.bias,  # the noise part alone
+            "theta": np.asarray(theta[0], np.float64),
+        }
+
+
+def designed_controls(
+    env_cfg, discover_cfg, dt: float, steps: int, episodes: int, scale, x0s, data=None
+):
+    """[E, T, n_act] open-loop excitation for a round of the loop (discover.excitation =
+    designed): designed on `env_cfg`, the simulator corrected so far (its effects hold the
+    current estimates), for every candidate of discover.design_effects on its places, from the
+    initial states x0s [S, n_obs] the episodes start from, within `scale` of the actuators'
+    half range; the noise measured on `data` (a Dataset recorded on the plant), else assumed."""
+    from hds.discover.data import noise_level
+    from hds.discover.workflow import fit_backend, with_backend
+
+    env_cfg = with_backend(env_cfg, fit_backend(env_cfg, discover_cfg.backend))
+    names = list(discover_cfg.design_effects)
+    probe = get_engine(env_cfg, dt, names, 0, 0, discover_cfg.horizon).model
+    keys = [c.key for c in probe.candidates if not c.shifts_actions]
+    designer = Designer(env_cfg, keys, dt, steps, discover_cfg.horizon, discover_cfg.stride)
+    noise = None if data is None else noise_level(np.asarray(data.obs, np.float64))
+    limits = limits_of(env_cfg, float(scale))
+    design = designer.design(None, x0s, noise, limits, seed=discover_cfg.seed)
+    return np.repeat(design.controls()[None], episodes, axis=0)

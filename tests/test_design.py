@@ -1,0 +1,155 @@
+"""hds.discover.design: the fit's sensitivities through the simulator, the limits a design keeps,
+and a designed record identifying friction better than random steps of the same bounds."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hds.data import collect
+from hds.data.excitation import random_steps
+from hds.discover.design import Designer, WindowFit, limits_of, lqr_gain
+
+FRICTION = "coulomb_friction@slider"
+DOWN = np.array([0.0, np.pi, 0.0, 0.0])  # cart centred, pole hanging, at rest
+
+
+@pytest.fixture(scope="module")
+def analytic_cfg(cartpole_cfg):
+    return dataclasses.replace(cartpole_cfg, backend="analytic", effects=[])
+
+
+@pytest.fixture(scope="module")
+def small(analytic_cfg):
+    """Friction and gain on the cart, 16-step episodes, 3-step windows every 2 steps."""
+    return Designer(
+        analytic_cfg, [FRICTION, "actuator_gain@slide"], 0.04, 16, horizon=3, stride=2, harmonics=3
+    )
+
+
+def test_information_matches_finite_differences(small):
+    """J^T Sigma^-1 J of the windows, J forward mode through the simulator, against central
+    differences of the same residuals (float32: a step of 1% of each parameter)."""
+    theta = small.theta({FRICTION: {"force": 30.0}, "actuator_gain@slide": {"gain": 0.9}})
+    rng = np.random.default_rng(0)
+    u = rng.uniform(-2.0, 2.0, (small.steps, 1))
+    obs = [DOWN]
+    sim, params = small.sim, small.model.params(jnp.asarray(theta, jnp.float32))
+    state = sim.init(jnp.asarray(DOWN[:2]), jnp.asarray(DOWN[2:]), params)
+    for t in range(small.steps):
+        state = sim.step(params, state, jnp.asarray(u[t], jnp.float32))
+        obs.append(np.asarray(sim.observe(params, state)))
+    obs = np.asarray(obs)
+    obs = obs + rng.normal(0, 0.01, obs.shape)  # a record the model does not fit exactly
+    noise = np.array([1e-3, 2e-3, 1e-2, 2e-2])
+    info = small.information(theta, obs, u, noise)
+
+    def res(th):
+        r = small.residuals(
+            jnp.asarray(th, jnp.float32),
+            jnp.asarray(obs, jnp.float32),
+            jnp.asarray(u, jnp.float32),
+            jnp.asarray(1.0 / noise, jnp.float32),
+        )
+        return np.asarray(r, np.float64)
+
+    cols = []
+    for s in small.slots:
+        h = 0.01 * abs(theta[s])
+        up, down = theta.copy(), theta.copy()
+        up[s] += h
+        down[s] -= h
+        cols.append((res(up) - res(down)) / (2 * h))
+    j = np.stack(cols, axis=1)
+    expected = j.T @ j
+    assert np.all(np.diag(info) > 0)
+    np.testing.assert_allclose(info, expected, rtol=0.03, atol=1e-3 * np.abs(expected).max())
+
+
+@pytest.mark.slow  # compiles the design's nested derivatives: about a minute of CPU
+def test_design_keeps_every_limit(small, analytic_cfg):
+    """Half the control range, a speed bound the open-loop optimum would break and the rail's
+    ends pulled in: the designed trajectory keeps them all; a design with an LQR feedback too."""
+    limits = limits_of(analytic_cfg, amplitude=0.5, max_speed=[0.4, 20.0], joint_margin=0.49)
+    assert limits.q_high[0] == pytest.approx(0.2) and limits.u_high[0] == pytest.approx(1.5)
+    estimate = {FRICTION: {"force": 20.0}}
+    design = small.design(estimate, DOWN, None, limits, iterations=4)
+    obs, u = design.trajectory, design.planned_controls
+    assert np.all(u <= limits.u_high + 1e-6) and np.all(u >= limits.u_low - 1e-6)
+    assert np.all(np.abs(obs[:, 2:]) <= limits.max_speed + 1e-6)
+    assert np.all(obs[:, :2] <= limits.q_high) and np.all(obs[:, :2] >= limits.q_low)
+    assert np.all(np.isfinite(design.predicted_se)) and np.all(design.predicted_se > 0)
+    assert design.limits.violation(obs, u) == {"control": 0.0, "joint": 0.0, "speed": 0.0}
+    # the open-loop swing was shrunk for the speed bound: it is not the whole bound
+    assert np.all(design.amplitude <= 0.5 * (limits.u_high - limits.u_low) + 1e-9)
+
+    gain = lqr_gain(small, estimate, DOWN)
+    assert gain.shape == (1, 4) and np.all(np.isfinite(gain))
+    closed = small.design(estimate, DOWN, None, limits, iterations=2, gain=gain)
+    assert closed.limits.violation(closed.trajectory, closed.planned_controls)["speed"] == 0.0
+    policy = closed.controller()
+    u0 = policy(DOWN[None] + 0.1)
+    assert u0.shape == (1, 1) and limits.u_low[0] <= u0[0, 0] <= limits.u_high[0]
+
+
+def test_bad_input_fails_clearly(small, analytic_cfg):
+    with pytest.raises(ValueError, match="criterion"):
+        small.design(None, DOWN, None, limits_of(analytic_cfg), criterion="E")
+    with pytest.raises(ValueError, match="no candidate"):
+        Designer(analytic_cfg, ["coulomb_friction@nowhere"], 0.04, 16, horizon=3)
+    with pytest.raises(ValueError, match="amplitude"):
+        limits_of(analytic_cfg, amplitude=0.0)
+
+
+@pytest.mark.slow
+def test_designed_record_narrower_than_random_steps(analytic_cfg):
+    """A toy friction plant (the simulator's own law: no law mismatch, only sensor noise): a
+    designed record of 4 episodes gives the fit a narrower interval on the friction than
+    random steps of the same length and amplitude bound, and about the predicted one."""
+    from hds.envs import make_env
+    from hds.real.brax_plant import BraxPlant
+
+    steps, episodes, amplitude, force = 50, 4, 0.5, 60.0
+    noise = np.array([1e-3, 2e-3, 1e-2, 2e-2])
+    designer = Designer(analytic_cfg, [FRICTION], 0.04, steps, horizon=10, harmonics=6)
+    fitter = WindowFit(designer, episodes)
+    env = make_env(
+        analytic_cfg,
+        effects=[{"name": "coulomb_friction", "target": "slider", "params": {"force": force}}],
+    )
+    plant = BraxPlant(env)
+    limits = limits_of(analytic_cfg, amplitude)
+    design = designer.design({FRICTION: {"force": force}}, DOWN, noise, limits, iterations=40)
+    q0, qd0 = np.tile(DOWN[:2], (episodes, 1)), np.zeros((episodes, 2))
+    theta0 = designer.theta({FRICTION: {"force": 10.0}})
+    rng = np.random.default_rng(0)
+    ctrl = np.asarray(env.sim.ctrl_range, np.float64)
+
+    def width(u):
+        ds = collect(plant, env.task, q0, qd0, u)
+        obs = ds.obs + rng.normal(size=ds.obs.shape) * noise
+        fit = fitter(obs, ds.actions, theta0, noise=noise)
+        assert abs(fit["values"][0] - force) < 0.05 * force
+        return float(fit["noise_half"][0])
+
+    designed = width(np.repeat(design.controls()[None], episodes, axis=0))
+    steps_u = random_steps(0, episodes, steps, 0.04, ctrl, scale=amplitude)
+    assert np.abs(steps_u).max() <= amplitude * 3.0 + 1e-9
+    steps_width = width(steps_u)
+    assert designed < steps_width
+    predicted = float(design.predicted_half(episodes)[0])
+    assert 0.5 < predicted / designed < 2.0
+
+
+def test_excitation_key_is_checked():
+    from hds.config import DiscoverConfig
+
+    assert DiscoverConfig().excitation == "steps"  # the old numbers stay the default
+    with pytest.raises(ValueError, match="discover.excitation"):
+        DiscoverConfig(excitation="chirp").check()
+    with pytest.raises(ValueError, match="design_effects"):
+        DiscoverConfig(design_effects=["no_such_effect"]).check()
+    DiscoverConfig(excitation="designed").check()
