@@ -1,5 +1,6 @@
 """Hydra callbacks: before a run, check that its directory can be written; after a multirun,
-gather the jobs' summaries into the sweep directory, and exit non-zero when a job failed."""
+gather the jobs' summaries into the sweep directory, tell what the sweep found (hds.story: a
+few lines per method, and a figure), and exit non-zero when a job failed."""
 
 from __future__ import annotations
 
@@ -9,7 +10,6 @@ from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
-from hds.logger import print_table
 from hds.rundir import check_writable
 from hds.utils.io import atomic_write_json, read_json
 
@@ -37,7 +37,18 @@ class SweepSummary(Callback):
         summary = gather(sweep_dir)
         if summary["rows"]:
             atomic_write_json(sweep_dir / "summary.json", summary)
-            print_table(summary["rows"], title=f"{config.name}: every job of {sweep_dir}")
+            # the sweep's last words: a few lines per method, not a row per seed (those are in
+            # summary.json and `python -m hds.report`'s report.csv)
+            from hds.report import sweep_story
+
+            text, figure = sweep_story(sweep_dir)
+            jobs = len(summary["jobs"])
+            print(f"\n{config.name}: {jobs} job{'s' if jobs != 1 else ''} in {sweep_dir}\n")
+            print(text)
+            print(
+                f"\nfigure: {figure}\nevery seed's row: {sweep_dir / 'summary.json'}; "
+                f"the full report: python -m hds.report {sweep_dir}"
+            )
         if failed := summary["failed_jobs"]:
             # a finished job refused on a restart (another configuration) has both files
             total = len({*failed, *(j["job"] for j in summary["jobs"])})

@@ -36,7 +36,7 @@ from hds.animate import animate_episodes
 from hds.checkpoint import Checkpoints
 from hds.config import Config, env_config
 from hds.data import concatenate, save
-from hds.effects.apply import place
+from hds.effects.apply import applied, place
 from hds.envs import Env, make_env
 from hds.evaluation import Evaluator, diverged, gap_rows
 from hds.logger import RunLogger, print_table
@@ -446,6 +446,8 @@ def run(cfg: Config, out_dir: str | Path | None = None, hooks: Hooks | None = No
             "plant": cfg.real.plant,
             "name": cfg.real.label(),
             "friction_gap": cfg.real.friction_gap,
+            # what the plant applies (friction scaled): the truth discovery is judged against
+            "effects": applied(cfg.real.effects, cfg.real.friction_gap),
         },
     )
     for method, method_env, method_effects, method_model in methods:

@@ -247,6 +247,14 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
             assert [(e.name, e.target) for e in sites] == [("coulomb_friction", "slider")]
     assert gaps["corrected"] < 0.25 * gaps["nominal"], gaps
     assert gaps["real"] < 0.25 * gaps["nominal"], gaps
+    # the story of the three runs names discovery's friction beside the plant's 20 N
+    from hds.report import sweep_story
+
+    text, _ = sweep_story(tmp_path)
+    (line,) = [x for x in text.splitlines() if x.startswith("  discovery named")]
+    assert line.startswith("  discovery named coulomb_friction@slider force ")
+    assert line.endswith("(plant: 20)")
+    assert text.index("pods+corrected (2 seeds)") < text.index(line)
 
 
 @pytest.mark.slow  # two rounds of recording and a discovery: ~1 min (make test-slow)

@@ -113,6 +113,27 @@ def as_spec(spec) -> EffectSpec:
     return EffectSpec(spec.name, spec.target, dict(spec.params))
 
 
+def at_friction_gap(name: str, values: dict, friction_gap: float) -> dict:
+    """An effect's parameters with its friction magnitude (if it has one) scaled by
+    `friction_gap` (real.friction_gap): the values a plant applies."""
+    friction = effect_type(name).friction
+    if not friction or friction not in values:
+        return dict(values)
+    return {**values, friction: values[friction] * friction_gap}
+
+
+def applied(specs, friction_gap: float = 1.0) -> list[dict]:
+    """Effect specs as JSON with the values a plant or simulator applies: every parameter
+    (defaults filled in), friction magnitudes scaled by `friction_gap`."""
+    out = []
+    for spec in map(as_spec, specs):
+        values = check_params(spec.name, dict(spec.params), where=spec.key)
+        values = at_friction_gap(spec.name, values, friction_gap)
+        params = {k: v if isinstance(v, int) else float(v) for k, v in values.items()}
+        out.append({"name": spec.name, "target": spec.target, "params": params})
+    return out
+
+
 def check(specs, names: dict[str, dict[str, int]]) -> list[tuple[EffectSpec, dict[str, float]]]:
     """Check effect specs against a model's names: each effect exists, acts on a target of its
     kind that the model has, is given once and has valid parameters. Returns (spec, complete
@@ -149,8 +170,7 @@ def place(
     sites, params = [], []
     for spec, values in check(specs, names):
         effect = effect_type(spec.name)
-        if effect.friction:
-            values[effect.friction] *= friction_gap
+        values = at_friction_gap(spec.name, values, friction_gap)
         index = names[effect.target_kind][spec.target]
         discrete = tuple((p.name, int(values.pop(p.name))) for p in effect.params if p.discrete)
         mobility = 0.0
