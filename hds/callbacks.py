@@ -37,16 +37,19 @@ class SweepSummary(Callback):
         summary = gather(sweep_dir)
         if summary["rows"]:
             atomic_write_json(sweep_dir / "summary.json", summary)
+        loops = sorted(sweep_dir.glob("*/loop.json"))  # hds.loop's jobs: rows in loop.json
+        if summary["rows"] or loops:
             # the sweep's last words: a few lines per method, not a row per seed (those are in
-            # summary.json and `python -m hds.report`'s report.csv)
+            # summary.json, loop.json and `python -m hds.report`'s report.csv)
             from hds.report import sweep_story
 
             text, figure = sweep_story(sweep_dir)
-            jobs = len(summary["jobs"])
+            jobs = len(summary["jobs"]) + len(loops)
+            rows_in = sweep_dir / "summary.json" if summary["rows"] else loops[0].parent
             print(f"\n{config.name}: {jobs} job{'s' if jobs != 1 else ''} in {sweep_dir}\n")
             print(text)
             print(
-                f"\nfigure: {figure}\nevery seed's row: {sweep_dir / 'summary.json'}; "
+                f"\nfigure: {figure}\nevery seed's row: {rows_in}; "
                 f"the full report: python -m hds.report {sweep_dir}"
             )
         if failed := summary["failed_jobs"]:

@@ -136,7 +136,7 @@ def discoveries(root: Path, rows: list[dict], found_loops: list[tuple] = ()) -> 
     for loop_dir, cfg, rounds in found_loops:
         truth = applied(cfg.real.effects, cfg.real.friction_gap)
         for report in rounds:
-            if "effects" not in report:  # round 0: the simulator as given
+            if not report.get("round"):  # round 0: the simulator as given, nothing named
                 continue
             for label in dict.fromkeys(f"{method_name(cfg)}+{r['method']}" for r in report["rows"]):
                 found.append(
