@@ -67,3 +67,65 @@ def test_mujoco_renders_frames_where_opengl_works(tmp_path, fresh_backends):
 def test_the_renderer_is_chosen_by_name():
     with pytest.raises(ValueError, match="renderer='vtk'"):
         animate(*episodes(2), NAMES, 0.1, "unused.gif", renderer="vtk")
+
+
+def test_the_discovery_report_is_logged_to_wandb_as_media(tmp_path):
+    """A page (report.html), each figure as an image, the named effects and their
+    correlations as tables: not markdown in a <pre>."""
+    import json
+    import time
+
+    import matplotlib.pyplot as plt
+
+    from hds.logger import RunLogger
+    from hds.plots import save
+    from hds.utils.html import markdown_page
+    from tests.conftest import make_config, wandb_records
+
+    report = tmp_path / "discovery"
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [1, 0])
+    save(fig, report / "plots" / "errors_heldout.png")
+    text = "# Report\n\n| effect |\n| --- |\n| coulomb |\n\n![e](plots/errors_heldout.png)\n"
+    (report / "report.html").write_text(markdown_page(text, report, "report"))
+    effect = {
+        "name": "coulomb_friction",
+        "target": "slider",
+        "params": {"force": 20.4},
+        "ci95": {"force": [18.8, 22.1]},
+        "explained_fraction": 0.97,
+    }
+    pair = {"a": "coulomb_friction@slider.force", "b": "x.y", "rho": -0.4, "inseparable": False}
+    (report / "report.json").write_text(
+        json.dumps({"missing_effects": [effect], "correlations": [pair]})
+    )
+    cfg = make_config("logger=wandb", "logger.mode=offline")
+    logger = RunLogger(cfg, tmp_path, "pods_cl+corrected", cfg.runs(), console=False)
+    logger.start(0)
+    logger.log_discovery("discovery_report", report)
+    logger.close()
+
+    def logged() -> dict:  # {key: {field: value}}: W&B records media as an item per field
+        out = {}
+        for records in wandb_records(tmp_path).values():
+            for r in records:
+                for item in r.history.item if r.HasField("history") else ():
+                    if len(item.nested_key) == 2:
+                        key, field = item.nested_key
+                        out.setdefault(key, {})[field] = json.loads(item.value_json)
+        return out
+
+    deadline = time.monotonic() + 60  # W&B's service writes the offline file after finish()
+    while len(found := logged()) < 4 and time.monotonic() < deadline:
+        time.sleep(0.5)
+    logged = found
+    assert logged["discovery_report"]["_type"] == "html-file"
+    assert logged["discovery_report/errors_heldout"]["_type"] == "image-file"
+    table = logged["discovery_report/named_effects"]
+    assert table["_type"] == "table-file" and table["nrows"] == 1
+    files = next(tmp_path.glob("wandb/offline-run-*/files"))
+    rows = json.loads((files / table["path"]).read_text())["data"]
+    assert rows == [["coulomb_friction", "slider", "force", 20.4, 18.8, 22.1, 0.97]]
+    assert logged["discovery_report/correlations"]["nrows"] == 1
+    page = (files / logged["discovery_report"]["path"]).read_text()
+    assert "<td>coulomb</td>" in page and "data:image/png;base64," in page
