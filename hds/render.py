@@ -43,9 +43,9 @@ def camera(points: np.ndarray, fovy: float = 45.0) -> dict:
     slightly from above, far enough back for the box's larger side and a margin."""
     lo, hi = points.min(axis=0), points.max(axis=0)
     centre = (lo + hi) / 2
-    span = max(float(hi[0] - lo[0]) * HEIGHT / WIDTH, float(hi[2] - lo[2]), 0.5)
-    distance = 0.65 * span / np.tan(np.radians(fovy) / 2) + float(hi[1] - lo[1])
-    return {"lookat": centre, "distance": distance, "azimuth": 90.0, "elevation": -12.0}
+    span = max(float(hi[0] - lo[0]) * HEIGHT / WIDTH, float(hi[2] - lo[2]), 0.2)
+    distance = 0.6 * span / np.tan(np.radians(fovy) / 2) + 0.5 * float(hi[1] - lo[1])
+    return {"lookat": centre, "distance": distance, "azimuth": 90.0, "elevation": -15.0}
 
 
 def render_gif(
