@@ -80,6 +80,12 @@ def cancelled_then_resumed(out: Path) -> None:
             )
         time.sleep(0.5)
     cancelled = array_tasks(sweep)[1]
+    # cancelled while still pending, an array task shows in sacct only as <array>_[<task>],
+    # which submitit never matches: the sweep would wait forever. Cancel it once it runs.
+    while slurm_state(cancelled) != "RUNNING":
+        if proc.poll() is not None or time.monotonic() > deadline:
+            check(False, f"{cancelled} started within 300 s", (out / "sweep_first.log").read_text())
+        time.sleep(0.5)
     subprocess.run(["scancel", cancelled], check=True)
     print(f"scancel {cancelled}", flush=True)
     rc, text = finish(proc, out / "sweep_first.log")
