@@ -8,7 +8,7 @@ export WANDB_SILENT ?= true
 export XLA_PYTHON_CLIENT_PREALLOCATE ?= false
 export NO_MKDOCS_2_WARNING ?= 1
 
-.PHONY: install run test test-install test-slow docs bench lint sweep study pendulum clean
+.PHONY: install run test test-install test-slow test-slurm docs bench lint sweep study pendulum clean
 
 $(STAMP): pyproject.toml
 	@test -d $(VENV) || $(PY) -m venv $(VENV)
@@ -52,6 +52,13 @@ $(DOCS_STAMP): pyproject.toml $(STAMP)
 
 docs: $(DOCS_STAMP)
 	$(BIN)/mkdocs build --strict --quiet
+
+# A single-node SLURM cluster on this machine (root; installs slurm-wlm, slurmdbd, munge and
+# mariadb-server with apt-get), sweeps through hydra/launcher=slurm on it, the cluster stopped
+# after (docs/cluster.md: ~11 min on 2 cores, so not in CI).
+test-slurm: $(STAMP)
+	bash tests/slurm/up.sh
+	$(BIN)/python tests/slurm/check.py; rc=$$?; bash tests/slurm/down.sh; exit $$rc
 
 bench: $(STAMP)
 	$(BIN)/python -m bench.run

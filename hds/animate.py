@@ -1,4 +1,6 @@
-"""A side-by-side animation (GIF) of one policy on the simulator and on the real plant."""
+"""A side-by-side animation (GIF) of one policy on the simulator and on the real plant: rendered
+by MuJoCo's own renderer where OpenGL works headless (EGL or OSMesa: hds.render), else drawn as
+a stick figure of the model's geoms with matplotlib."""
 
 from __future__ import annotations
 
@@ -18,12 +20,17 @@ from hds.envs.system import ASSETS, resolve_xml, state_names  # noqa: E402
 def model_of(names: tuple[str, ...], xml: str | None = None) -> mujoco.MjModel:
     """The MJCF to draw: `xml` when given, else the shipped asset whose observation names are
     `names` (the names are the data contract)."""
+    return mujoco.MjModel.from_xml_path(str(model_path(names, xml)))
+
+
+def model_path(names: tuple[str, ...], xml: str | None = None) -> Path:
+    """The file of `model_of`'s MJCF."""
     if xml is not None:
-        return mujoco.MjModel.from_xml_path(str(resolve_xml(xml)))
+        return Path(resolve_xml(xml))
     for path in sorted(ASSETS.glob("*.xml")):
         model = mujoco.MjModel.from_xml_path(str(path))
         if tuple(state_names(model)) == tuple(names):
-            return model
+            return path
     raise ValueError(
         f"no shipped MJCF has the observations {list(names)}: pass xml= (the simulator's "
         "sim.xml) to draw a custom model"
@@ -66,10 +73,25 @@ def animate(
     path: Path,
     titles=("simulator", "real plant"),
     xml: str | None = None,
+    renderer: str = "auto",
 ) -> Path:
-    """A GIF of two episodes side by side, drawing the model's kinematic tree (its geoms)."""
-    model = model_of(tuple(names), xml)
-    tracks = [project(geom_segments(model, o, tuple(names))) for o in (sim_obs, real_obs)]
+    """A GIF of two episodes side by side: rendered by MuJoCo (`renderer` "auto": where OpenGL
+    works headless, hds.render), else (or with "stick") the model's kinematic tree (its geoms)
+    drawn with matplotlib."""
+    if renderer not in ("auto", "stick"):
+        raise ValueError(f"renderer={renderer!r}: choose 'auto' (MuJoCo's, else) or 'stick'")
+    xml_path = model_path(tuple(names), xml)
+    model = mujoco.MjModel.from_xml_path(str(xml_path))
+    segments = [geom_segments(model, o, tuple(names)) for o in (sim_obs, real_obs)]
+    if renderer == "auto":
+        from hds.render import camera, render_gif
+
+        columns = [list(names).index(n) for n in state_names(model)[: model.nq]]
+        qpos = [np.asarray(o)[:, columns] for o in (sim_obs, real_obs)]
+        view = camera(np.concatenate([s.reshape(-1, 3) for s in segments]))
+        if render_gif(xml_path, qpos, titles, dt, path, view) is not None:
+            return path
+    tracks = [project(s) for s in segments]
     points = np.concatenate([t.reshape(-1, 2) for t in tracks])
     lo, hi = points.min(axis=0) - 0.2, points.max(axis=0) + 0.2
     fig, axes = plt.subplots(1, 2, figsize=(8, 3.2))

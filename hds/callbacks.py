@@ -1,5 +1,6 @@
 """Hydra callbacks: before a run, check that its directory can be written; after a multirun,
-gather the jobs' summaries into the sweep directory, and exit non-zero when a job failed."""
+gather the jobs' summaries into the sweep directory, tell what the sweep found (hds.story: a
+few lines per method, and a figure), and exit non-zero when a job failed."""
 
 from __future__ import annotations
 
@@ -9,7 +10,6 @@ from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
-from hds.logger import print_table
 from hds.rundir import check_writable, optimizing
 from hds.utils.io import atomic_write_json, read_json
 
@@ -31,13 +31,35 @@ def gather(sweep_dir: Path) -> dict:
     return {"rows": rows, "jobs": jobs, "failed_jobs": failed}
 
 
+def tell(name: str, sweep_dir: Path, jobs: int, loops: list[Path]) -> None:
+    """The sweep's last words: a few lines per method (hds.story), not a row per seed (those
+    are in summary.json, loop.json and `python -m hds.report`'s report.csv), and its figure."""
+    from hds.report import sweep_story
+
+    try:
+        text, figure = sweep_story(sweep_dir)
+    except Exception as err:  # a convenience: it must not hide the jobs' exit code below
+        log.warning("could not summarize %s: %s: %s", sweep_dir, type(err).__name__, err)
+        return
+    rows_in = sweep_dir / "summary.json"
+    rows_in = rows_in if rows_in.is_file() else loops[0].parent
+    print(f"\n{name}: {jobs} job{'s' if jobs != 1 else ''} in {sweep_dir}\n")
+    print(text)
+    print(
+        f"\nfigure: {figure}\nevery seed's row: {rows_in}; "
+        f"the full report: python -m hds.report {sweep_dir}"
+    )
+
+
 class SweepSummary(Callback):
     def on_multirun_end(self, config, **kwargs) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
         summary = gather(sweep_dir)
         if summary["rows"]:
             atomic_write_json(sweep_dir / "summary.json", summary)
-            print_table(summary["rows"], title=f"{config.name}: every job of {sweep_dir}")
+        loops = sorted(sweep_dir.glob("*/loop.json"))  # hds.loop's jobs: rows in loop.json
+        if summary["rows"] or loops:
+            tell(config.name, sweep_dir, len(summary["jobs"]) + len(loops), loops)
         if failed := summary["failed_jobs"]:
             # a finished job refused on a restart (another configuration) has both files
             total = len({*failed, *(j["job"] for j in summary["jobs"])})

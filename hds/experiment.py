@@ -451,6 +451,8 @@ def run(cfg: Config, out_dir: str | Path | None = None, hooks: Hooks | None = No
             "plant": cfg.real.plant,
             "name": cfg.real.label(),
             "friction_gap": cfg.real.friction_gap,
+            # what the plant applies (friction scaled): the truth discovery is judged against
+            "effects": applied(cfg.real.effects, cfg.real.friction_gap),
         },
     )
     for method, method_env, method_effects, method_model in methods:
@@ -461,7 +463,7 @@ def run(cfg: Config, out_dir: str | Path | None = None, hooks: Hooks | None = No
             rows, rows_eval_plants = evaluate_training(cfg, training, plants)
             logger.finish(rows, _method_figures(method, training.history, rows))
             if discovery and method == methods[0][0]:
-                logger.log_files({"discovery_report": out_dir / "discovery" / "report.md"})
+                logger.log_discovery("discovery_report", out_dir / "discovery")
             if cfg.gif:
                 gif = sim_vs_real_gif(cfg, training, plants[0], out_dir / "plots")
                 logger.log_files({"sim_vs_real_gif": gif})

@@ -124,7 +124,8 @@ class RunLogger:
             plt.close(fig)
 
     def log_files(self, files: dict[str, Path]) -> None:
-        """Media a person opens (a GIF as a video, a report as HTML-escaped text)."""
+        """Media a person opens (a GIF as a video, an HTML page as it is, other text as
+        HTML-escaped text)."""
         if not self.wandb:
             return
         import wandb
@@ -132,8 +133,44 @@ class RunLogger:
         for name, path in files.items():
             if path.suffix == ".gif":
                 self.wandb.log({name: wandb.Video(str(path), format="gif")})
+            elif path.suffix == ".html":
+                self.wandb.log({name: wandb.Html(path.read_text())})
             else:
                 self.wandb.log({name: wandb.Html(f"<pre>{html.escape(path.read_text())}</pre>")})
+
+    def log_discovery(self, name: str, directory: Path) -> None:
+        """A gap-discovery report (hds.discover's directory) as W&B media: its page
+        (report.html), each figure as an image and the named effects and their correlations
+        as tables, under `name/`."""
+        if not self.wandb:
+            return
+        import wandb
+
+        from hds.utils.io import read_json
+
+        directory = Path(directory)
+        self.log_files({name: directory / "report.html"})
+        media = {
+            f"{name}/{png.stem}": wandb.Image(str(png))
+            for png in sorted((directory / "plots").glob("*.png"))
+        }
+        report = read_json(directory / "report.json")
+        columns = ["effect", "target", "parameter", "value", "ci95_low", "ci95_high", "explained"]
+        effects = [
+            [e["name"], e["target"], p, v, *(e["ci95"].get(p) or [None, None])]
+            + [e["explained_fraction"]]
+            for e in report.get("missing_effects", [])
+            for p, v in e["params"].items()
+        ]
+        media[f"{name}/named_effects"] = wandb.Table(columns=columns, data=effects)
+        pairs = [
+            [r["a"], r["b"], r["rho"], r["inseparable"]] for r in report.get("correlations", [])
+        ]
+        if pairs:
+            media[f"{name}/correlations"] = wandb.Table(
+                columns=["parameter", "parameter", "correlation", "inseparable"], data=pairs
+            )
+        self.wandb.log(media)
 
     def close(self, failed: bool = False) -> None:
         if self.progress:

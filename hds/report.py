@@ -23,9 +23,10 @@ from pathlib import Path
 import numpy as np
 from omegaconf import OmegaConf
 
-from hds import plots
+from hds import plots, story
 from hds.animate import animate_episodes
 from hds.config import load_config
+from hds.effects.apply import applied
 from hds.evaluation import mean_ci
 from hds.utils import cli
 from hds.utils.io import atomic_write_bytes, read_json
@@ -91,6 +92,90 @@ def collect_rows(root: Path, found_loops: list[tuple] = ()) -> tuple[list[dict],
         ):
             histories.append((plots.label(row, keys), plant_column(row), job, h))
     return rows, histories
+
+
+def plant_truth(summary: dict, job_dir: Path) -> list[dict] | None:
+    """The effects a job's plant applied (friction scaled by its gap): in its summary, or
+    (written before summaries recorded them) from its config; None when neither says."""
+    if "effects" in summary.get("real", {}):
+        return summary["real"]["effects"]
+    if (job_dir / "config.yaml").is_file():
+        real = load_config(job_dir / "config.yaml").real
+        return applied(real.effects, real.friction_gap)
+    return None
+
+
+def discoveries(root: Path, rows: list[dict], found_loops: list[tuple] = ()) -> list[dict]:
+    """What gap discovery named below root, each beside the plant's truth: per run that trained
+    on a corrected simulator (its rows' labels), and per round of each loop `found_loops`.
+    Each: label, plant, friction_gap, job, effects (named, with ci95), truth, warnings."""
+    keys = settings_of(rows)
+    labels = defaultdict(list)  # job -> its rows' labels (a job may sweep a setting inside)
+    for r in rows:
+        labels[(r["job"], plant_column(r))].append(plots.label(r, keys))
+    found = []
+    for path in sorted(root.rglob("summary.json")):
+        summary = read_json(path)
+        named = summary.get("discovery", {}).get("effects")
+        if "history" not in summary or named is None:
+            continue
+        job = str(path.parent.relative_to(root)) if path.parent != root else "."
+        column = (plant_of(summary, path.parent), summary.get("real", {}).get("friction_gap"))
+        for label in dict.fromkeys(labels[(job, column)]):
+            found.append(
+                {
+                    "label": label,
+                    "plant": column[0],
+                    "friction_gap": column[1],
+                    "job": job,
+                    "effects": named,
+                    "truth": plant_truth(summary, path.parent),
+                    "warnings": summary["discovery"].get("warnings", []),
+                }
+            )
+    from hds.experiment import method_name
+
+    for loop_dir, cfg, rounds in found_loops:
+        truth = applied(cfg.real.effects, cfg.real.friction_gap)
+        for report in rounds:
+            if not report.get("round"):  # round 0: the simulator as given, nothing named
+                continue
+            for label in dict.fromkeys(f"{method_name(cfg)}+{r['method']}" for r in report["rows"]):
+                found.append(
+                    {
+                        "label": label,
+                        "plant": cfg.real.label(),
+                        "friction_gap": cfg.real.friction_gap,
+                        "job": str(loop_dir.relative_to(root)),
+                        "effects": report["effects"],
+                        "truth": truth,
+                    }
+                )
+    return found
+
+
+def told(root: Path, rows: list[dict], summary: list[dict], found_loops, figure: Path) -> str:
+    """The story of the rows below root (hds.story: a few lines per method and plant), its
+    figure (the plant reported at most gaps) written to `figure`."""
+    columns = {plant_column(r) for r in rows}
+    names = column_names(list(columns))
+    text = story.story(summary, discoveries(root, rows, found_loops), names)
+    shown = shown_column(columns)
+    entries = [e for e in summary if plant_column(e) == shown]
+    where = "/".join(root.resolve().parts[-2:])  # a sweep's name and time
+    title = f"{where}: on the plant {names[shown]}, 95% intervals over seeds"
+    plots.save(story.figure(entries, title), figure)
+    return text
+
+
+def sweep_story(sweep_dir: Path) -> tuple[str, Path]:
+    """The story of a finished sweep (what `make run` ends with) and its figure,
+    sweep_dir/plots/summary.png."""
+    sweep_dir = Path(sweep_dir)
+    found_loops = loops(sweep_dir)
+    rows, _ = collect_rows(sweep_dir, found_loops)
+    figure = sweep_dir / "plots" / "summary.png"
+    return told(sweep_dir, rows, aggregate(rows), found_loops, figure), figure
 
 
 def shown_column(columns: set) -> tuple:
@@ -445,9 +530,22 @@ def build(root: str | Path, out: str | Path | None = None) -> Path:
         )
     for name, fig in figures.items():
         plots.save(fig, out / "plots" / f"{name}.png")
+    told_text = told(root, rows, summary, found_loops, out / "plots" / "report_summary.png")
     write_csv(rows, out / "report.csv")
     text = [
         f"# Report: {root.name}",
+        "",
+        "## Summary",
+        "",
+        "Per plant, each method (best on the plant first): mean and 95% interval over seeds.",
+        "",
+        "```text",
+        told_text,
+        "```",
+        "",
+        "![report_summary](plots/report_summary.png)",
+        "",
+        "## Every method, plant and setting",
         "",
         "Mean and 95% interval over seeds. gap = return on the simulator - on the real plant.",
         "",

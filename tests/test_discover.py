@@ -912,6 +912,15 @@ def test_command_line_writes_the_report_and_hds_run_accepts_the_corrected_model(
     assert 0.0 <= report["unexplained_fraction"] < 0.1
     text = (out / "report.md").read_text()
     assert "Coulomb" in text and "plots/trajectories_heldout.png" in text
+    # the same report as one self-contained page: every figure inside it, nothing linked
+    page = (out / "report.html").read_text()
+    images = re.findall(r'<img src="([^"]+)"', page)
+    assert len(images) == text.count("![") >= 4
+    assert all(src.startswith("data:image/png;base64,") for src in images)
+    assert not re.findall(r'(?:src|href)="(?!data:|#)', page)  # no file or URL beside it
+    force = found["params"]["force"]
+    assert "<td>Coulomb (dry) friction (<code>coulomb_friction</code>)</td>" in page
+    assert f"force = {force:.4g} N [{lo:.4g}, {hi:.4g}]" in page
     for plot in ("locate", "errors_heldout", "trajectories_heldout", "candidates"):
         assert (out / "plots" / f"{plot}.png").stat().st_size > 0
     # its paths are relative to report.json's directory: a moved report still finds its files

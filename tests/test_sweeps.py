@@ -218,6 +218,21 @@ def test_a_restarted_sweep_skips_finished_jobs_and_reruns_failed_ones(restarted_
     assert_every_job_finished(sweep, {"0", "1"})
 
 
+def test_a_sweep_ends_with_a_few_lines_per_method_and_a_figure(restarted_sweep):
+    """Not a row per seed: per method, its mean real return and gap with their intervals and
+    the seeds that solve the task (hds.story), and the figure beside summary.json."""
+    sweep, state, second = restarted_sweep
+    story = second.stdout[second.stdout.index(f"2 jobs in {sweep}") :]
+    lines = story.splitlines()
+    assert lines[2].startswith("On the plant coulomb_friction@slider: best pods, real return ")
+    assert lines[3] == "pods (2 seeds)"  # both jobs' seed 0: one method on one plant
+    assert lines[4].startswith("  real return ") and "   sim2real gap " in lines[4]
+    assert lines[5].startswith("  solved by ") and lines[5].endswith("/2 on the plant")
+    assert f"figure: {sweep / 'plots' / 'summary.png'}" in story
+    assert (sweep / "plots" / "summary.png").is_file()
+    assert "1 jobs in" not in state["first_stdout"] and "1 job in" in state["first_stdout"]
+
+
 @pytest.fixture(scope="module")
 def killed_sweep(tmp_path_factory):
     """A sweep over two methods (so two config names) in the default sweep directory, with W&B

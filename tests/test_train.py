@@ -273,6 +273,14 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
     assert model.dof_frictionloss[0] == pytest.approx(found["params"]["force"], rel=1e-5)
     assert oracle["trained_on"]["simulator"] == "oracle"
     assert [e["params"] for e in oracle["trained_on"]["effects"]] == [{"force": 20.0}]
+    # the story of the three runs names discovery's friction beside the plant's 20 N
+    from hds.report import sweep_story
+
+    text, _ = sweep_story(tmp_path)
+    (line,) = [x for x in text.splitlines() if x.startswith("  discovery named")]
+    assert line.startswith("  discovery named coulomb_friction@slider force ")
+    assert line.endswith("(plant: 20)")
+    assert text.index("pods+corrected (2 seeds)") < text.index(line)
 
 
 @pytest.mark.slow  # two rounds of recording and a discovery: ~1 min (make test-slow)

@@ -167,3 +167,33 @@ def gaps(rows: list[dict]) -> plt.Figure:
     ax.legend(fontsize=7)
     fig.tight_layout()
     return fig
+
+
+def correlation_matrix(correlations: list[dict]) -> plt.Figure | None:
+    """The correlations between the named effects' fitted parameters (result.correlations:
+    pairs of parameters of different effects) as a matrix: red and blue near +-1 are
+    parameters the data trade against each other, a cross where they cannot be told apart.
+    None with fewer than two parameters (nothing to correlate)."""
+    names = list(dict.fromkeys(n for r in correlations for n in (r["a"], r["b"])))
+    if len(names) < 2:
+        return None
+    index = {n: i for i, n in enumerate(names)}
+    matrix = np.full((len(names), len(names)), np.nan)  # parameters of one effect: not given
+    np.fill_diagonal(matrix, 1.0)
+    for r in correlations:
+        i, j = index[r["a"]], index[r["b"]]
+        matrix[i, j] = matrix[j, i] = r["rho"]
+    size = 2.5 + 0.55 * len(names)
+    fig, ax = plt.subplots(figsize=(size + 1.2, size))
+    image = ax.imshow(matrix, cmap="RdBu_r", vmin=-1.0, vmax=1.0)
+    for r in correlations:
+        i, j = index[r["a"]], index[r["b"]]
+        for a, b in ((i, j), (j, i)):
+            mark = " x" if r["inseparable"] else ""
+            ax.text(b, a, f"{r['rho']:.2f}{mark}", ha="center", va="center", fontsize=7)
+    ax.set_xticks(range(len(names)), names, rotation=35, ha="right", fontsize=7)
+    ax.set_yticks(range(len(names)), names, fontsize=7)
+    ax.set_title("correlation of the fitted parameters (x: not separable)", fontsize=9)
+    fig.colorbar(image, ax=ax, shrink=0.8)
+    fig.tight_layout()
+    return fig

@@ -1,6 +1,7 @@
 """Steps 5 and 6, add and show: the corrected model as a config `python -m hds.run` accepts as
 it is and as an MJCF with the MuJoCo-native equivalents, and the report (report.md for a
-person, report.json for a program, plots/*.png)."""
+person, report.html: the same as one self-contained page, report.json for a program,
+plots/*.png)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from hds.discover import plots
 from hds.discover.sysid import write_handoff
 from hds.discover.workflow import Result
 from hds.plots import save as save_figure
+from hds.utils.html import markdown_page
 from hds.utils.io import atomic_write_bytes, atomic_write_json
 
 
@@ -86,6 +88,8 @@ def write_plots(result: Result, out_dir: Path, plot_episodes: int, bins: int) ->
                 data.horizon,
                 name,
             )
+    if (matrix := plots.correlation_matrix(result.correlations)) is not None:
+        figs["correlations"] = matrix
     if result.selection.rounds:
         figs["candidates"] = plots.candidates(
             result.selection.rounds[0],
@@ -100,7 +104,7 @@ def write_plots(result: Result, out_dir: Path, plot_episodes: int, bins: int) ->
     return out
 
 
-def _selection_notes(result: Result) -> list[str]:
+def _selection_notes(result: Result, files: dict | None = None) -> list[str]:
     """Law mismatch, dropped proxies, correlations and what the data cannot identify."""
     lines = []
     if result.law_mismatch:
@@ -120,6 +124,8 @@ def _selection_notes(result: Result) -> list[str]:
             # a named pair beyond INSEPARABLE stood apart jointly (workflow._separable_count)
             sep = "only jointly" if r["inseparable"] else "yes"
             lines.append(f"| {r['a']} | {r['b']} | {_fmt(r['rho'])} | {sep} |")
+        if "correlations" in (files or {}):
+            lines += ["", f"![correlations](plots/{files['correlations'].name})"]
     blind = [r for r in result.identifiability if not r.identifiable]
     if blind:
         lines += ["", "Not identifiable from these data (not fitted, never named):"]
@@ -233,7 +239,7 @@ def markdown(
                 f"- {e.physical_name} (`{e.name}`) on {e.target}: {params} "
                 f"({e.explained_fraction:.1%})"
             )
-    lines += _selection_notes(result)
+    lines += _selection_notes(result, files)
     noise = np.sqrt(np.mean((data.noise / np.asarray(data.scale, dtype=float)) ** 2))
     lines += [
         "",
@@ -383,6 +389,9 @@ def write_report(
     atomic_write_json(out_dir / "report.json", _finite(report))
     text = markdown(result, files, config_path, mjcf_path, out_dir, retrain, data_name)
     atomic_write_bytes(out_dir / "report.md", text.encode())
+    # the same as one page that opens anywhere (figures inside): for a browser, and W&B
+    page = markdown_page(text, out_dir, f"Gap discovery report: {data_name or out_dir.name}")
+    atomic_write_bytes(out_dir / "report.html", page.encode())
     return report
 
 
