@@ -21,6 +21,8 @@ def gather(sweep_dir: Path) -> dict:
     further plants included, tagged by job)."""
     rows, jobs = [], []
     for path in sorted(Path(sweep_dir).glob("*/summary.json"), key=lambda p: p.parent.name):
+        if (path.parent / "failed.txt").exists():
+            continue  # refused on a restart: its summary is another configuration's
         summary = read_json(path)
         jobs.append(
             {"job": path.parent.name, "name": summary.get("name"), "real": summary.get("real")}
@@ -47,7 +49,7 @@ def tell(name: str, sweep_dir: Path, jobs: int, loops: list[Path]) -> None:
     print(text)
     print(
         f"\nfigure: {figure}\nevery seed's row: {rows_in}; "
-        f"the full report: python -m hds.report {sweep_dir}"
+        f"the full report: python -m hds.report dir={sweep_dir}"
     )
 
 

@@ -24,7 +24,15 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     # the simulators and plants, and the building blocks of a trainer (networks, noise, steps)
     (
         "simulation",
-        ("hds.envs", "hds.real", "hds.networks", "hds.noise", "hds.anneal", "hds.animate"),
+        (
+            "hds.envs",
+            "hds.real",
+            "hds.networks",
+            "hds.noise",
+            "hds.anneal",
+            "hds.animate",
+            "hds.render",
+        ),
     ),
     # the schemas of every config group and their validation (they read effects and models)
     ("config", ("hds.config",)),
@@ -42,7 +50,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "hds.logger",
             "hds.plots",
             "hds.rundir",
-            "hds.callbacks",
+            "hds.story",
         ),
     ),
     # the experiment layer every tool calls, and saved policies
@@ -59,6 +67,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "hds.discover.__main__",
             "hds.dynamics.__main__",
             "hds.commands",
+            "hds.callbacks",  # Hydra's callbacks of the commands: the sweep's report at its end
         ),
     ),
     # the package's lazy API (`hds.train`, `hds.load_policy`, ...)
