@@ -339,20 +339,7 @@ class Designer:
     def predicted_se(self, theta, design: Design, x0s, noise) -> np.ndarray:
         """[M] one episode's standard errors of discovery's fit (measured initial states) of a
         record of this design from the initial states x0s [S, n_obs] (averaged over them)."""
-        h, meat = self._predict(
-            *_f32(
-                theta,
-                design.coefficients,
-                design.amplitude,
-                design.middle,
-                design.gain,
-                design.x_ref,
-                x0s,
-                design.limits.u_low,
-                design.limits.u_high,
-                noise,
-            )
-        )
+        h, meat = self._predict(*_f32(*_rollout_args(theta, design, x0s), noise))
         inv = np.linalg.pinv(np.asarray(h, np.float64))
         cov = inv @ np.asarray(meat, np.float64) @ inv
         return np.sqrt(np.maximum(np.diag(cov), 0.0))
@@ -360,17 +347,7 @@ class Designer:
     def trajectory(self, theta, design: Design, x0s) -> tuple[np.ndarray, np.ndarray]:
         """The predicted trajectories [S, T+1, n_obs] and controls [S, T, n_act] from x0s."""
         obs, u = jax.vmap(self._rollout, in_axes=(None,) * 6 + (0, None, None))(
-            *_f32(
-                theta,
-                design.coefficients,
-                design.amplitude,
-                design.middle,
-                design.gain,
-                design.x_ref,
-                x0s,
-                design.limits.u_low,
-                design.limits.u_high,
-            )
+            *_f32(*_rollout_args(theta, design, x0s))
         )
         return np.asarray(obs, np.float64), np.asarray(u, np.float64)
 
@@ -517,6 +494,21 @@ class Designer:
         design.trajectory, design.planned_controls = obs[0], u[0]
         design.predicted_se = self.predicted_se(theta, design, x0s, noise)
         return design
+
+
+def _rollout_args(theta, design: Design, x0s) -> tuple:
+    """The arguments of a design's compiled rollout, in its order (x0s the batched one)."""
+    return (
+        theta,
+        design.coefficients,
+        design.amplitude,
+        design.middle,
+        design.gain,
+        design.x_ref,
+        x0s,
+        design.limits.u_low,
+        design.limits.u_high,
+    )
 
 
 def _f32(*xs):
