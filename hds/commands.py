@@ -2,13 +2,15 @@
 hds-evaluate, hds-export, hds-report, hds-dynamics), and what the Hydra commands (hds.run,
 hds.loop, hds.discover) check before Hydra composes anything (docs/cli.md).
 
-Each script runs its command's module as `python -m` does (runpy, as `__main__`): one
-behaviour for both forms, and no command module imported under its package name, where it
-would hide the API function of the same name (`hds.evaluate`, `hds.export`).
+The Hydra commands (hds-run, hds-loop, hds-discover) call their module's checks and `main` in
+this process, so that Hydra's tab completion knows the script's name. The others run their
+module as `python -m` does (runpy, as `__main__`): no such module imported under its package
+name, where it would hide the API function of the same name (`hds.evaluate`, `hds.export`).
 """
 
 from __future__ import annotations
 
+import importlib
 import itertools
 import runpy
 import sys
@@ -30,16 +32,26 @@ def _run_module(name: str) -> None:
     runpy.run_module(name, run_name="__main__", alter_sys=True)
 
 
+def _hydra_command(name: str, config_name: str = "config") -> None:
+    """A Hydra command called in this process, not through runpy: runpy sets sys.argv[0] to
+    the module's file, and Hydra's tab completion then completes `python` instead of the
+    script's own name (`eval "$(hds-run -sc install=bash)"`). No API name of hds is one of
+    these modules' names, so importing them hides nothing."""
+    command = importlib.import_module(name)
+    before_hydra(config_name)
+    command.main()
+
+
 def run() -> None:
-    _run_module("hds.run")
+    _hydra_command("hds.run")
 
 
 def loop() -> None:
-    _run_module("hds.loop")
+    _hydra_command("hds.loop")
 
 
 def discover() -> None:
-    _run_module("hds.discover")
+    _hydra_command("hds.discover.__main__", "discover")
 
 
 def evaluate() -> None:
