@@ -35,7 +35,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
         ),
     ),
     # the schemas of every config group and their validation (they read effects and models)
-    ("config", ("hds.config",)),
+    ("config", ("hds.config", "hds.conf")),
     # what an experiment is made of: data, the trainer, learned models, gap discovery,
     # evaluation, checkpoints, logging, figures, run directories
     (
