@@ -383,12 +383,18 @@ def _refuse_law_mismatch(
         weak = (rises < state.misfit) | indistinct
         if not weak.any():
             break
-        j = int(np.flatnonzero(weak)[np.argmin(rises[weak])])
-        refused.append(
-            (dataclasses.replace(state, selected=sets[j] + [state.selected[j]]), reduced[j])
-        )
-        states = _chain_without(fit, states, j, reduced[j])
+        states = _refuse_weakest(fit, states, sets, reduced, rises, weak, refused)
     return states
+
+
+def _refuse_weakest(fit, states, sets, reduced, rises, weak, refused) -> list[State]:
+    """Take out the weak effect whose removal raises the error least (`rises`), append the
+    refused state (its effect last) with the state without it to `refused`, and return the
+    chain rebuilt without it."""
+    state = states[-1]
+    j = int(np.flatnonzero(weak)[np.argmin(rises[weak])])
+    refused.append((dataclasses.replace(state, selected=sets[j] + [state.selected[j]]), reduced[j]))
+    return _chain_without(fit, states, j, reduced[j])
 
 
 def _refuse_within_heldout_mismatch(
@@ -414,11 +420,7 @@ def _refuse_within_heldout_mismatch(
         weak = rises < left
         if not weak.any():
             break
-        j = int(np.flatnonzero(weak)[np.argmin(rises[weak])])
-        refused.append(
-            (dataclasses.replace(state, selected=sets[j] + [state.selected[j]]), reduced[j])
-        )
-        states = _chain_without(fit, states, j, reduced[j])
+        states = _refuse_weakest(fit, states, sets, reduced, rises, weak, refused)
     return states
 
 
