@@ -5,6 +5,7 @@ generated from the single pendulum's MJCF."""
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import mujoco
 import numpy as np
@@ -319,3 +320,79 @@ def test_discovery_names_the_published_damping_on_a_generated_recording():
     assert list(named) == [("viscous_damping", "arm1")], result.stopped
     k1 = multiarm.PUBLISHED[1]["k1"]
     assert named[("viscous_damping", "arm1")].params["coefficient"] == pytest.approx(k1, rel=0.1)
+
+
+# -- a friction law standing for two (hds.discover.explain._split_proxy) ----------------------
+
+
+class _Pairs:
+    """A stand-in for selection's fitter: each set of friction laws on arm1 (viscous slot 0,
+    Coulomb slot 1, quadratic drag slot 2), refitted, predicts the held-out episodes to the
+    given error with the given values (noise-free: intervals of zero width)."""
+
+    def __init__(self, held: dict, values: dict):
+        from hds.discover import DiscoverConfig
+        from hds.discover.model import Candidate
+
+        self.laws = [
+            Candidate(name, "arm1", (i,), (param,))
+            for i, (name, param) in enumerate(
+                [
+                    ("viscous_damping", "coefficient"),
+                    ("coulomb_friction", "force"),
+                    ("quadratic_drag", "coefficient"),
+                ]
+            )
+        ]
+        model = SimpleNamespace(candidates=self.laws, nominal=np.zeros(3), start=np.zeros(3))
+        self.engine, self.cfg = SimpleNamespace(model=model), DiscoverConfig(max_effects=4)
+        self.held, self.values = held, values
+
+    def state(self, selected):
+        from hds.discover.explain import State
+
+        key = tuple(sorted(c.key.split("@")[0] for c in selected))
+        theta = np.zeros(3)
+        slots = [c.slots[0] for c in selected]
+        theta[slots] = [self.values[c.key.split("@")[0]] for c in selected]
+        m = len(slots)
+        h, g = np.eye(m) * 1e6, np.zeros((3, m))
+        zero = np.zeros(1, np.int32)
+        return State(list(selected), theta, zero, self.held[key], 0.01, h, g, slots, 0.0)
+
+    def sets(self, _, sets):
+        return [self.state(s) for s in sets]
+
+
+@pytest.mark.parametrize(
+    "pair_error, drag, split",
+    [(0.008, 1.5e-5, True), (0.0097, 1.5e-5, False), (0.008, 0.0, False)],
+)
+def test_a_friction_law_standing_for_two_is_replaced_by_them(pair_error, drag, split):
+    """Viscous damping selected alone (held-out error 0.010); dry friction and quadratic drag
+    together predict the held-out episodes better: they replace it where they beat it by the
+    selection margin (5%) and the data show both (a drag fitted to nothing is no finding)."""
+    from hds.discover.explain import _split_proxy
+
+    fit = _Pairs(
+        {
+            (): 0.05,
+            ("viscous_damping",): 0.010,
+            ("coulomb_friction",): 0.02,
+            ("coulomb_friction", "quadratic_drag"): pair_error,
+        },
+        {"viscous_damping": 2e-4, "coulomb_friction": 5e-4, "quadratic_drag": drag},
+    )
+    visc, coulomb, quad = fit.laws
+    chain = [fit.state([]), fit.state([visc])]
+    states, gone = _split_proxy(fit, chain, banned=set())
+    if not split:
+        assert (states, gone) == (chain, [])
+        return
+    assert gone == [visc]
+    assert [s.keys for s in states] == [
+        set(),
+        {coulomb.key},
+        {coulomb.key, quad.key},
+    ]
+    assert states[-1].heldout_error == pair_error
