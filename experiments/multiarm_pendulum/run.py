@@ -301,6 +301,97 @@ def diagnostics() -> str:
             best = ks[np.argmin(err[e])]
             edge = " (the grid's edge)" if best in (ks[0], ks[-1]) else ""
             lines.append(f"| {name}[{e}] | {best:.2e}{edge} |")
+    return "\n".join(lines) + "\n" + swing_losses()
+
+
+def half_swings(segments, offset: float):
+    """Per half swing of the single pendulum's segments (turning point to turning point):
+    amplitude (rad from hanging, the mean of its two turning points; `offset` the hanging
+    angle's offset), half period (s), the energy lost (J, from the authors' J and m g a), the
+    integrals of qd^2, |qd|, |qd|^3 dt over it (the loss of viscous damping, dry friction and
+    quadratic drag per coefficient) and its direction (the sign of qd)."""
+    p = multiarm.PUBLISHED[1]
+    J, G = p["m1"] * p["a1"] ** 2 + p["I1"], p["m1"] * p["g"] * p["a1"]
+    rows = []
+    for th, w in segments:
+        energy = 0.5 * J * w**2 + G * np.cos(th - offset)
+        turns = np.flatnonzero(np.sign(w[1:]) != np.sign(w[:-1]))
+        keep = [turns[0]]
+        for i in turns[1:]:  # a sign change of the de-noised velocity within 0.15 s is noise
+            if i - keep[-1] > 150:
+                keep.append(i)
+        for a, b in zip(keep[:-1], keep[1:]):
+            v = np.abs(w[a : b + 1])
+            amplitude = 0.5 * (abs(np.pi + offset - th[a]) + abs(np.pi + offset - th[b]))
+            integrals = [(v**k).sum() * multiarm.SAMPLE_DT for k in (2, 1, 3)]
+            period = (b - a) * multiarm.SAMPLE_DT
+            direction = np.sign(w[(a + b) // 2])
+            rows.append([amplitude, period, energy[a] - energy[b], *integrals, direction])
+    return np.array(rows), J, G
+
+
+def swing_losses() -> str:
+    """Which friction law the single pendulum's recordings support, from energy alone (numpy,
+    no simulator, no phase): the loss per half swing regressed on each law's integral, on the
+    identification segments only; the amplitude's fall per half swing by amplitude; the
+    half period against the frictionless model's (the authors' J / (m g a)). The hanging
+    angle's offset is where the two directions' losses agree."""
+    from scipy.special import ellipk
+
+    raw = multiarm.read_mat(DATA / FILES["single"])
+    offsets = np.linspace(-0.004, 0.004, 81)
+    every = raw["Y_id"] + raw["Y_vad"]
+
+    def alternation(offset):
+        rows, _, _ = half_swings(every, offset)
+        k, up = rows[:, 2] / rows[:, 3], rows[:, 6] > 0
+        return abs(k[up].mean() - k[~up].mean())
+
+    offset = float(min(offsets, key=alternation))
+    ident, J, G = half_swings(raw["Y_id"], offset)
+    lines = [
+        f"\nSingle pendulum, energy per half swing (hanging offset {offset * 1e3:.1f} mrad): "
+        f"the loss on the {len(ident)} identification half swings regressed on each law",
+        "",
+        "| laws | viscous (N m s/rad) | Coulomb (N m) | quadratic (N m s^2/rad^2) | "
+        "relative residual |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for name, cols in (
+        ("viscous", [0]),
+        ("viscous + Coulomb", [0, 1]),
+        ("Coulomb + quadratic", [1, 2]),
+        ("all three", [0, 1, 2]),
+    ):
+        X = ident[:, [3 + c for c in cols]]
+        coef, *_ = np.linalg.lstsq(X, ident[:, 2], rcond=None)
+        value = ["-"] * 3
+        for c, v in zip(cols, coef):
+            value[c] = f"{v:.3g}"
+        res = ident[:, 2] - X @ coef
+        rel = np.sqrt(np.mean(res**2) / np.mean(ident[:, 2] ** 2))
+        lines.append(f"| {name} | {' | '.join(value)} | {rel:.3f} |")
+    rows = np.concatenate([half_swings([seg], offset)[0] for seg in every])
+    amp, fall = rows[:, 0], []
+    for seg in every:  # the fall between consecutive turning points, within a segment
+        r = half_swings([seg], offset)[0]
+        fall += [np.nan] + list(-np.diff(r[:, 0]))
+    fall = np.array(fall)
+    lines += [
+        "",
+        "| amplitude (rad) | half swings | fall per half swing (mrad) | fall / amplitude | "
+        "half period measured / model |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    model = 2 * np.sqrt(J / G) * ellipk(np.sin(rows[:, 0] / 2) ** 2)
+    for lo in np.arange(0.2, 1.7, 0.2):
+        m = (amp >= lo) & (amp < lo + 0.2) & np.isfinite(fall)
+        if m.any():
+            ratio = (rows[m, 1] / model[m]).mean()
+            lines.append(
+                f"| {lo:.1f}-{lo + 0.2:.1f} | {m.sum()} | {fall[m].mean() * 1e3:.2f} | "
+                f"{(fall[m] / amp[m]).mean():.4f} | {ratio:.4f} |"
+            )
     return "\n".join(lines)
 
 
