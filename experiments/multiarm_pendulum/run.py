@@ -100,9 +100,9 @@ def run_discovery(system: str, env, effects: list[str], label: str):
         slot_buckets=[],  # one compile of the fits (max_effects slots): compiles dominate
         seed=0,
     )
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     result = discover(ident, env, cfg, validation=held)
-    seconds = time.perf_counter() - start
+    seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
     write_report(result, env, OUT / label)
     named = [
         {
@@ -117,6 +117,9 @@ def run_discovery(system: str, env, effects: list[str], label: str):
         "named": named,
         "stopped": result.stopped,
         "seconds": seconds,
+        # CPU seconds of this process (all its threads): on a shared machine, what the wall
+        # time would be on an idle one is between cpu / cores and cpu
+        "cpu_seconds": cpu,
         "load_average_1min": os.getloadavg()[0],  # the machine is shared: say how busy it was
         "timing_s": {k: float(v) for k, v in result.timing.items()},
         "heldout_kstep_before": float(result.error("before").normalized),
