@@ -33,6 +33,7 @@ from hds.algo.pods import make_train  # noqa: E402
 from hds.commands import before_hydra  # noqa: E402
 from hds.config import Config, env_config, validate  # noqa: E402
 from hds.data import collect, initial_states  # noqa: E402
+from hds.data.budget import check_planned  # noqa: E402
 from hds.data.format import Dataset, concatenate, load, save  # noqa: E402
 from hds.envs import make_env  # noqa: E402
 from hds.evaluation import mean_ci  # noqa: E402
@@ -276,6 +277,7 @@ def main(dcfg) -> float:
     hydra_dir = out_dir / HydraConfig.get().output_subdir
     with cli.one_line_errors(), rundir.claim(out_dir, dcfg, hydra_dir):  # locked
         cfg = validate(dcfg)  # every range check, before anything compiles
+        check_planned(cfg, loop=True)  # its data past the limits: refused with the numbers
         rounds = run_loop(cfg, out_dir)
     return float(rounds[-1]["real_return"][0])
 
