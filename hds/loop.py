@@ -282,5 +282,5 @@ def main(dcfg) -> float:
 
 
 if __name__ == "__main__":
-    before_hydra()
+    before_hydra(loop=True)
     main()

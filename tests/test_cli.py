@@ -277,6 +277,25 @@ def test_dynamics_command_refuses_its_data_past_the_limit(tmp_path, capsys):
     assert_refused(line, where, "dynamics.max_steps", "lower dynamics.episodes")
 
 
+def test_a_multirun_refuses_its_jobs_data_past_the_limit_before_launching_any(
+    tmp_path, capsys, monkeypatch
+):
+    """One job's data past dynamics.max_steps (the other's within it): no job launches."""
+    path = past_the_limit(tmp_path)
+    argv = ["-m", "method=hds", f"dynamics.data={path}", "dynamics.max_steps=100,1000"]
+    monkeypatch.setattr(sys, "argv", ["hds.run", *argv, f"hydra.sweep.dir={tmp_path / 'sweep'}"])
+    with pytest.raises(SystemExit) as ended:
+        commands.before_hydra()
+    assert ended.value.code == 1
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 2 and "Traceback" not in err, lines
+    assert lines[0].startswith("error: job 0 (dynamics.max_steps=100): dynamics.data = ")
+    assert_refused(lines[0], f"dynamics.data = {path}", "dynamics.max_steps", "resample it")
+    assert "1 of 2 jobs refused, none launched" in lines[1]
+    assert not (tmp_path / "sweep").exists()
+
+
 def test_discovery_itself_refuses_data_past_the_limit_and_shows_progress(caplog):
     """The API's `discover` (the loop's and the corrected simulator's discovery too) refuses
     data past discover.max_steps before it compiles; within it, its estimate and stages go to
@@ -291,7 +310,7 @@ def test_discovery_itself_refuses_data_past_the_limit_and_shows_progress(caplog)
         progress = Progress(DISCOVERY, 2_000_000, logging.getLogger("hds"))
         progress("the gap located")
     first, stage = (r.getMessage() for r in caplog.records[-2:])
-    assert first.startswith("gap discovery on 2000000 recorded steps: about 10 GB of memory")
+    assert first.startswith("gap discovery on 2000000 recorded steps: about 10.8 GB of memory")
     assert stage.startswith("gap discovery: the gap located (0 s so far, about ")
 
 

@@ -25,22 +25,29 @@ from hds.data.format import Dataset
 class Work:
     name: str  # what is done with the data, as the messages say it
     key: str  # the config key of its limit in recorded steps
-    bytes_per_step: float  # peak memory per recorded step, beyond a fixed base
-    seconds_per_step: float  # wall time per recorded step (per epoch for a model's fit)
+    bytes_fixed: float  # the process's peak memory whatever the size (JAX, the compiles)
+    bytes_per_step: float  # peak memory per recorded step beyond it
     seconds_fixed: float  # compiles and the like, whatever the size
+    seconds_per_step: float  # wall time per recorded step (per epoch for a model's fit)
+
+    def bytes(self, steps: int) -> float:
+        return self.bytes_fixed + self.bytes_per_step * steps
 
     def seconds(self, steps: int, epochs: int = 1) -> float:
         return self.seconds_fixed + self.seconds_per_step * steps * epochs
 
 
-# Gap discovery on the cart-pole (`hds.discover.discover`, analytic backend, default settings):
-# 2 episodes of a million steps took it to 10.5 GB (issue 41's report), about 5 kB a step; the
-# time per step is measured by experiments/large_data/calibrate.py (see its README).
-DISCOVERY = Work("gap discovery", "discover.max_steps", 5_000, 4.0e-3, 60.0)
-# Fitting an MLP of 2 x 128 units (`hds.dynamics.fit`, minibatch 256): the transitions and
-# their targets in float32 with the optimiser's copies are well under 1 kB a step; the time is
-# per step and epoch (an early stop ends it sooner), measured as above.
-DYNAMICS_FIT = Work("fitting the dynamics model", "dynamics.max_steps", 1_000, 2.0e-5, 20.0)
+# Gap discovery on the cart-pole (`hds.discover.discover`, analytic backend, default settings,
+# 8 episodes of 250, 1000 and 4000 steps: 72, 186 and 566 s, peak 0.78, 0.82 and 1.01 GB, at
+# a load average of 10 to 17 on the 2 cores): about 16 ms a step after 40 s. Memory: 0.8 GB
+# for the process; per step, the issue's measurement at the size that matters, 2 episodes of
+# a million steps taking it to 10.5 GB, about 5 kB a step (these small sizes gave 8 kB, their
+# peaks dominated by the compiles).
+DISCOVERY = Work("gap discovery", "discover.max_steps", 0.8e9, 5_000, 40.0, 1.6e-2)
+# Fitting an MLP of 2 x 128 units (`hds.dynamics.fit`, minibatch 256, 10 epochs without an
+# early stop, on 8 x 1000 and 8 x 16000 steps: 58 and 85 s, peak 0.73 and 0.81 GB, measured as
+# above): 23 us per step and epoch after 56 s, 0.7 kB a step; an early stop ends it sooner.
+DYNAMICS_FIT = Work("fitting the dynamics model", "dynamics.max_steps", 0.73e9, 700, 56.0, 2.3e-5)
 
 FILE_FIX = "give it a window of the data (fewer or shorter episodes) or resample it to a coarser dt"
 
@@ -49,20 +56,22 @@ def duration(seconds: float) -> str:
     """`seconds` as a person reads it: 40 s, 12 min, 2.1 h."""
     if seconds < 120:
         return f"{seconds:.0f} s"
-    if seconds < 7200:
+    if seconds < 5400:
         return f"{seconds / 60:.0f} min"
     return f"{seconds / 3600:.1f} h"
 
 
 def size(nbytes: float) -> str:
     """`nbytes` as a person reads it: 0.5 MB, 120 MB, 10 GB."""
-    return f"{nbytes / 1e6:.2g} MB" if nbytes < 1e9 else f"{nbytes / 1e9:.3g} GB"
+    if nbytes >= 1e9:
+        return f"{nbytes / 1e9:.3g} GB"
+    return f"{nbytes / 1e6:.0f} MB" if nbytes >= 10e6 else f"{nbytes / 1e6:.2g} MB"
 
 
 def estimate(work: Work, steps: int, epochs: int = 1) -> str:
     """What `work` on `steps` recorded steps needs: 'about 1.2 GB of memory and 3 min'."""
     return (
-        f"about {size(steps * work.bytes_per_step)} of memory and "
+        f"about {size(work.bytes(steps))} of memory and "
         f"{duration(work.seconds(steps, epochs))} (a 2-core CPU's time)"
     )
 
@@ -120,7 +129,9 @@ def check_planned(cfg, loop: bool = False, fit: bool | None = None) -> None:
         per_round = cfg.loop.deploy_episodes + cfg.loop.excitation_episodes
         episodes, horizon = cfg.loop.rounds * per_round, cfg.env.task.horizon
         where = f"the loop's data (loop.rounds = {cfg.loop.rounds} of {per_round} episodes)"
-        fix = "lower loop.rounds, loop.deploy_episodes, loop.excitation_episodes or the horizon"
+        fix = (
+            "lower loop.rounds, loop.deploy_episodes, loop.excitation_episodes or env.task.horizon"
+        )
     elif dyn.data:
         from hds.data.format import load
 
