@@ -261,7 +261,7 @@ def test_loop_refuses_its_data_past_the_limit_before_round_0(tmp_path, capsys):
     assert "holds 104 steps (4 episodes x 26)" in line
     assert_refused(
         line,
-        "the loop's data (loop.rounds = 2 of 2 episodes)",
+        "the loop's data (loop.rounds = 2, 2 episodes each)",
         "discover.max_steps",
         "lower loop.rounds",
     )

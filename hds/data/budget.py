@@ -5,17 +5,19 @@ Gap discovery holds every k-step window of the data on the device and fits every
 all of them, so its memory and time grow with the recorded steps (episodes x steps); fitting a
 learned dynamics model holds every transition and passes over them once an epoch. Every command
 that reads or records data for either (hds.discover, hds.run with dynamics.data= or a learned
-model or simulator=corrected, hds.loop, hds.dynamics) checks its size here, once, before
-anything is processed: data past the work's limit (`discover.max_steps`, `dynamics.max_steps`)
-is refused in one line with the memory and time it would need and the fixes.
+model or simulator=corrected, hds.loop, hds.dynamics) checks its size through `check`,
+before anything is processed: data past the work's limit (`discover.max_steps`,
+`dynamics.max_steps`) is refused in one line with the memory and time it would need and the
+fixes. Within the limit, `Progress` shows long work's stages on the console.
 
 The costs per step below are measured (experiments/large_data/README.md, the command there
-reproduces them) on the team's 2-core AMD EPYC (shared with other work), CPU backend, with the
-compilation cache warm; a GPU runs faster, so the times are an upper estimate there.
+reproduces them) on the team's 2-core AMD EPYC under heavy load from other work, CPU backend,
+compiles included: an upper estimate on a quiet machine, and on a GPU.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 from hds.data.format import Dataset
@@ -128,7 +130,7 @@ def check_planned(cfg, loop: bool = False, fit: bool | None = None) -> None:
     if loop:  # the loop's own records; active excitation may add more (checked as it runs)
         per_round = cfg.loop.deploy_episodes + cfg.loop.excitation_episodes
         episodes, horizon = cfg.loop.rounds * per_round, cfg.env.task.horizon
-        where = f"the loop's data (loop.rounds = {cfg.loop.rounds} of {per_round} episodes)"
+        where = f"the loop's data (loop.rounds = {cfg.loop.rounds}, {per_round} episodes each)"
         fix = (
             "lower loop.rounds, loop.deploy_episodes, loop.excitation_episodes or env.task.horizon"
         )
@@ -153,8 +155,6 @@ class Progress:
     against the estimate (`work` on `steps`), so that minutes of work never show nothing."""
 
     def __init__(self, work: Work, steps: int, log, epochs: int = 1):
-        import time
-
         self.work, self.log, self.clock = work, log, time.perf_counter
         self.start, self.expected = self.clock(), work.seconds(steps, epochs)
         log.info("%s on %d recorded steps: %s", work.name, steps, estimate(work, steps, epochs))
