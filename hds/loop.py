@@ -33,6 +33,7 @@ from hds.algo.pods import make_train  # noqa: E402
 from hds.commands import before_hydra  # noqa: E402
 from hds.config import Config, env_config, validate  # noqa: E402
 from hds.data import collect, initial_states  # noqa: E402
+from hds.data.budget import check_planned  # noqa: E402
 from hds.data.format import Dataset, concatenate, load, save  # noqa: E402
 from hds.envs import make_env  # noqa: E402
 from hds.evaluation import mean_ci  # noqa: E402
@@ -47,6 +48,7 @@ def record(cfg: Config, env, plant, params, key, scale: float, env_cfg=None) -> 
     """One round's data: the policy (the batch's first run) deployed from the task's initial
     states, and open-loop excitation whose amplitudes rise to `scale` of the half range
     (discover.excitation = designed: designed on env_cfg, the simulator corrected so far)."""
+    from hds.discover.design import excitation_controls
     from hds.dynamics import excite
 
     k_deploy, k_excite, k_u = jax.random.split(key, 3)
@@ -62,19 +64,17 @@ def record(cfg: Config, env, plant, params, key, scale: float, env_cfg=None) -> 
         excitation_scale=scale,
     )
     q0, qd0 = initial_states(env.task, k_excite, cfg.loop.excitation_episodes)
-    controls = None
-    if cfg.discover.excitation == "designed":
-        from hds.discover.design import designed_controls
-
-        x0s = np.concatenate([q0, qd0], axis=1)[:4]  # the expected information over these
-        try:
-            controls = designed_controls(
-                env_cfg or cfg.env, cfg.discover, env.sim.dt, horizon, len(q0), scale, x0s, deployed
-            )
-        except ValueError as err:  # no design keeps the limits: random steps, as before
-            log.warning("designed excitation failed (%s); random steps instead", err)
-    if controls is None:
-        controls = excite(excitation, env, k_u)
+    controls = excitation_controls(
+        cfg.discover,
+        env_cfg or cfg.env,
+        env.sim.dt,
+        horizon,
+        q0,
+        qd0,
+        scale,
+        lambda: excite(excitation, env, k_u),
+        deployed,
+    )
     excited = collect(plant, env.task, q0, qd0, controls, horizon)
     return concatenate([deployed, excited])
 
@@ -276,10 +276,11 @@ def main(dcfg) -> float:
     hydra_dir = out_dir / HydraConfig.get().output_subdir
     with cli.one_line_errors(), rundir.claim(out_dir, dcfg, hydra_dir):  # locked
         cfg = validate(dcfg)  # every range check, before anything compiles
+        check_planned(cfg, loop=True)  # its data past the limits: refused with the numbers
         rounds = run_loop(cfg, out_dir)
     return float(rounds[-1]["real_return"][0])
 
 
 if __name__ == "__main__":
-    before_hydra()
+    before_hydra(loop=True)
     main()

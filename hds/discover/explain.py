@@ -113,12 +113,19 @@ def candidate_params(model, cand: Candidate, theta, delay) -> dict[str, float]:
 
 
 def forward_selection(
-    engine: Engine, ident, heldout, cfg, estimate: bool = False, floor: float = 0.0, banned=()
+    engine: Engine,
+    ident,
+    heldout,
+    cfg,
+    estimate: bool = False,
+    floor: float = 0.0,
+    banned=(),
+    progress=None,
 ) -> Selection:
     """Select effects; `ident` and `heldout` are `Data.arrays(...)` of the two episode sets;
     `estimate`: fit each window's initial state too (noisy data); `floor`: the held-out
     normalized RMSE measurement noise alone leaves; `banned`: keys of candidates the data
-    cannot identify (fitted, never selected)."""
+    cannot identify (fitted, never selected); `progress(stage)`: told as each round ends."""
     model = engine.model
     sw = _slot_width(model)
     sizes = sorted(
@@ -162,6 +169,13 @@ def forward_selection(
                 }
             )
         rounds.append(rows)
+        if progress:
+            best_row = min(rows, key=lambda row: row["heldout_error"])
+            progress(
+                f"selection round {round_index}: {len(rows)} candidates fitted, the best "
+                f"{best_row['name']}@{best_row['target']} (held-out error "
+                f"{best_row['heldout_error']:.3g})"
+            )
         # the selected effects refitted together (a candidate already selected adds nothing
         # new: its row is a longer refit of the current model, or another delay length)
         refits = [i for i, c in enumerate(model.candidates) if c.key in state.keys]

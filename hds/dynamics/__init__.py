@@ -51,13 +51,20 @@ def excite(cfg, env, key) -> np.ndarray:
     return middle + scales[:, None, None] * (u - middle)
 
 
-def collect_data(cfg, env, plant, key):
-    """A Dataset of cfg.episodes episodes recorded on `plant` from the task's initial states."""
+def collect_data(cfg, env, plant, key, controls=None):
+    """A Dataset of cfg.episodes episodes recorded on `plant` from the task's initial states,
+    driven by the excitation signal (`excite`), or by `controls(q0, qd0, signal)`: controls
+    chosen from the episodes' initial states, `signal()` the excitation signal's."""
     from hds.data import collect, initial_states
 
     k_init, k_u = jax.random.split(key)
     q0, qd0 = initial_states(env.task, k_init, cfg.episodes)
-    return collect(plant, env.task, q0, qd0, excite(cfg, env, k_u), cfg.horizon)
+
+    def signal():
+        return excite(cfg, env, k_u)
+
+    u = signal() if controls is None else controls(q0, qd0, signal)
+    return collect(plant, env.task, q0, qd0, u, cfg.horizon)
 
 
 def measured_data(cfg, env, plant, key):
