@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hds.effects.actuator import _clip
+from hds.effects.actuator import soft_clip
 from hds.effects.base import (
     ACTUATOR,
     COMMAND,
@@ -198,7 +198,7 @@ class ActuatorSaturation(Effect):
     def command(self, site, p, state, u, sharpness):
         limit = p["limit"]
         finite = jnp.isfinite(limit)  # the nominal (infinite) limit: the control as it is
-        clipped = _clip(u[site.index], jnp.where(finite, limit, 1.0), sharpness)
+        clipped = soft_clip(u[site.index], jnp.where(finite, limit, 1.0), sharpness)
         return u.at[site.index].set(jnp.where(finite, clipped, u[site.index])), state
 
     def plant_command(self, site, p, state, u):
