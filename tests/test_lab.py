@@ -245,3 +245,13 @@ def test_the_oracle_trains_on_a_lab_draws_replica(tmp_path):
     assert row["method"] == "oracle" and row["plant"] == "lab_cartpole#2"
     assert np.isfinite(row["sim_return"]) and np.isfinite(row["real_return"])
     assert (tmp_path / "truth.json").is_file()
+
+
+def test_the_docs_state_every_drawn_value():
+    from conftest import ROOT
+
+    text = (ROOT / "docs" / "lab-plants.md").read_text()
+    missing = [
+        d.key for _, table in lab.FAMILIES.values() for d in table if f"`{d.key}`" not in text
+    ]
+    assert not missing, f"docs/lab-plants.md lacks {missing}"

@@ -7,8 +7,8 @@ hides with those values, which `RealConfig` puts into `real.effects`. The C MuJo
 applies their exact laws and the oracle (`simulator=real`) trains on their replicas. A run on
 a lab plant writes the truth to `<run dir>/truth.json`.
 
-Every draw has: each mass, the pendulum's centre of mass and its inertia, and the motor's
-gear or torque constant off by up to 10%; friction on every joint (Coulomb with a static
+Every draw has: each mass, the centre of mass and the inertia of each link that turns, and
+the motor's gear or torque constant off by up to 10%; friction on every joint (Coulomb with a static
 Stribeck peak, plus viscous); 0 or 1 step of delay, an amplifier dead band and its
 saturation; noise on the measured velocities and 2,048-count encoders on the positions; and
 effects outside discovery's library: backlash in the cart-pole's belt drive, cogging of the
@@ -98,6 +98,7 @@ CARTPOLE = (
 # direct drive with a cogging motor.
 FURUTA = (
     *_scales(("mass_scale", "arm"), ("mass_scale", "pendulum")),
+    *_scales(("com_scale", "arm"), ("inertia_scale", "arm")),
     *_scales(("com_scale", "pendulum"), ("inertia_scale", "pendulum")),
     Draw("actuator_gain", "motor", "gain", 0.9, 1.1),
     *_stribeck("arm", (2e-4, 8e-4), (1.2, 1.6), (0.05, 0.3), (2e-6, 2e-5)),
