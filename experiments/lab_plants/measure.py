@@ -34,7 +34,7 @@ BASE = ["real=lab_cartpole", "method=pods_cl", "env.backend=analytic", "logger=n
 
 # what the truth holds for each library effect discovery may name ({effect@target: value})
 TRUTH_OF = {
-    "coulomb_friction": ("stribeck_friction", "force"),  # the sliding level
+    "coulomb_friction": ("stribeck_friction", "force"),  # the sliding level (static: beside)
     "viscous_damping": ("viscous_damping", "coefficient"),
     "mass_scale": ("mass_scale", "scale"),
     "actuator_gain": ("actuator_gain", "gain"),
@@ -51,6 +51,44 @@ def truth_value(truth: dict, name: str, target: str):
         if e["name"] == effect and e["target"] == target:
             return e["params"][param]
     return None
+
+
+def table(rows: list[dict]) -> str:
+    """The README's table: per draw, what discovery named against the truth, what of the
+    truth a library effect could have named and was not, and the held-out error."""
+    lines = [
+        "| draw | named: fit [95% interval] vs truth | in the library, not named (truth) "
+        "| held-out NRMSE before -> after | unexplained |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for d in rows:
+        values = d["truth"]["values"]
+        named = []
+        for e in d["named"]:
+            ((param, x),) = e["params"].items()
+            lo, hi = e["ci95"][param]
+            truth = "none" if e["truth"] is None else f"{e['truth']:.3g}"
+            if e["name"] == "coulomb_friction":
+                static = values[f"stribeck_friction@{e['target']}.static"]
+                truth += f" sliding, {static:.3g} static"
+            named.append(f"{e['name']}@{e['target']} {x:.3g} [{lo:.3g}, {hi:.3g}] vs {truth}")
+        keys = {f"{e['name']}@{e['target']}" for e in d["named"]}
+        missed = []
+        for key, x in values.items():
+            effect, rest = key.split("@")
+            target, param = rest.split(".")
+            library = "coulomb_friction" if effect == "stribeck_friction" else effect
+            if library not in TRUTH_OF or TRUTH_OF[library][1] != param:
+                continue
+            if f"{library}@{target}" in keys or (effect == "action_delay" and x == 0):
+                continue
+            missed.append(f"{library}@{target} {x:.3g}")
+        before, after = d["nrmse_before"]["heldout"], d["nrmse_after"]["heldout"]
+        lines.append(
+            f"| {d['draw']} | {'; '.join(named) or 'nothing'} | {', '.join(missed)} "
+            f"| {before:.3f} -> {after:.3f} | {d['unexplained_fraction']:.1%} |"
+        )
+    return "\n".join(lines)
 
 
 def main(n_draws: int = 5) -> None:
@@ -103,6 +141,7 @@ def main(n_draws: int = 5) -> None:
             f"unexplained {result.unexplained_fraction:.3f} ({time.time() - t0:.0f} s)"
         )
     print(f"total {time.time() - start:.0f} s")
+    print(table(rows))
 
 
 if __name__ == "__main__":
