@@ -12,6 +12,8 @@ grows the steps the improvement sees (a curriculum).
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 
@@ -77,7 +79,8 @@ def effect_ramp(params, sites, epoch, begin: float, end: float, delay=0):
         {k: effect_type(site.name).param(k).nominal for k in values}
         for site, values in zip(sites, params)
     ]
+    # an infinite nominal (a saturation's limit) has no line to the value: the value throughout
     return tuple(
-        {k: n[k] + share * (v - n[k]) for k, v in values.items()}
+        {k: n[k] + share * (v - n[k]) if math.isfinite(n[k]) else v for k, v in values.items()}
         for n, values in zip(nominal, params)
     )

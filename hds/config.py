@@ -119,8 +119,23 @@ class RealConfig:
     friction_gap: float = 1.0  # scales every friction effect below
     effects: list[EffectConfig] = _effects_field()  # the effects the simulator does not know
     name: str = ""  # the plant's name in rows and reports (empty: its effects, e.g. gain@slide)
+    # a lab plant (hds.real.lab): draw `draw` of this family's distribution, whose effects
+    # come first in `effects` (an effect given there that the draw has is the draw's)
+    family: str = ""
+    draw: int = 0
+
+    def __post_init__(self):
+        if self.family:  # idempotent: dataclasses.replace builds it again from its own effects
+            from hds.real import lab
+
+            drawn = lab.effects(self.family, self.draw)
+            keys = {(e["name"], e["target"]) for e in drawn}
+            own = [e for e in self.effects if (e.name, e.target) not in keys]
+            self.effects = [EffectConfig(**e) for e in drawn] + own
 
     def label(self) -> str:
+        if not self.name and self.family:
+            return f"{self.family}#{self.draw}"
         return self.name or "+".join(f"{e.name}@{e.target}" for e in self.effects) or "none"
 
     def check(self):
@@ -722,6 +737,10 @@ def _check_effect_targets(config) -> None:
         xml = str(resolve_xml(env.xml))
     except FileNotFoundError as err:
         raise ValueError(f"env.xml: {err}") from None
+    if isinstance(real, RealConfig) and real.family:
+        from hds.real.lab import check_env
+
+        check_env(real.family, xml)
     if not any(effects for _, effects in groups):
         return
     names = target_names(_env_model(xml))

@@ -460,6 +460,10 @@ def run(cfg: Config, out_dir: str | Path | None = None, hooks: Hooks | None = No
         log.info("%s is finished (summary.json exists): skipped", out_dir)
         return Result.from_summary(read_json(out_dir / "summary.json"), out_dir)
     plants = run_plants(cfg)
+    if cfg.real.family:  # a lab plant: its draw's truth beside the results (hds.real.lab)
+        from hds.real.lab import draw
+
+        atomic_write_json(out_dir / "truth.json", draw(cfg.real.family, cfg.real.draw))
     # all alike unless the gap is swept, which excludes a learned model and a corrected simulator
     methods, model_report, discovery = methods_of(cfg, out_dir, plants[0])
     result = Result(

@@ -56,6 +56,8 @@ def test_every_option_composes(group):
             # the default plant's friction acts on the cart-pole's slider, which the other
             # models lack: validate() rejects it (test_bad_values_fail_at_composition)
             overrides.append("real=none")
+        if (group, option) == ("real", "lab_furuta"):  # a plant of the Furuta's model only
+            overrides.append("env=furuta_balance")
         cfg = make_config(*overrides)
         assert_values_landed(cfg, CONF / group / f"{option}.yaml", prefix=f"{group}.")
 

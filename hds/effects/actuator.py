@@ -52,7 +52,7 @@ class ActuatorOffset(Effect):
         return u, state
 
 
-def _clip(u, half, sharpness):
+def soft_clip(u, half, sharpness):
     """clip(u, -half, half); a softplus-smoothed version when sharpness is given."""
     if sharpness is None:
         return jnp.clip(u, -half, half)
@@ -72,7 +72,9 @@ class ActuatorDeadzone(Effect):
 
     def command(self, site, p, state, u, sharpness):
         half = 0.5 * p["width"]
-        return u.at[site.index].set(u[site.index] - _clip(u[site.index], half, sharpness)), state
+        return u.at[site.index].set(
+            u[site.index] - soft_clip(u[site.index], half, sharpness)
+        ), state
 
     def plant_command(self, site, p, state, u):
         half = 0.5 * p["width"]

@@ -38,6 +38,18 @@ class Param:
     fit_start_in_timesteps: float = 0.0
 
 
+@dataclass
+class PlantLoads:
+    """What the C MuJoCo plant holds over one physics step of its B episodes, edited by the
+    stepwise plant laws (`Effect.plant_substep`): the actuators' controls [B, nu], the forces
+    on the dofs [B, nv] (qfrc_applied) and each dof's dry-friction magnitude [B, nv] (MuJoCo's
+    frictionloss, a constraint that holds a joint at rest up to it)."""
+
+    ctrl: object
+    force: object
+    frictionloss: object
+
+
 class Effect:
     """Base class of the library's effects: set the class attributes, write the laws of its
     stage (jax) and of the plant (numpy, or `mjcf` and `write_mjcf`), then register an
@@ -69,6 +81,10 @@ class Effect:
     # in discover.effects' default list; False: a candidate a user names (each added candidate
     # costs every discovery a fit per place, and changes what the existing studies measured)
     default_candidate: bool = True
+    # its C MuJoCo law acts at every physics step on the episodes' state (`plant_substep`)
+    # rather than as a constant force (`plant_force`): friction that varies with speed, a
+    # torque that varies with angle, a drive with a state of its own
+    plant_stepwise: bool = False
 
     def check_site(self, target: str, values: dict, names: dict, where: str) -> None:
         """Refuse, with one line, what its parameters cannot mean on this model; `names`: the
@@ -118,14 +134,16 @@ class Effect:
         applies (qfrc_applied)."""
         raise self._missing("plant_force")
 
-    def plant_velocity_force(self, site, p, qd: float) -> float:
-        """A substep effect MuJoCo lacks whose force depends on the joint's velocity: the force
-        on the joint's dof at velocity `qd`, which the plant applies (qfrc_applied) from the
-        velocity at the start of each MuJoCo step, as the simulator's substep law does."""
-        raise self._missing("plant_velocity_force")
+    def plant_substep(self, site, p, state, loads, q, qd, h):
+        """A stepwise plant law (`plant_stepwise`): edit `loads` (PlantLoads) for one physics
+        step of h seconds from the episodes' positions q [B, nq] and velocities qd [B, nv] at
+        its start; return the effect's next state (`plant_state`)."""
+        raise self._missing("plant_substep")
 
     def plant_observe(self, site, p, obs):
-        """Observations [B, n_obs] after the effect; obs may be edited in place."""
+        """Observations [B, n_obs] after the effect; obs may be edited in place. An effect
+        whose `plant_state` is not None (a noise generator) is called with it as a fourth
+        argument; that state lives as long as the plant (it is not reset with the episodes)."""
         raise self._missing("plant_observe")
 
     def _missing(self, law: str) -> NotImplementedError:

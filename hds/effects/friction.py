@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from hds.effects.base import JOINT, SUBSTEP, SYSTEM, Effect, Param
 
@@ -104,6 +105,7 @@ class QuadraticDrag(Effect):
     # opt-in: a swinging or fast body's friction law; each added default candidate costs every
     # discovery a fit per joint and changes what the existing studies measured
     default_candidate = False
+    plant_stepwise = True
 
     # Why it is in the library: a bearing's dry friction takes the same energy per swing, so it
     # shows most when the swing is small, while an arm's air drag (each element at r moves at
@@ -119,6 +121,8 @@ class QuadraticDrag(Effect):
         v = qd[site.index]
         return u, force.at[site.index].add(-p["coefficient"] * jnp.abs(v) * v), state
 
-    def plant_velocity_force(self, site, p, qd: float) -> float:
-        """The plant's law (numpy, float64): the force at the joint's velocity `qd`."""
-        return -p["coefficient"] * abs(qd) * qd
+    def plant_substep(self, site, p, state, loads, q, qd, h):
+        """The plant's law (numpy, float64), from each physics step's starting velocity."""
+        v = qd[:, site.index]
+        loads.force[:, site.index] += -p["coefficient"] * np.abs(v) * v
+        return state

@@ -22,6 +22,7 @@ from hds.effects.body import MassScale
 from hds.effects.force_terms import JointForceTerms
 from hds.effects.friction import CoulombFriction, QuadraticDrag, ViscousDamping
 from hds.effects.inertial import ComScale, InertiaScale
+from hds.effects.lab import LAB_EFFECTS
 from hds.effects.sensor import SensorBias
 
 LIBRARY: dict[str, Effect] = {}
@@ -61,6 +62,8 @@ register(ComScale())
 register(InertiaScale())
 register(SensorBias())
 register(JointForceTerms())
+for _lab_effect in LAB_EFFECTS:  # the lab plants' effects: no candidates of discovery's
+    register(_lab_effect())
 
 
 def candidate_effects() -> list[str]:

@@ -5,7 +5,10 @@ Each effect brings its exact law (hds.effects.base.Effect): the ones MuJoCo has 
 the model (`mujoco_spec`, whose `spec.to_xml()` is an MJCF of the "real" system); the others
 act in `MujocoPlant.step` in numpy, in the order of the simulator's stages: on the control
 (then clipped to ctrlrange), as a joint force held over the step (qfrc_applied), or on the
-returned observation. Everything is float64.
+returned observation. Stepwise laws (`Effect.plant_stepwise`: friction that varies with speed,
+cogging, backlash) set the control, the joint forces and MuJoCo's frictionloss from the state
+at every physics step, the plant then stepping one physics step at a time. Everything is
+float64.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ import mujoco
 import numpy as np
 
 from hds.effects import place
-from hds.effects.base import COMMAND, OBSERVE, SUBSTEP, SYSTEM, Effect
+from hds.effects.base import COMMAND, OBSERVE, SUBSTEP, SYSTEM, PlantLoads
 from hds.effects.library import effect_type
 from hds.envs.system import load_spec, state_names, target_names
 
@@ -71,16 +74,18 @@ class MujocoPlant:
         self.ctrl_range = np.array(self.model.actuator_ctrlrange, dtype=np.float64)
         self.ctrl_range[self.model.actuator_ctrllimited == 0] = [-np.inf, np.inf]
         self._forces = np.zeros(self.model.nv)  # the substep effects MuJoCo lacks
-        self._velocity_forces = []  # ... and those of them whose force follows the velocity
+        self._stepwise = [row for row in self.effects.at(SUBSTEP) if row[2].plant_stepwise]
         for i, site, effect in self.effects.at(SUBSTEP):
-            if effect.mjcf:
-                continue
-            if _overrides(effect, "plant_velocity_force"):
-                self._velocity_forces.append((site, effect, self.params[i]))
-            else:
+            if not effect.mjcf and not effect.plant_stepwise:
                 self._forces[site.index] += effect.plant_force(site, self.params[i])
+        self._frictionloss = np.array(self.model.dof_frictionloss)  # the stepwise laws add to it
         self._data: list[mujoco.MjData] = []
         self._states: dict[int, np.ndarray] = {}
+        # observation states (noise generators) last as long as the plant: a real sensor's
+        # noise does not repeat at every reset
+        self._observe_states = {
+            i: effect.plant_state(site, 0) for i, site, effect in self.effects.at(OBSERVE)
+        }
 
     def reset(self, q, qd) -> np.ndarray:
         q, qd = np.asarray(q, np.float64), np.asarray(qd, np.float64)
@@ -93,7 +98,8 @@ class MujocoPlant:
                 data.qfrc_applied[:] = self._forces
             mujoco.mj_forward(self.model, data)
         self._states = {
-            i: effect.plant_state(site, len(q)) for i, site, effect in self.effects.at(COMMAND)
+            i: effect.plant_state(site, len(q))
+            for i, site, effect in [*self.effects.at(COMMAND), *self._stepwise]
         }
         return self._observe()
 
@@ -107,18 +113,35 @@ class MujocoPlant:
         for i, site, effect in self.effects.at(COMMAND):
             u, self._states[i] = effect.plant_command(site, self.params[i], self._states[i], u)
         u = np.clip(u, self.ctrl_range[:, 0], self.ctrl_range[:, 1])
+        if self._stepwise:
+            for _ in range(self.frames):
+                self._physics_step(u)
+            return self._observe()
         for data, ui in zip(self._data, u, strict=True):
             data.ctrl[:] = ui
-            if not self._velocity_forces:
-                mujoco.mj_step(self.model, data, nstep=self.frames)
-                continue
-            for _ in range(self.frames):  # a velocity's force, from each step's start
-                data.qfrc_applied[:] = self._forces
-                for site, effect, p in self._velocity_forces:
-                    qd = float(data.qvel[site.index])
-                    data.qfrc_applied[site.index] += effect.plant_velocity_force(site, p, qd)
-                mujoco.mj_step(self.model, data)
+            mujoco.mj_step(self.model, data, nstep=self.frames)
         return self._observe()
+
+    def _physics_step(self, u) -> None:
+        """One physics step of every episode with the stepwise laws' loads, computed from the
+        state at its start (as the simulator's substep computes its forces)."""
+        q, qd = self.state()
+        batch = len(self._data)
+        loads = PlantLoads(
+            u.copy(), np.tile(self._forces, (batch, 1)), np.tile(self._frictionloss, (batch, 1))
+        )
+        for i, site, effect in self._stepwise:
+            self._states[i] = effect.plant_substep(
+                site, self.params[i], self._states[i], loads, q, qd, self.model.opt.timestep
+            )
+        try:
+            for b, data in enumerate(self._data):
+                data.ctrl[:] = loads.ctrl[b]
+                data.qfrc_applied[:] = loads.force[b]
+                self.model.dof_frictionloss[:] = loads.frictionloss[b]  # this episode's
+                mujoco.mj_step(self.model, data)
+        finally:
+            self.model.dof_frictionloss[:] = self._frictionloss
 
     def state(self) -> tuple[np.ndarray, np.ndarray]:
         return (
@@ -129,10 +152,9 @@ class MujocoPlant:
     def _observe(self) -> np.ndarray:
         obs = np.concatenate(self.state(), axis=1)
         for i, site, effect in self.effects.at(OBSERVE):
-            obs = effect.plant_observe(site, self.params[i], obs)
+            state = self._observe_states[i]
+            if state is None:
+                obs = effect.plant_observe(site, self.params[i], obs)
+            else:
+                obs = effect.plant_observe(site, self.params[i], obs, state)
         return obs
-
-
-def _overrides(effect, method: str) -> bool:
-    """Whether the effect's class defines `method` (beyond the base class's refusal)."""
-    return getattr(type(effect), method) is not getattr(Effect, method)
