@@ -46,6 +46,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "hds.dynamics",
             "hds.discover",
             "hds.evaluation",
+            "hds.results",
             "hds.checkpoint",
             "hds.logger",
             "hds.plots",
