@@ -15,13 +15,7 @@ import itertools
 import runpy
 import sys
 
-from hds.config import register
 from hds.utils import cli
-
-# The schemas conf/config.yaml and conf/discover.yaml build on, with Hydra's ConfigStore: every
-# Hydra command (hds.run, hds.loop, hds.discover) imports this module, also in a sweep's job
-# processes, before Hydra composes (importing hds.config alone does not register them)
-register()
 
 SCRIPTS = {  # script: the module it runs
     "hds-run": "hds.run",

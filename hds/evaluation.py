@@ -112,17 +112,7 @@ def gap_rows(
         solved = {}
         if solved_at is not None:
             solved = {"solved_sim": sim_r >= solved_at, "solved_real": real_r >= solved_at}
-        rows.append(
-            Row(
-                method,
-                sim_return=sim_r,
-                real_return=real_r,
-                gap=sim_r - real_r,
-                gap_relative=(sim_r - real_r) / max(abs(sim_r), 1e-9),
-                settings=dict(run),
-                **solved,
-            )
-        )
+        rows.append(Row.measured(method, sim_r, real_r, settings=dict(run), **solved))
     return rows
 
 
@@ -158,7 +148,12 @@ def diverged(
 
 def no_finite_result(rows: list[Row] | list[dict]) -> str | None:
     """The message of a run none of whose rows is finite (it exits non-zero), else None."""
-    if rows and not any(Row.from_json(r).finite() for r in rows):  # Rows, or as JSON
+    returns = [  # Rows, or as JSON (None: a NaN read back from a finished run's summary.json)
+        (r.sim_return, r.real_return) if isinstance(r, Row) else (r["sim_return"], r["real_return"])
+        for r in rows
+    ]
+    finite = [all(v is not None and np.isfinite(v) for v in pair) for pair in returns]
+    if rows and not any(finite):
         return (
             f"no finite result: every row ({len(rows)}) has a NaN or inf return (see the "
             "warnings above); summary.json writes them as null and lists them under non_finite"

@@ -119,6 +119,7 @@ def discoveries(root: Path, rows: list[Row], found_loops: list[tuple] = ()) -> l
     """What gap discovery named below root, each beside the plant's truth: per run that trained
     on a corrected simulator (its rows' labels), and per round of each loop `found_loops`.
     Each: label, plant, friction_gap, job, effects (named, with ci95), truth, warnings."""
+    rows = rows_from_json(rows)
     keys = settings_of(rows)
     labels = defaultdict(list)  # job -> its rows' labels (a job may sweep a setting inside)
     for r in rows:
@@ -239,9 +240,10 @@ def column_names(columns: list[tuple]) -> dict:
     return {(p, g): f"{p} x{g:g}" if len(gaps[p]) > 1 else p for p, g in columns}
 
 
-def aggregate(rows: list[Row]) -> list[dict]:
+def aggregate(rows: list[Row] | list[dict]) -> list[dict]:
     """Mean and 95% interval over seeds of each method on each plant (at its friction gap) and
-    swept setting (`label`: the method and its settings)."""
+    swept setting (`label`: the method and its settings); `rows`: Rows, or as JSON."""
+    rows = rows_from_json(rows)
     keys = settings_of(rows)
     groups = defaultdict(list)
     for r in rows:
@@ -323,6 +325,7 @@ def _pivot(summary: list[dict], cell) -> str:
 def write_csv(rows: list[Row], path: Path) -> None:
     """One row per run: method, plant, friction gap, every swept setting, seed, returns, gap,
     job."""
+    rows = rows_from_json(rows)
     columns = ["method", "plant", "friction_gap", *settings_of(rows), *ROW_COLUMNS]
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore")

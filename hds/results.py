@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from hds.utils.io import atomic_write_json, read_json
@@ -65,6 +65,13 @@ class Row(Mapping):
     def friction_gap(self) -> float | None:
         return self.settings.get("friction_gap")
 
+    @classmethod
+    def measured(cls, method: str, sim_return: float, real_return: float, **fields) -> Row:
+        """A row from its two returns: the gap (sim - real) and the gap relative to |sim|."""
+        gap = sim_return - real_return
+        relative = gap / max(abs(sim_return), 1e-9)
+        return cls(method, sim_return, real_return, gap, relative, **fields)
+
     def finite(self) -> bool:
         """Whether both returns are finite numbers (not NaN or inf: a diverged rollout)."""
         return math.isfinite(self.sim_return) and math.isfinite(self.real_return)
@@ -84,21 +91,24 @@ class Row(Mapping):
         """A row as summary.json, loop.json or a sweep's gathered summary stores it."""
         if isinstance(data, Row):
             return data
-        missing = [k for k in ("method", *MEASURED) if k not in data]
+        missing = [k for k in ("method", "sim_return", "real_return") if k not in data]
         if missing:
             raise ValueError(
                 f"a result row lacks {', '.join(missing)}: {dict(data)}; it was not written by "
                 "hds (rerun the experiment to rewrite its summary.json)"
             )
         known = {"method", *MEASURED, *SOLVED, "job"}
-        return cls(
-            method=data["method"],
-            **{key: _number(data[key]) for key in MEASURED},
-            settings={k: v for k, v in data.items() if k not in known},
-            solved_sim=data.get("solved_sim"),
-            solved_real=data.get("solved_real"),
-            job=data.get("job"),
-        )
+        fields = {
+            "settings": {k: v for k, v in data.items() if k not in known},
+            "solved_sim": data.get("solved_sim"),
+            "solved_real": data.get("solved_real"),
+            "job": data.get("job"),
+        }
+        sim, real = _number(data["sim_return"]), _number(data["real_return"])
+        row = cls.measured(data["method"], sim, real, **fields)
+        # the gaps as written (not recomputed: the same digits), where the row has them
+        gaps = {k: _number(data[k]) for k in ("gap", "gap_relative") if k in data}
+        return replace(row, **gaps)
 
     # the flat mapping of to_json, for tables and figures over any column
     def __getitem__(self, key: str):

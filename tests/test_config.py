@@ -96,9 +96,7 @@ def test_every_launcher_composes(launcher):
     from hydra.utils import get_class
     from omegaconf import OmegaConf
 
-    from hds.config import register
-
-    register()  # the schemas the configs build on (hds.compose and the commands do it)
+    import hds.config  # noqa: F401  (registers the schemas)
 
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("config", [f"hydra/launcher={launcher}"], return_hydra_config=True)

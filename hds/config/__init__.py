@@ -2,9 +2,8 @@
 composing and loading configs. Every name is importable from `hds.config`:
 
   schemas       one dataclass per group (Config, EnvConfig, AlgoConfig, ...), registered with
-                Hydra (`register`, when Hydra reads hds/conf or `compose` runs) so that an
-                unknown key or a wrong type fails at composition; each has a `check()` of its
-                ranges. Importing hds.config imports neither JAX nor MuJoCo.
+                Hydra on import so that an unknown key or a wrong type fails at composition;
+                each has a `check()` of its ranges
   validation    validate(cfg): every check, no unknown key, finite numbers, effects against
                 the model, and the memory a training program needs (hds.config.model, which
                 compiles the MJCF and asks JAX: imported only when a config is validated)
@@ -87,3 +86,8 @@ __all__ = [
     "schema_of",
     "validate",
 ]
+
+# Registered on import, as Hydra compositions (the commands', and anyone's with Hydra's own
+# compose) expect. Storing a schema builds its defaults, and discover.effects' default asks the
+# effect library, which imports JAX: the one JAX import left on this path.
+register()

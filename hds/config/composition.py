@@ -11,7 +11,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from hds.config.schemas import Config, DiscoverAppConfig, EnvConfig, register
+from hds.config.schemas import Config, DiscoverAppConfig, EnvConfig
 from hds.config.validation import check_override_keys, validate
 
 log = logging.getLogger("hds.config")
@@ -55,7 +55,6 @@ def compose(overrides=(), config_name: str = "config", check_memory: bool = True
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
-    register()  # the schemas conf/ builds on, with Hydra's ConfigStore
     check_override_keys(overrides, schema_of(config_name), config_groups())
     search = [f"file://{Path(d).resolve()}" for d in config_dirs]
     extra = [f"hydra.searchpath=[{','.join(search)}]"] if search else []

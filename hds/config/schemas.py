@@ -680,8 +680,6 @@ def run_label(run: dict) -> str:
 
 def register() -> None:
     """Register the schemas with Hydra's ConfigStore (`config_schema`, `discover_schema`), which
-    conf/config.yaml and conf/discover.yaml build on. Done when Hydra first reads hds/conf
-    (hds/conf/__init__.py) and by `compose`; not on importing the schemas, since storing them
-    builds their defaults, and discover.effects' default asks the effect library (JAX)."""
+    conf/config.yaml and conf/discover.yaml build on: done on importing hds.config."""
     ConfigStore.instance().store(name="config_schema", node=Config)
     ConfigStore.instance().store(name="discover_schema", node=DiscoverAppConfig)
