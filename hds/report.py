@@ -150,7 +150,8 @@ def discoveries(root: Path, rows: list[Row], found_loops: list[tuple] = ()) -> l
         for report in rounds:
             if not report.get("round"):  # round 0: the simulator as given, nothing named
                 continue
-            for label in dict.fromkeys(f"{method_name(cfg)}+{r['method']}" for r in report["rows"]):
+            round_rows = rows_from_json(report["rows"])
+            for label in dict.fromkeys(f"{method_name(cfg)}+{r.method}" for r in round_rows):
                 found.append(
                     {
                         "label": label,
