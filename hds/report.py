@@ -370,10 +370,10 @@ def unused_models(root: Path) -> list[str]:
     """A line per run below root whose learned model was fitted but not used (dynamics.
     require_better): HDS there trained without it."""
     lines = []
-    for job_dir, summary in run_summaries(root):
-        model = summary.dynamics
+    for path in sorted(root.rglob("summary.json")):  # the learned model's report, as it is
+        model = read_json(path).get("dynamics", {})
         if "not_used_because" in model:
-            job = job_dir.relative_to(root) if job_dir != root else Path(".")
+            job = path.parent.relative_to(root) if path.parent != root else Path(".")
             lines.append(f"- `{job}`: {model['not_used_because']}")
     if not lines:
         return []
