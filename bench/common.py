@@ -202,7 +202,7 @@ def load_results(path: Path = RESULTS_JSON) -> dict:
 
 def save_section(name: str, data: dict, path: Path = RESULTS_JSON, md: Path = RESULTS_MD) -> dict:
     """Merge one section's result into results.json (others are kept) and re-render RESULTS.md."""
-    from bench.report import render
+    from bench.markdown import render
     from hds.utils.io import atomic_write_bytes, atomic_write_json
 
     results = load_results(path)

@@ -1,4 +1,4 @@
-"""MkDocs hook: the configuration reference, generated from the schemas of hds/config.py.
+"""MkDocs hook: the configuration reference, generated from the schemas (hds/config/schemas.py).
 
 A page holding the line `<!-- config-reference -->` gets, in its place, one table per schema
 (every key, its type, its default, what `check()` allows, and the comment the schema gives it),
@@ -15,7 +15,7 @@ import tokenize
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SOURCE = ROOT / "hds" / "config.py"
+SOURCE = ROOT / "hds" / "config" / "schemas.py"
 CONF = ROOT / "hds" / "conf"
 MARKER = "<!-- config-reference -->"
 

@@ -6,31 +6,30 @@ from __future__ import annotations
 
 import logging
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
+from hds.results import Gathered, Summary
 from hds.rundir import check_writable, optimizing
-from hds.utils.io import atomic_write_json, read_json
+from hds.utils.io import atomic_write_json
 
 log = logging.getLogger("hds")
 
 
-def gather(sweep_dir: Path) -> dict:
+def gather(sweep_dir: Path) -> Gathered:
     """One summary of every finished job below sweep_dir (each job's rows, those on its
     further plants included, tagged by job)."""
     rows, jobs = [], []
     for path in sorted(Path(sweep_dir).glob("*/summary.json"), key=lambda p: p.parent.name):
         if (path.parent / "failed.txt").exists():
             continue  # refused on a restart: its summary is another configuration's
-        summary = read_json(path)
-        jobs.append(
-            {"job": path.parent.name, "name": summary.get("name"), "real": summary.get("real")}
-        )
-        job_rows = summary["rows"] + summary.get("rows_eval_plants", [])
-        rows += [{**row, "job": path.parent.name} for row in job_rows]
+        summary, job = Summary.read(path), path.parent.name
+        jobs.append({"job": job, "name": summary.name, "real": summary.real or None})
+        rows += [replace(row, job=job) for row in summary.rows + summary.rows_eval_plants]
     failed = sorted(p.parent.name for p in Path(sweep_dir).glob("*/failed.txt"))
-    return {"rows": rows, "jobs": jobs, "failed_jobs": failed}
+    return Gathered(rows, jobs, failed)
 
 
 def tell(name: str, sweep_dir: Path, jobs: int, loops: list[Path]) -> None:
@@ -57,14 +56,14 @@ class SweepSummary(Callback):
     def on_multirun_end(self, config, **kwargs) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
         summary = gather(sweep_dir)
-        if summary["rows"]:
-            atomic_write_json(sweep_dir / "summary.json", summary)
+        if summary.rows:
+            atomic_write_json(sweep_dir / "summary.json", summary.to_json())
         loops = sorted(sweep_dir.glob("*/loop.json"))  # hds.loop's jobs: rows in loop.json
-        if summary["rows"] or loops:
-            tell(config.name, sweep_dir, len(summary["jobs"]) + len(loops), loops)
-        if failed := summary["failed_jobs"]:
+        if summary.rows or loops:
+            tell(config.name, sweep_dir, len(summary.jobs) + len(loops), loops)
+        if failed := summary.failed_jobs:
             # a finished job refused on a restart (another configuration) has both files
-            total = len({*failed, *(j["job"] for j in summary["jobs"])})
+            total = len({*failed, *(j["job"] for j in summary.jobs)})
             if optimizing(config.hydra):  # a failed trial is part of a search, not an error
                 log.warning(
                     "%d of %d trials failed: %s (see their failed.txt); Optuna recorded them "

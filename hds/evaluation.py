@@ -14,6 +14,7 @@ from scipy import stats
 from hds.algo.rollout import policy_rollout
 from hds.data import initial_states
 from hds.real import rollout
+from hds.results import Row
 
 
 class MeanCI(NamedTuple):
@@ -101,24 +102,17 @@ class Evaluator:
 
 def gap_rows(
     method: str, runs: list[dict], sim: np.ndarray, real: np.ndarray, solved_at=None
-) -> list[dict]:
+) -> list[Row]:
     """One row per run of the batch (`runs`: its seed and swept settings), mean over episodes;
     with the task's `solved_at` (env.task), whether the policy solves it on the simulator
     and on the plant."""
     rows = []
     for s, run in enumerate(runs):
         sim_r, real_r = float(np.mean(sim[s])), float(np.mean(real[s]))
-        row = {
-            "method": method,
-            **run,
-            "sim_return": sim_r,
-            "real_return": real_r,
-            "gap": sim_r - real_r,
-            "gap_relative": (sim_r - real_r) / max(abs(sim_r), 1e-9),
-        }
+        solved = {}
         if solved_at is not None:
-            row |= {"solved_sim": sim_r >= solved_at, "solved_real": real_r >= solved_at}
-        rows.append(row)
+            solved = {"solved_sim": sim_r >= solved_at, "solved_real": real_r >= solved_at}
+        rows.append(Row.measured(method, sim_r, real_r, settings=dict(run), **solved))
     return rows
 
 
@@ -152,12 +146,13 @@ def diverged(
     return lines
 
 
-def no_finite_result(rows: list[dict]) -> str | None:
+def no_finite_result(rows: list[Row] | list[dict]) -> str | None:
     """The message of a run none of whose rows is finite (it exits non-zero), else None."""
-    finite = [  # None: a null read back from a finished run's summary.json
-        all(v is not None and np.isfinite(v) for v in (r["sim_return"], r["real_return"]))
+    returns = [  # Rows, or as JSON (None: a NaN read back from a finished run's summary.json)
+        (r.sim_return, r.real_return) if isinstance(r, Row) else (r["sim_return"], r["real_return"])
         for r in rows
     ]
+    finite = [all(v is not None and np.isfinite(v) for v in pair) for pair in returns]
     if rows and not any(finite):
         return (
             f"no finite result: every row ({len(rows)}) has a NaN or inf return (see the "

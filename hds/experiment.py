@@ -42,7 +42,7 @@ from hds.evaluation import Evaluator, diverged, gap_rows
 from hds.logger import RunLogger, print_table
 from hds.real import make_plant
 from hds.real.brax_plant import BraxPlant
-from hds.utils.io import atomic_write_json, read_json
+from hds.results import Row, Summary
 from hds.utils.runtime import enable_compilation_cache, over_runs, runs_vmapped
 
 log = logging.getLogger("hds")
@@ -82,44 +82,49 @@ class Training:
 
 @dataclass
 class Result:
-    """A finished experiment: its rows (one per method and run of the batch: method, seed,
-    swept settings, sim_return, real_return, gap, gap_relative) and everything summary.json
-    records."""
+    """A finished experiment: its rows (`hds.results.Row`, one per method and run of the
+    batch: method, seed, swept settings, sim_return, real_return, gap, gap_relative) and
+    everything summary.json records (`hds.results.Summary`)."""
 
     name: str
     run_dir: Path
-    rows: list[dict]
+    rows: list[Row]
     histories: dict = field(default_factory=dict)
-    rows_eval_plants: list[dict] = field(default_factory=list)  # on cfg.eval_plants
+    rows_eval_plants: list[Row] = field(default_factory=list)  # on cfg.eval_plants
     timing: dict = field(default_factory=dict)
     dynamics: dict = field(default_factory=dict)
     discovery: dict = field(default_factory=dict)
     real: dict = field(default_factory=dict)
 
+    def to_summary(self) -> Summary:
+        return Summary(
+            self.name,
+            self.rows,
+            self.rows_eval_plants,
+            self.timing,
+            self.dynamics,
+            self.discovery,
+            self.real,
+            self.histories,
+        )
+
     def summary(self) -> dict:
-        return {
-            "name": self.name,
-            "rows": self.rows,
-            "rows_eval_plants": self.rows_eval_plants,
-            "timing": self.timing,
-            "dynamics": self.dynamics,
-            "discovery": self.discovery,
-            "real": self.real,
-            "history": self.histories,
-        }
+        """summary.json's content (`Summary.to_json`)."""
+        return self.to_summary().to_json()
 
     @classmethod
-    def from_summary(cls, summary: dict, run_dir: Path) -> Result:
+    def from_summary(cls, summary: Summary | dict, run_dir: Path) -> Result:
+        s = summary if isinstance(summary, Summary) else Summary.from_json(summary)
         return cls(
-            summary["name"],
+            s.name,
             Path(run_dir),
-            summary["rows"],
-            summary.get("history", {}),
-            summary.get("rows_eval_plants", []),
-            summary.get("timing", {}),
-            summary.get("dynamics", {}),
-            summary.get("discovery", {}),
-            summary.get("real", {}),
+            s.rows,
+            s.history,
+            s.rows_eval_plants,
+            s.timing,
+            s.dynamics,
+            s.discovery,
+            s.real,
         )
 
 
@@ -413,7 +418,7 @@ def _check_finite(state, method: str) -> None:
 # --- evaluation --------------------------------------------------------------------------------
 
 
-def evaluate_training(cfg: Config, training: Training, plants) -> tuple[list, list]:
+def evaluate_training(cfg: Config, training: Training, plants) -> tuple[list[Row], list[Row]]:
     """One row per run: mean return on the simulator the policy trained on (what it was
     promised) and on its plant, from the same initial states; and the same on each plant of
     `cfg.eval_plants`. Each row names its plant. Runs whose rollouts diverged are named in a
@@ -423,7 +428,7 @@ def evaluate_training(cfg: Config, training: Training, plants) -> tuple[list, li
     )
     sim = evaluator.sim_returns(training.params, training.effects)
 
-    def rows_on(plant, label: dict) -> list[dict]:
+    def rows_on(plant, label: dict) -> list[Row]:
         runs = [{**label, **r} for r in cfg.runs()]
         real = evaluator.real_returns(training.params, plant)
         for line in diverged(training.method, runs, sim, real, training.history.get("return")):
@@ -458,7 +463,7 @@ def run(cfg: Config, out_dir: str | Path | None = None, hooks: Hooks | None = No
     out_dir = Path(out_dir or Path("outputs/runs") / cfg.name / time.strftime("%Y-%m-%d_%H-%M-%S"))
     if (out_dir / "summary.json").is_file():
         log.info("%s is finished (summary.json exists): skipped", out_dir)
-        return Result.from_summary(read_json(out_dir / "summary.json"), out_dir)
+        return Result.from_summary(Summary.read(out_dir / "summary.json"), out_dir)
     plants = run_plants(cfg)
     if cfg.real.family:  # a lab plant: its draw's truth beside the results (hds.real.lab)
         from hds.real.lab import draw
@@ -512,7 +517,7 @@ def run(cfg: Config, out_dir: str | Path | None = None, hooks: Hooks | None = No
     }
     for name, fig in figures.items():
         plots.save(fig, out_dir / "plots" / f"{name}.png")
-    atomic_write_json(out_dir / "summary.json", result.summary())
+    result.to_summary().write(out_dir / "summary.json")
     return result
 
 
@@ -535,7 +540,7 @@ def retrain(cfg: Config, corrected_env: dict, out_dir: Path) -> dict:
         "friction_gap": cfg.real.friction_gap,
         "effects": applied(cfg.real.effects, cfg.real.friction_gap),  # the force it applied
     }
-    return {"plant": plant_desc, "rows": rows}
+    return {"plant": plant_desc, "rows": [r.to_json() for r in rows]}  # JSON-ready: report.json
 
 
 def sim_vs_real_gif(cfg: Config, training: Training, plant, out_dir: Path) -> Path:
@@ -550,7 +555,7 @@ def sim_vs_real_gif(cfg: Config, training: Training, plant, out_dir: Path) -> Pa
     return animate_episodes(sim, real, names, cfg.real.plant, dt, path, cfg.env.xml)
 
 
-def _method_figures(method: str, history: dict, rows: list[dict]) -> dict:
+def _method_figures(method: str, history: dict, rows: list[Row]) -> dict:
     return {
         "learning_curves": plots.learning_curves({method: history}),
         "sim_vs_real": plots.sim_vs_real(rows),

@@ -6,6 +6,7 @@ import hashlib
 import html
 import os
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 from rich.table import Table
 
 from hds.config import run_label
+from hds.results import Row
 
 console = Console()
 
@@ -104,19 +106,21 @@ class RunLogger:
         tenth = max(total // 10, 1)
         return self.epoch // tenth > (self.epoch - n) // tenth or self.epoch >= total
 
-    def finish(self, rows: list[dict], figures: dict) -> None:
+    def finish(self, rows: list[Row], figures: dict) -> None:
         """The final rows (one per run) as a table and as summary scalars, and the figures."""
         if self.wandb:
             import wandb
 
-            keys = list(rows[0])
+            table = [r.to_json() for r in rows]
+            keys = list(table[0])
             self.wandb.log(
-                {"summary": wandb.Table(columns=keys, data=[[r[k] for k in keys] for r in rows])}
+                {"summary": wandb.Table(columns=keys, data=[[r[k] for k in keys] for r in table])}
             )
             for key in ("sim_return", "real_return", "gap"):
-                self.wandb.summary[f"{key}/mean"] = float(np.mean([r[key] for r in rows]))
-                for row, label in zip(rows, self.labels):
-                    self.wandb.summary[f"{key}/{label}"] = row[key]
+                values = [getattr(r, key) for r in rows]
+                self.wandb.summary[f"{key}/mean"] = float(np.mean(values))
+                for value, label in zip(values, self.labels):
+                    self.wandb.summary[f"{key}/{label}"] = value
             self.wandb.log({name: wandb.Image(fig) for name, fig in figures.items()})
         import matplotlib.pyplot as plt
 
@@ -188,8 +192,10 @@ def _finite_mean(values) -> float:
     return float(finite.mean()) if finite.size else float("nan")
 
 
-def print_table(rows: list[dict], title: str = "sim2real") -> None:
-    """Every column of the rows, in their order: method, seed, swept settings, returns, gaps."""
+def print_table(rows: list[Mapping], title: str = "sim2real") -> None:
+    """Every column of the rows (`hds.results.Row`s, or any flat mappings), in their order:
+    method, seed, swept settings, returns, gaps."""
+    rows = [r.to_json() if isinstance(r, Row) else r for r in rows]
     table = Table(title=title)
     keys = list(dict.fromkeys(k for r in rows for k in r))  # rows of a sweep's jobs may differ
     for k in keys:

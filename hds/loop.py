@@ -210,7 +210,9 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
     # scratch, its effects waiting until it balances, for every epoch the loop has spent on it
     # (`afresh_config`): warm-started from a policy that the named 2-step delay topples, every
     # seed failed, and a policy from scratch on a round's budget alone lags the oracle's.
-    afresh = np.array([params is not None and not row.get("solved_sim", True) for row in rows])
+    afresh = np.array(
+        [params is not None and row.solved_sim is not None and not row.solved_sim for row in rows]
+    )
     if afresh.any():
         afresh_cfg = afresh_config(cfg, r)
         log.info(
@@ -227,8 +229,8 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
             trained,
         )
         rows = [b if a else row for a, row, b in zip(afresh, rows, rows_again)]
-    real, gap = (mean_ci([row[k] for row in rows]) for k in ("real_return", "gap"))
-    report = {"rows": rows, "real_return": real, "gap": gap}
+    real, gap = mean_ci([row.real_return for row in rows]), mean_ci([row.gap for row in rows])
+    report = {"rows": [row.to_json() for row in rows], "real_return": real, "gap": gap}
     if afresh.any():
         report["trained_afresh"] = np.flatnonzero(afresh).tolist()
     if "not_used_because" in model_report:

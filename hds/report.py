@@ -18,6 +18,7 @@ import csv
 import io
 import os
 from collections import defaultdict
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,7 @@ from hds.animate import animate_episodes
 from hds.config import load_config
 from hds.effects.apply import applied
 from hds.evaluation import mean_ci
+from hds.results import Row, Summary, rows_from_json
 from hds.utils import cli
 from hds.utils.io import atomic_write_bytes, read_json
 
@@ -43,21 +45,32 @@ ROW_COLUMNS = (
 )
 
 
-def settings_of(rows: list[dict]) -> list[str]:
+def settings_of(rows: list[Row]) -> list[str]:
     """The swept keys that tell rows apart, besides the friction gap (part of the plant)."""
     return plots.varying_keys(rows, exclude=("friction_gap",))
 
 
-def plant_of(summary: dict, job_dir: Path) -> str:
+def run_summaries(root: Path) -> list[tuple[Path, Summary]]:
+    """Every run's summary below root, with its directory (a sweep's gathered summary is
+    skipped: its jobs are read directly)."""
+    found = []
+    for path in sorted(root.rglob("summary.json")):
+        data = read_json(path)
+        if Summary.is_run(data):
+            found.append((path.parent, Summary.from_json(data)))
+    return found
+
+
+def plant_of(summary: Summary, job_dir: Path) -> str:
     """The name of the plant a job's own rows were measured on: in its summary, or (written
     before plants had names) its config's."""
-    name = summary.get("real", {}).get("name")
+    name = summary.real.get("name")
     if name is None and (job_dir / "config.yaml").is_file():
         name = load_config(job_dir / "config.yaml").real.label()
     return name or "-"
 
 
-def collect_rows(root: Path, found_loops: list[tuple] = ()) -> tuple[list[dict], list[tuple]]:
+def collect_rows(root: Path, found_loops: list[tuple] = ()) -> tuple[list[Row], list[tuple]]:
     """Every row of every run summary below root (a sweep's gathered summary is skipped: its
     jobs are read directly), each with its plant and friction gap, also the rows of the
     further plants a job evaluated its policies on (`eval_plants`) and of the rounds of
@@ -65,28 +78,25 @@ def collect_rows(root: Path, found_loops: list[tuple] = ()) -> tuple[list[dict],
     gap), job, history of those runs), on each plant the runs were evaluated on. Both empty
     when root holds no run."""
     rows, runs = [], []
-    for path in sorted(root.rglob("summary.json")):
-        summary = read_json(path)
-        if "history" not in summary:  # the sweep-level summary gathered from its jobs
-            continue
+    for job_dir, summary in run_summaries(root):
         own = {
-            "plant": plant_of(summary, path.parent),
-            "friction_gap": summary.get("real", {}).get("friction_gap"),
+            "plant": plant_of(summary, job_dir),
+            "friction_gap": summary.real.get("friction_gap"),
         }
-        job = str(path.parent.relative_to(root)) if path.parent != root else "."
-        job_rows = [{**own, **r, "job": job} for r in summary["rows"]]  # a swept gap: its own
-        eval_rows = [{**r, "job": job} for r in summary.get("rows_eval_plants", [])]
+        job = str(job_dir.relative_to(root)) if job_dir != root else "."
+        job_rows = [  # a swept gap: its own
+            replace(r, settings={**own, **r.settings}, job=job) for r in summary.rows
+        ]
+        eval_rows = [replace(r, job=job) for r in summary.rows_eval_plants]
         rows += job_rows + eval_rows
-        runs.append((job, job_rows, summary["history"]))
+        runs.append((job, job_rows, summary.history))
         for column in dict.fromkeys(map(plant_column, eval_rows)):  # the same policies' curves
-            runs.append(
-                (job, [r for r in eval_rows if plant_column(r) == column], summary["history"])
-            )
+            runs.append((job, [r for r in eval_rows if plant_column(r) == column], summary.history))
     rows += loop_rows(found_loops, root)
     keys = settings_of(rows)
     histories = []
     for job, job_rows, history in runs:
-        swept_gap = len({r["friction_gap"] for r in job_rows}) > 1
+        swept_gap = len({r.friction_gap for r in job_rows}) > 1
         for row, h in plots.histories_by_setting(
             job_rows, history, [*keys, "friction_gap"] if swept_gap else keys
         ):
@@ -94,33 +104,33 @@ def collect_rows(root: Path, found_loops: list[tuple] = ()) -> tuple[list[dict],
     return rows, histories
 
 
-def plant_truth(summary: dict, job_dir: Path) -> list[dict] | None:
+def plant_truth(summary: Summary, job_dir: Path) -> list[dict] | None:
     """The effects a job's plant applied (friction scaled by its gap): in its summary, or
     (written before summaries recorded them) from its config; None when neither says."""
-    if "effects" in summary.get("real", {}):
-        return summary["real"]["effects"]
+    if "effects" in summary.real:
+        return summary.real["effects"]
     if (job_dir / "config.yaml").is_file():
         real = load_config(job_dir / "config.yaml").real
         return applied(real.effects, real.friction_gap)
     return None
 
 
-def discoveries(root: Path, rows: list[dict], found_loops: list[tuple] = ()) -> list[dict]:
+def discoveries(root: Path, rows: list[Row], found_loops: list[tuple] = ()) -> list[dict]:
     """What gap discovery named below root, each beside the plant's truth: per run that trained
     on a corrected simulator (its rows' labels), and per round of each loop `found_loops`.
     Each: label, plant, friction_gap, job, effects (named, with ci95), truth, warnings."""
+    rows = rows_from_json(rows)
     keys = settings_of(rows)
     labels = defaultdict(list)  # job -> its rows' labels (a job may sweep a setting inside)
     for r in rows:
-        labels[(r["job"], plant_column(r))].append(plots.label(r, keys))
+        labels[(r.job, plant_column(r))].append(plots.label(r, keys))
     found = []
-    for path in sorted(root.rglob("summary.json")):
-        summary = read_json(path)
-        named = summary.get("discovery", {}).get("effects")
-        if "history" not in summary or named is None:
+    for job_dir, summary in run_summaries(root):
+        named = summary.discovery.get("effects")
+        if named is None:
             continue
-        job = str(path.parent.relative_to(root)) if path.parent != root else "."
-        column = (plant_of(summary, path.parent), summary.get("real", {}).get("friction_gap"))
+        job = str(job_dir.relative_to(root)) if job_dir != root else "."
+        column = (plant_of(summary, job_dir), summary.real.get("friction_gap"))
         for label in dict.fromkeys(labels[(job, column)]):
             found.append(
                 {
@@ -129,8 +139,8 @@ def discoveries(root: Path, rows: list[dict], found_loops: list[tuple] = ()) -> 
                     "friction_gap": column[1],
                     "job": job,
                     "effects": named,
-                    "truth": plant_truth(summary, path.parent),
-                    "warnings": summary["discovery"].get("warnings", []),
+                    "truth": plant_truth(summary, job_dir),
+                    "warnings": summary.discovery.get("warnings", []),
                 }
             )
     from hds.experiment import method_name
@@ -140,7 +150,8 @@ def discoveries(root: Path, rows: list[dict], found_loops: list[tuple] = ()) -> 
         for report in rounds:
             if not report.get("round"):  # round 0: the simulator as given, nothing named
                 continue
-            for label in dict.fromkeys(f"{method_name(cfg)}+{r['method']}" for r in report["rows"]):
+            round_rows = rows_from_json(report["rows"])
+            for label in dict.fromkeys(f"{method_name(cfg)}+{r.method}" for r in round_rows):
                 found.append(
                     {
                         "label": label,
@@ -154,7 +165,7 @@ def discoveries(root: Path, rows: list[dict], found_loops: list[tuple] = ()) -> 
     return found
 
 
-def told(root: Path, rows: list[dict], summary: list[dict], found_loops, figure: Path) -> str:
+def told(root: Path, rows: list[Row], summary: list[dict], found_loops, figure: Path) -> str:
     """The story of the rows below root (hds.story: a few lines per method and plant), its
     figure (the plant reported at most gaps) written to `figure`."""
     columns = {plant_column(r) for r in rows}
@@ -198,7 +209,7 @@ def loops(root: Path) -> list[tuple]:
     ]
 
 
-def loop_rows(found: list[tuple], root: Path) -> list[dict]:
+def loop_rows(found: list[tuple], root: Path) -> list[Row]:
     """The rows of every round of the `loops` found below root, each with its loop's plant,
     labelled by the loop's method and round (pods_cl+loop1, hds+mlp+loop1): loops of two
     methods on one plant stay apart."""
@@ -210,14 +221,14 @@ def loop_rows(found: list[tuple], root: Path) -> list[dict]:
         job, method = str(loop_dir.relative_to(root)), method_name(cfg)
         for report in rounds:
             rows += [
-                {**own, **r, "job": job, "method": f"{method}+{r['method']}"}
-                for r in report["rows"]
+                replace(r, settings={**own, **r.settings}, job=job, method=f"{method}+{r.method}")
+                for r in rows_from_json(report["rows"])
             ]
     return rows
 
 
-def plant_column(row: dict) -> tuple:
-    """A row's plant at its friction gap: the column it is reported in."""
+def plant_column(row: Row | dict) -> tuple:
+    """A row's (or a report entry's) plant at its friction gap: the column it is reported in."""
     return row["plant"], row.get("friction_gap")
 
 
@@ -230,9 +241,10 @@ def column_names(columns: list[tuple]) -> dict:
     return {(p, g): f"{p} x{g:g}" if len(gaps[p]) > 1 else p for p, g in columns}
 
 
-def aggregate(rows: list[dict]) -> list[dict]:
+def aggregate(rows: list[Row] | list[dict]) -> list[dict]:
     """Mean and 95% interval over seeds of each method on each plant (at its friction gap) and
-    swept setting (`label`: the method and its settings)."""
+    swept setting (`label`: the method and its settings); `rows`: Rows, or as JSON."""
+    rows = rows_from_json(rows)
     keys = settings_of(rows)
     groups = defaultdict(list)
     for r in rows:
@@ -241,14 +253,14 @@ def aggregate(rows: list[dict]) -> list[dict]:
     order = lambda kv: (kv[0][0], kv[0][1][0], kv[0][1][1] or 0)  # noqa: E731
     for (name, (plant, gap)), group in sorted(groups.items(), key=order):
         first = group[0]
-        entry = {"method": first["method"], "label": name, "plant": plant, "friction_gap": gap}
+        entry = {"method": first.method, "label": name, "plant": plant, "friction_gap": gap}
         entry["runs"] = len(group)
-        entry |= {k: first[k] for k in keys if k in first}
+        entry |= {k: first.settings[k] for k in keys if k in first.settings}
         for key in ("sim_return", "real_return", "gap"):
-            entry[key] = mean_ci([r[key] for r in group])
+            entry[key] = mean_ci([getattr(r, key) for r in group])
         for key in ("solved_sim", "solved_real"):
-            if all(key in r for r in group):
-                entry[key] = sum(bool(r[key]) for r in group)
+            if all(getattr(r, key) is not None for r in group):
+                entry[key] = sum(bool(getattr(r, key)) for r in group)
         out.append(entry)
     return out
 
@@ -311,14 +323,15 @@ def _pivot(summary: list[dict], cell) -> str:
     return "\n".join(lines)
 
 
-def write_csv(rows: list[dict], path: Path) -> None:
+def write_csv(rows: list[Row], path: Path) -> None:
     """One row per run: method, plant, friction gap, every swept setting, seed, returns, gap,
     job."""
+    rows = rows_from_json(rows)
     columns = ["method", "plant", "friction_gap", *settings_of(rows), *ROW_COLUMNS]
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore")
     writer.writeheader()
-    writer.writerows(rows)
+    writer.writerows(r.to_json() for r in rows)
     atomic_write_bytes(path, buf.getvalue().encode())
 
 
@@ -357,7 +370,7 @@ def unused_models(root: Path) -> list[str]:
     """A line per run below root whose learned model was fitted but not used (dynamics.
     require_better): HDS there trained without it."""
     lines = []
-    for path in sorted(root.rglob("summary.json")):
+    for path in sorted(root.rglob("summary.json")):  # the learned model's report, as it is
         model = read_json(path).get("dynamics", {})
         if "not_used_because" in model:
             job = path.parent.relative_to(root) if path.parent != root else Path(".")
@@ -457,13 +470,13 @@ def optuna_trial(job: Path, keys: list[str]) -> dict | None:
     if not all(p.is_file() for p in (overrides, job / "summary.json", job / "config.yaml")):
         return None
     cfg = load_config(job / "config.yaml")
-    own = [r for r in read_json(job / "summary.json")["rows"] if r["method"] == method_name(cfg)]
+    own = [r for r in Summary.read(job / "summary.json").rows if r.method == method_name(cfg)]
     given = dict(o.split("=", 1) for o in OmegaConf.load(overrides))
     return {
         "job": job.name,
         "params": {k: float(given[k]) for k in keys if k in given},
         "objective": cfg.objective,
-        **{key: mean_ci([r[key] for r in own]) for key in ("real_return", "sim_return")},
+        **{key: mean_ci([getattr(r, key) for r in own]) for key in ("real_return", "sim_return")},
     }
 
 

@@ -69,8 +69,8 @@ def main(dcfg) -> float:
             raise FloatingPointError(failure)
         # the sweeper's objective (hydra/sweeper=optuna: docs/sweeps.md) over the runs of the
         # run's own method (not the oracle trained beside it)
-        own = [r for r in result.rows if r["method"] == method_name(cfg)]
-        objective = float(np.mean([r[cfg.objective] for r in own]))
+        own = [r for r in result.rows if r.method == method_name(cfg)]
+        objective = float(np.mean([getattr(r, cfg.objective) for r in own]))
         if not np.isfinite(objective) and rundir.optimizing(hydra_cfg):
             raise FloatingPointError(
                 f"{cfg.objective} is not finite ({objective}): a run of this trial diverged"

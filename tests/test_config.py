@@ -313,3 +313,28 @@ def test_the_command_line_s_overrides_leave_out_flags_and_their_values():
 
     argv = ["--cfg", "hydra", "-cn", "config", "method=pods_cl", "-m", "seeds=2"]
     assert cli_overrides(argv) == ["method=pods_cl", "seeds=2"]
+
+
+def test_importing_the_config_leaves_the_simulator_and_the_memory_estimate_unimported():
+    """The schemas, validation and composition import neither the simulator (hds.envs, MuJoCo's
+    compile) nor hds.config.model (the MJCF compiled, JAX's device asked): a validation does.
+    Every name used from hds.config is still there."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, hds.config as c; "
+        "print(sorted(m for m in ('hds.envs', 'hds.config.model') if m in sys.modules)); "
+        "c.compose(['debug=fast']); print('hds.config.model' in sys.modules)"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True
+    ).stdout.split("\n")
+    assert out[:2] == ["[]", "True"]
+    import hds.config
+
+    names = ["CONF_DIR", "SEED_MAX", "SWEEP_KEYS", "Config", "EnvConfig", "RealConfig"]
+    names += ["compose", "validate", "load_config", "env_config", "cli_overrides", "run_label"]
+    names += ["check_override_keys", "config_groups", "schema_of", "plant_has_effects"]
+    assert all(hasattr(hds.config, n) for n in names)
+    assert (hds.config.CONF_DIR / "config.yaml").is_file()

@@ -14,7 +14,7 @@ def config_reference():
     spec = importlib.util.spec_from_file_location("docs_hooks", ROOT / "docs" / "hooks.py")
     hooks = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(hooks)
-    return hooks.render((ROOT / "hds" / "config.py").read_text())
+    return hooks.render((ROOT / "hds" / "config" / "schemas.py").read_text())
 
 
 def keys(schema, prefix: str = ""):

@@ -34,7 +34,8 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "hds.render",
         ),
     ),
-    # the schemas of every config group and their validation (they read effects and models)
+    # the schemas of every config group (hds.config.schemas), their validation (.validation,
+    # and .model: the MJCF and the device's memory), composing and loading (.composition)
     ("config", ("hds.config", "hds.conf")),
     # what an experiment is made of: data, the trainer, learned models, gap discovery,
     # evaluation, checkpoints, logging, figures, run directories
@@ -46,6 +47,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "hds.dynamics",
             "hds.discover",
             "hds.evaluation",
+            "hds.results",  # the typed rows and summaries every writer and reader shares
             "hds.checkpoint",
             "hds.logger",
             "hds.plots",

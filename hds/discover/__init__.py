@@ -12,7 +12,7 @@ effects of the library, add them to the model, and show the gap shrink.
 Python API:
 
     from hds.discover import discover, write_report, DiscoverConfig
-    result = discover(dataset, env_cfg, DiscoverConfig(horizon=10))
+    result = discover(dataset, env_cfg, DiscoverConfig(horizon=10))   # a Discovery
     result.missing_effects        # [NamedEffect(name, target, params, units, ci95, ...)]
     write_report(result, env_cfg, "out/")
 
@@ -23,11 +23,12 @@ from hds.discover.config import DiscoverAppConfig, DiscoverConfig
 from hds.discover.identify import Identifiability, identifiability, record_until_identifiable
 from hds.discover.io import load_dataset
 from hds.discover.report import corrected_env, write_report
-from hds.discover.workflow import NamedEffect, Result, discover
+from hds.discover.workflow import Discovery, NamedEffect, Result, discover
 
 __all__ = [
     "DiscoverAppConfig",
     "DiscoverConfig",
+    "Discovery",
     "Identifiability",
     "NamedEffect",
     "Result",

@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 
 from hds.discover import plots
 from hds.discover.sysid import write_handoff
-from hds.discover.workflow import Result
+from hds.discover.workflow import Discovery
 from hds.plots import save as save_figure
 from hds.utils.html import markdown_page
 from hds.utils.io import atomic_write_bytes, atomic_write_json
@@ -26,7 +26,7 @@ def _container(env_cfg) -> dict:
     return OmegaConf.to_container(env_cfg, resolve=True)
 
 
-def corrected_env(env_cfg, result: Result) -> dict:
+def corrected_env(env_cfg, result: Discovery) -> dict:
     """The env config of the corrected simulator: the original with the named effects and the
     force terms beyond the library added."""
     env = _container(env_cfg)
@@ -35,7 +35,7 @@ def corrected_env(env_cfg, result: Result) -> dict:
     return env
 
 
-def write_config(env_cfg, result: Result, out_dir: Path) -> Path:
+def write_config(env_cfg, result: Discovery, out_dir: Path) -> Path:
     """out_dir/conf/env/<name>_corrected.yaml: an `env` option for `python -m hds.run
     --config-dir <out_dir>/conf env=<name>_corrected`."""
     env = corrected_env(env_cfg, result)
@@ -50,7 +50,7 @@ def write_config(env_cfg, result: Result, out_dir: Path) -> Path:
     return path
 
 
-def write_mjcf(env_cfg, result: Result, out_dir: Path) -> Path:
+def write_mjcf(env_cfg, result: Discovery, out_dir: Path) -> Path:
     """out_dir/corrected.xml: the MJCF with the MuJoCo-native equivalents of the effects."""
     from hds.real.mujoco_plant import mjcf_text
 
@@ -60,7 +60,7 @@ def write_mjcf(env_cfg, result: Result, out_dir: Path) -> Path:
     return path
 
 
-def write_plots(result: Result, out_dir: Path, plot_episodes: int, bins: int) -> dict[str, Path]:
+def write_plots(result: Discovery, out_dir: Path, plot_episodes: int, bins: int) -> dict[str, Path]:
     data = result.data
     out = {}
     figs = {"locate": plots.locate(result.location, bins)}
@@ -104,7 +104,7 @@ def write_plots(result: Result, out_dir: Path, plot_episodes: int, bins: int) ->
     return out
 
 
-def _selection_notes(result: Result, files: dict | None = None) -> list[str]:
+def _selection_notes(result: Discovery, files: dict | None = None) -> list[str]:
     """Law mismatch, dropped proxies, correlations and what the data cannot identify."""
     lines = []
     if result.law_mismatch:
@@ -143,7 +143,7 @@ def _selection_notes(result: Result, files: dict | None = None) -> list[str]:
     return lines
 
 
-def _terms_section(result: Result) -> list[str]:
+def _terms_section(result: Discovery) -> list[str]:
     """The sparse force terms beyond the library, added to the corrected model."""
     if not result.terms:
         return []
@@ -175,7 +175,7 @@ def _fmt(x: float) -> str:
 
 
 def markdown(
-    result: Result,
+    result: Discovery,
     files: dict,
     config_path: Path,
     mjcf_path: Path,
@@ -350,7 +350,7 @@ def markdown(
 
 
 def write_report(
-    result: Result,
+    result: Discovery,
     env_cfg,
     out_dir,
     plot_episodes: int = 2,

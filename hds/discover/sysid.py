@@ -144,7 +144,7 @@ def field_param(base: mujoco.MjSpec, spec: mujoco.MjSpec, effect) -> FieldParam 
 
 def write_handoff(env_cfg, named, out_dir) -> Handoff:
     """out_dir/sysid/{params.yaml, model.xml}: discovery's named effects (`NamedEffect`s, e.g.
-    `Result.missing_effects`) on the simulator of `env_cfg` as a mujoco.sysid parameter
+    `Discovery.missing_effects`) on the simulator of `env_cfg` as a mujoco.sysid parameter
     specification and the MJCF it refers to (both written atomically)."""
     from hds.real.mujoco_plant import mujoco_spec
 

@@ -77,7 +77,10 @@ class NamedEffect:
 
 
 @dataclass
-class Result:
+class Discovery:
+    """What gap discovery found in one dataset: the effects it named (`missing_effects`), the
+    errors before and after adding them, the candidates it fitted and why it stopped."""
+
     missing_effects: list[NamedEffect]
     before: dict[str, tuple[Residuals, Errors]]  # per set (identification, heldout, validation)
     after: dict[str, tuple[Residuals, Errors]]
@@ -179,9 +182,12 @@ class Result:
         return out
 
 
+Result = Discovery  # its name until 2026-11-27 (`from hds.discover import Result` still works)
+
+
 def discover(
     dataset: Dataset, env_cfg, cfg: DiscoverConfig | None = None, validation: Dataset | None = None
-) -> Result:
+) -> Discovery:
     """Find which effects of the library the simulator of `env_cfg` misses on `dataset`.
 
     Episodes are split into identification and held-out sets; `validation` (optional) is a
@@ -272,7 +278,7 @@ def discover(
     unexplained = 0.0 if no_gap else float(sum(shares[named_count:]))
     candidates = [row for rows in selection.rounds for row in rows]
     candidates.sort(key=lambda r: (r["round"], r["heldout_error"]))
-    result = Result(
+    result = Discovery(
         effects,
         before,
         after,
@@ -324,7 +330,7 @@ def discover(
 SPRING_SHARE = 0.5  # a term in a joint's own position explaining this share of its force
 
 
-def spring_rival(env_cfg, data: Data, before, result: Result, cfg: DiscoverConfig) -> bool:
+def spring_rival(env_cfg, data: Data, before, result: Discovery, cfg: DiscoverConfig) -> bool:
     """Whether the named effects only compensate a spring, and if so make them tentative and
     the terms fitted on the whole gap the corrected model's. No effect of the library is a
     force in a joint's own position; a hinge spring within a turn is fitted as hinge
@@ -505,7 +511,7 @@ def _separable_count(model, state: State, shown: set[str] = frozenset()) -> int:
     return min(clashes, default=len(state.selected))
 
 
-def warnings(result: Result, cfg: DiscoverConfig) -> list[str]:
+def warnings(result: Discovery, cfg: DiscoverConfig) -> list[str]:
     out = []
     for e in result.tentative:
         out.append(

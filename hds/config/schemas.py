@@ -1,33 +1,42 @@
 """Structured config schemas: one dataclass per `conf/` group, registered with Hydra.
 
 Hydra merges the YAML files onto these schemas, so an unknown key or a wrong type fails at
-composition. `validate(cfg)` then builds the dataclasses, whose checks reject out-of-range values
-with a message naming the key and what is allowed, before anything compiles.
+composition; each schema's `check()` rejects out-of-range values with a message naming the key
+and what is allowed (`hds.config.validation.validate` runs them all, before anything compiles).
+
+Importing the schemas imports neither JAX nor MuJoCo: the effect library and the simulator's
+backends (which do) are imported when a check runs, so that reading a config, a run's report
+or the documentation stays light.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import difflib
 import itertools
-import logging
-import math
-import os
-import typing
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from hydra.core.override_parser.overrides_parser import OverridesParser
-from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
-from omegaconf.errors import MissingMandatoryValue
+from omegaconf import MISSING
 
-from hds.effects import apply as _effects
-from hds.effects.library import candidate_effects, check_params, default_candidates, effect_type
-from hds.envs.system import BACKENDS, load_spec, resolve_xml, target_names
+SEED_MAX = 2**31 - 1  # seeds go into int32 arrays (JAX's PRNG keys, the batch's seed vector)
 
-log = logging.getLogger(__name__)
+
+def _effects_library():
+    """hds.effects.library, imported when a check needs it (it imports JAX)."""
+    from hds.effects import library
+
+    return library
+
+
+def _backends() -> tuple[str, ...]:
+    """The simulator's physics backends (hds.envs.system imports JAX and MuJoCo)."""
+    from hds.envs.system import BACKENDS
+
+    return BACKENDS
+
+
+def _default_candidates() -> list[str]:
+    return _effects_library().default_candidates()
 
 
 def _one_of(key: str, value: Any, allowed) -> None:
@@ -53,8 +62,11 @@ class EffectConfig:
     params: dict[str, float] = field(default_factory=dict)
 
     def check(self):
-        effect_type(self.name)
-        check_params(self.name, dict(self.params), where=f"effect {self.name}@{self.target}")
+        library = _effects_library()
+        library.effect_type(self.name)
+        library.check_params(
+            self.name, dict(self.params), where=f"effect {self.name}@{self.target}"
+        )
 
 
 def _effects_field():
@@ -105,7 +117,7 @@ class EnvConfig:
     effects: list[EffectConfig] = _effects_field()  # effects the simulator already models
 
     def check(self):
-        _one_of("env.backend", self.backend, BACKENDS)
+        _one_of("env.backend", self.backend, _backends())
         _in_range("env.timestep", self.timestep, 1e-6, 1.0)
         _in_range("env.frames_per_step", self.frames_per_step, 1)
         _in_range("env.sharpness", self.sharpness, 1e-6)
@@ -327,7 +339,7 @@ class DiscoverConfig:
     stride: int = 1  # a k-step window starts every `stride` steps
     warmup: int = 25  # past actions replayed into stateful effects (delay, lag) before a window
     max_delay: int = 5  # action delays of 1 .. max_delay steps are enumerated; 0: none
-    effects: list[str] = field(default_factory=default_candidates)  # candidate effect types
+    effects: list[str] = field(default_factory=_default_candidates)  # candidate effect types
     max_effects: int = 4  # most effects named
     # Fits of up to b effects at once (the selected ones and a candidate) compile for b slots
     # for each b listed, and for max_effects: fewer sizes, fewer compiles; a slot more costs a
@@ -365,10 +377,10 @@ class DiscoverConfig:
                 f"discover.excitation = {self.excitation!r} is not allowed; choose 'steps' "
                 "(random steps) or 'designed' (hds.discover.design)"
             )
-        if self.backend not in ("auto", "env", *BACKENDS):
+        if self.backend not in ("auto", "env", *_backends()):
             raise ValueError(
                 f"discover.backend = {self.backend!r} is not allowed; choose one of "
-                f"{['auto', 'env', *BACKENDS]}"
+                f"{['auto', 'env', *_backends()]}"
             )
         _in_range("discover.heldout_fraction", self.heldout_fraction, 0.01, 0.9)
         _in_range("discover.horizon", self.horizon, 1)
@@ -397,12 +409,13 @@ class DiscoverConfig:
         _in_range("discover.plot_episodes", self.plot_episodes, 0)
         _in_range("discover.seed", self.seed, 0, SEED_MAX)
         _in_range("discover.max_steps", self.max_steps, 1)
-        unknown = [e for e in [*self.effects, *self.design_effects] if e not in candidate_effects()]
+        candidates = _effects_library().candidate_effects()
+        unknown = [e for e in [*self.effects, *self.design_effects] if e not in candidates]
         if unknown:
             raise ValueError(
                 f"discover.effects or discover.design_effects has unknown or non-candidate "
                 f"effects {unknown}; the "
-                f"candidates are: {', '.join(candidate_effects())}"
+                f"candidates are: {', '.join(candidates)}"
             )
 
 
@@ -414,7 +427,8 @@ class RangedEffectConfig:
 
     def check(self):
         where = f"dr.effects {self.name}@{self.target}"
-        etype = effect_type(self.name)
+        library = _effects_library()
+        etype = library.effect_type(self.name)
         if not self.ranges:
             raise ValueError(f"{where}.ranges is empty; give each parameter a [low, high] range")
         for param, bounds in self.ranges.items():
@@ -427,7 +441,9 @@ class RangedEffectConfig:
                     "and cannot be drawn per rollout; remove its range"
                 )
         for end in (0, 1):  # both ends must be valid values (names, bounds)
-            check_params(self.name, {k: v[end] for k, v in self.ranges.items()}, where=where)
+            library.check_params(
+                self.name, {k: v[end] for k, v in self.ranges.items()}, where=where
+            )
 
 
 @dataclass
@@ -672,6 +688,7 @@ class DiscoverAppConfig(Config):
 def plant_has_effects(real) -> bool:
     """Whether a `real` config's plant differs from the nominal model: some effect that is not
     friction, or friction not scaled to zero by real.friction_gap."""
+    effect_type = _effects_library().effect_type
     return any(not effect_type(e.name).friction or real.friction_gap > 0 for e in real.effects)
 
 
@@ -680,318 +697,8 @@ def run_label(run: dict) -> str:
     return "_".join(f"{k}{v:g}" if isinstance(v, float) else f"{k}{v}" for k, v in run.items())
 
 
-def cli_overrides(argv: list[str]) -> list[str]:
-    """The overrides of a Hydra command line (what is not a flag nor a flag's value)."""
-    with_value = {"--config-dir", "-cd", "--config-name", "-cn", "--config-path", "-cp"}
-    with_value |= {"--cfg", "-c", "--package", "-p"}  # --cfg job|hydra|all: what to print
-    with_value |= {"--shell-completion", "-sc"}  # install=bash, query=bash: not overrides
-    out, skip = [], False
-    for arg in argv:
-        if skip or arg.startswith("-"):
-            skip = arg in with_value
-            continue
-        out.append(arg)
-    return out
-
-
 def register() -> None:
+    """Register the schemas with Hydra's ConfigStore (`config_schema`, `discover_schema`), which
+    conf/config.yaml and conf/discover.yaml build on: done on importing hds.config."""
     ConfigStore.instance().store(name="config_schema", node=Config)
     ConfigStore.instance().store(name="discover_schema", node=DiscoverAppConfig)
-
-
-def _check_all(node) -> None:
-    """Run `check` on every schema in the tree (they cannot be __post_init__: OmegaConf builds
-    default instances of the schemas, with missing values, while it composes)."""
-    if hasattr(node, "check"):
-        node.check()
-    if isinstance(node, dict):
-        children = node.values()
-    elif isinstance(node, list):
-        children = node
-    else:
-        children = getattr(node, "__dict__", {}).values()
-    for child in children:
-        if isinstance(child, list | dict) or hasattr(child, "__dataclass_fields__"):
-            _check_all(child)
-
-
-def _check_effect_targets(config) -> None:
-    """Check that env.xml exists, and env.effects and real.effects against its names (the
-    model both the simulator and the plants are built from), with the check the builders run
-    (hds.effects.apply.check). Compiling the MJCF with MuJoCo takes milliseconds and compiles
-    nothing with JAX; it is skipped when no effect is given."""
-    env = getattr(config, "env", None)
-    if not isinstance(env, EnvConfig):
-        return
-    real = getattr(config, "real", None)
-    groups = [("env.effects", env.effects)]
-    if isinstance(real, RealConfig):
-        groups.append(("real.effects", real.effects))
-    for key, plant in getattr(config, "eval_plants", {}).items():
-        groups.append((f"eval_plants.{key}.effects", plant.effects))
-    dr = getattr(config, "dr", None)
-    if isinstance(dr, DRConfig):
-        ranged = [_effects.EffectSpec(e.name, e.target) for e in dr.effects]
-        groups.append(("dr.effects", [*env.effects, *ranged]))  # none given twice
-    try:
-        xml = str(resolve_xml(env.xml))
-    except FileNotFoundError as err:
-        raise ValueError(f"env.xml: {err}") from None
-    if isinstance(real, RealConfig) and real.family:
-        from hds.real.lab import check_env
-
-        check_env(real.family, xml)
-    if not any(effects for _, effects in groups):
-        return
-    names = target_names(_env_model(xml))
-    for key, effects in groups:
-        try:
-            _effects.check(effects, names)
-        except ValueError as err:
-            raise ValueError(f"{key}: {err}") from None
-
-
-def validate(cfg: DictConfig, check_memory: bool = True) -> Config:
-    """Build the typed config and run every range check; raise ValueError naming the key.
-    `check_memory=False` skips the check against this machine's device memory (a sweep's jobs
-    checked before their launch, which may run them on other devices)."""
-    try:
-        _check_known_keys(cfg)
-    except ValueError as err:
-        raise ValueError(f"invalid config: {err}") from None
-    try:
-        config = OmegaConf.to_object(cfg)
-    except MissingMandatoryValue as err:  # a required value left as ???
-        raise ValueError(
-            f"invalid config: {err.full_key} has no value (???): give it, {err.full_key}=<value>"
-            + (" (an MJCF file's path)" if err.full_key == "env.xml" else "")
-        ) from None
-    except Exception as err:
-        raise ValueError(f"invalid config: {err}") from None
-    try:
-        _check_finite_numbers(OmegaConf.to_container(cfg, resolve=True))
-        _check_all(config)
-        _check_effect_targets(config)
-        if check_memory:
-            _check_memory(config)
-    except ValueError as err:
-        raise ValueError(f"invalid config: {err}") from None
-    return config
-
-
-FLOAT32_MAX = 3.4028234663852886e38  # numpy.finfo(numpy.float32).max, without importing numpy
-SEED_MAX = 2**31 - 1  # seeds go into int32 arrays (JAX's PRNG keys, the batch's seed vector)
-
-
-def _check_finite_numbers(node, where: str = "") -> None:
-    """Refuse NaN and inf anywhere, and numbers beyond float32 (inf once in an array): no
-    setting means anything at them (an infinite friction gap or noise scale passes every range
-    check, and its results are meaningless)."""
-    if isinstance(node, float) and not math.isfinite(node):
-        raise ValueError(f"{where} = {node} is not a finite number; give a finite value")
-    if isinstance(node, int | float) and not isinstance(node, bool) and abs(node) > FLOAT32_MAX:
-        # every number ends up in float32 arrays, where it would be inf
-        raise ValueError(
-            f"{where} = {node} is beyond float32's range (+-{FLOAT32_MAX:.4g}), in which the "
-            "simulator and the policy compute; give a smaller value"
-        )
-    if isinstance(node, dict):
-        for key, child in node.items():
-            _check_finite_numbers(child, f"{where}.{key}" if where else str(key))
-    elif isinstance(node, list):
-        for i, child in enumerate(node):
-            _check_finite_numbers(child, f"{where}[{i}]")
-
-
-def _check_memory(config) -> None:
-    """Refuse a training program that cannot fit in memory, before it compiles. Its scratch
-    memory grows with the rollouts of an epoch times their steps: per rollout and step, about
-    32 + line_search + sum(algo.hidden) + 4 (nq + nv + nu) float32 numbers, for each run vmapped
-    at once. That is 8 to 16% above `temp_size_in_bytes` of `memory_analysis()` of the compiled
-    first-order `run_chunk` on the analytic cart-pole (rollouts 64 and 256, horizon 100 and
-    200, line_search 8 and 16, hidden [64, 64] and [256, 256]); Gauss-Newton needs more."""
-    if not isinstance(getattr(config, "algo", None), AlgoConfig):
-        return
-    from hds.utils.runtime import runs_vmapped
-
-    algo, horizon = config.algo, config.env.task.horizon
-    model = _env_model(config.env.xml)
-    numbers = 32 + algo.line_search + sum(algo.hidden) + 4 * (model.nq + model.nv + model.nu)
-    runs = config.seeds * math.prod(len(v) for _, v in config.sweep.items())
-    at_once = runs_vmapped(config.vmap_runs, runs)
-    need = 4 * numbers * algo.rollouts * horizon * at_once
-    have = _memory_available()
-    if need > have:
-        raise ValueError(
-            f"training needs about {need / 1e9:.3g} GB ({algo.rollouts} rollouts (algo.rollouts) "
-            f"x {horizon} steps (env.task.horizon) x {at_once} run(s) at once x {4 * numbers} "
-            f"bytes), and the device has {have / 1e9:.3g} GB: lower algo.rollouts, "
-            "env.task.horizon or algo.hidden (or vmap_runs, to train fewer runs at once)"
-        )
-
-
-def _env_model(xml: str):
-    """env.xml's compiled MuJoCo model; a file MuJoCo cannot parse or compile is refused naming
-    the key and the file (MuJoCo's own errors name neither)."""
-    path = resolve_xml(xml)
-    try:
-        return load_spec(str(path)).compile()
-    except ValueError as err:
-        text = " ".join(str(err).split())
-        if str(path) not in text:  # a compile error (load_spec's parse errors name the file)
-            text = f"{path} does not compile as an MJCF model ({text}): fix it, or give another"
-        raise ValueError(f"env.xml: {text} (env.xml=<path>)") from None
-
-
-def _memory_available() -> float:
-    """Bytes of the default device: an accelerator's memory, or the host's on a CPU."""
-    import jax
-
-    stats = jax.devices()[0].memory_stats() or {}
-    if "bytes_limit" in stats:
-        return float(stats["bytes_limit"])
-    return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-
-
-def _unknown_key(where: str, key, allowed: list[str]) -> str:
-    close = difflib.get_close_matches(str(key), allowed, n=1)
-    hint = f"; did you mean '{close[0]}'?" if close else ""
-    where = where or "the config"
-    return f"{where} has no key '{key}'; its keys are: {', '.join(allowed)}{hint}"
-
-
-def _child_type(annotation, key: str):
-    """The schema of `key` below a node of type `annotation`: a dataclass to check further,
-    or None where anything goes (dicts, numbers)."""
-    origin, args = typing.get_origin(annotation), typing.get_args(annotation)
-    if origin is list and args:
-        return args[0] if key.isdigit() else None
-    if dataclasses.is_dataclass(annotation):
-        hints = typing.get_type_hints(annotation)
-        return hints.get(key, _UNKNOWN)
-    return None
-
-
-_UNKNOWN = object()
-
-
-def check_override_keys(overrides, schema: type, groups=()) -> None:
-    """Refuse command-line overrides of keys the schema does not have, naming the keys it
-    allows there and the closest one, before Hydra composes anything. `groups`: the config
-    groups of conf/ (env, method, ...), which are keys too. Overrides forced in with `+` are
-    checked at validation (`_check_known_keys`)."""
-    for override in OverridesParser.create().parse_overrides([str(o) for o in overrides]):
-        path = override.key_or_group
-        if override.is_add() or override.is_delete() or "/" in path or path.startswith("hydra"):
-            continue
-        if override.is_force_add() or path in groups:
-            continue
-        node, where = schema, ""
-        for key in path.split("."):
-            child = _child_type(node, key)
-            if child is _UNKNOWN:
-                allowed = [f.name for f in dataclasses.fields(node)]
-                if not where:
-                    allowed += [g for g in groups if g not in allowed]
-                raise ValueError(f"invalid config: {_unknown_key(where, key, allowed)}")
-            if child is None:
-                break
-            node, where = child, f"{where}.{key}" if where else key
-
-
-def _check_known_keys(node, where: str = "") -> None:
-    """Refuse keys a schema does not have that composition let through (an override forced
-    in with `+`, e.g. `+env.frictoin=1`, which OmegaConf.to_object would silently drop)."""
-    if isinstance(node, DictConfig):
-        schema = OmegaConf.get_type(node)
-        keys = [str(k) for k in node.keys()]
-        if dataclasses.is_dataclass(schema):
-            allowed = [f.name for f in dataclasses.fields(schema)]
-            extra = [k for k in keys if k not in allowed]
-            if extra:
-                raise ValueError(_unknown_key(where, extra[0], allowed))
-    elif isinstance(node, ListConfig):
-        keys = list(range(len(node)))
-    else:
-        return
-    for key in keys:
-        if OmegaConf.is_missing(node, key) or OmegaConf.is_interpolation(node, key):
-            continue
-        _check_known_keys(node[key], f"{where}.{key}" if where else str(key))
-
-
-CONF_DIR = Path(__file__).resolve().parent / "conf"
-
-
-def config_groups() -> list[str]:
-    """The config groups of conf/ (env, algo, method, ...): keys of an override too."""
-    return sorted(p.name for p in CONF_DIR.iterdir() if p.is_dir() and p.name != "hydra")
-
-
-def schema_of(config_name: str) -> type:
-    """The schema of a top-level config: hds.discover's ("discover") or the others' (Config)."""
-    return DiscoverAppConfig if config_name == "discover" else Config
-
-
-def compose(overrides=(), config_name: str = "config", check_memory: bool = True, config_dirs=()):
-    """The validated config of `python -m hds.run <overrides>` (config_name="config") or of
-    `python -m hds.discover <overrides>` ("discover"), composed without the command line:
-
-        cfg = hds.compose(["method=pods_cl", "seeds=3", "env.backend=analytic"])
-
-    config_dirs: further folders searched for config options, as `--config-dir` adds them
-    (a study's experiments beside the study)."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-
-    check_override_keys(overrides, schema_of(config_name), config_groups())
-    search = [f"file://{Path(d).resolve()}" for d in config_dirs]
-    extra = [f"hydra.searchpath=[{','.join(search)}]"] if search else []
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        composed = hydra_compose(config_name, overrides=[*extra, *overrides])
-    return validate(composed, check_memory)
-
-
-def env_config(env: dict) -> EnvConfig:
-    """A checked EnvConfig from a plain dict (e.g. the env gap discovery corrected)."""
-    cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(EnvConfig), env))
-    cfg.check()
-    for effect in cfg.effects:
-        effect.check()
-    return cfg
-
-
-def load_config(path) -> Config:
-    """The validated config of a run from its saved config.yaml. Settings this version of
-    hds no longer has (a run directory written by an older one) are dropped with a warning
-    naming them, so that its policies stay loadable."""
-    schema = OmegaConf.structured(Config)
-    saved = OmegaConf.load(path)
-    removed = _drop_unknown_keys(saved, schema)
-    if removed:
-        log.warning(
-            "%s: ignored settings this version of hds no longer has: %s", path, ", ".join(removed)
-        )
-    return validate(OmegaConf.merge(schema, saved))
-
-
-def _drop_unknown_keys(node, schema, where: str = "") -> list[str]:
-    """Remove from `node` (in place) the keys of structured nodes that `schema` lacks;
-    returns their dotted paths."""
-    if not isinstance(node, DictConfig) or not isinstance(schema, DictConfig):
-        return []
-    if not dataclasses.is_dataclass(OmegaConf.get_type(schema)):
-        return []
-    allowed = {f.name for f in dataclasses.fields(OmegaConf.get_type(schema))}
-    removed = []
-    for key in [str(k) for k in node.keys()]:
-        path = f"{where}.{key}" if where else key
-        if key not in allowed:
-            removed.append(path)
-            del node[key]
-        elif not OmegaConf.is_missing(schema, key) and not OmegaConf.is_interpolation(node, key):
-            removed += _drop_unknown_keys(node[key], schema[key], path)
-    return removed
-
-
-register()

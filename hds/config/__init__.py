@@ -1,0 +1,93 @@
+"""The configuration: the structured schemas of every `conf/` group, their validation, and
+composing and loading configs. Every name is importable from `hds.config`:
+
+  schemas       one dataclass per group (Config, EnvConfig, AlgoConfig, ...), registered with
+                Hydra on import so that an unknown key or a wrong type fails at composition;
+                each has a `check()` of its ranges
+  validation    validate(cfg): every check, no unknown key, finite numbers, effects against
+                the model, and the memory a training program needs (hds.config.model, which
+                compiles the MJCF and asks JAX: imported only when a config is validated)
+  composition   compose(overrides) as the commands compose; load_config(config.yaml);
+                env_config(dict); the overrides of a command line
+"""
+
+from hds.config.composition import (
+    CONF_DIR,
+    cli_overrides,
+    compose,
+    config_groups,
+    env_config,
+    load_config,
+    schema_of,
+)
+from hds.config.schemas import (
+    SEED_MAX,
+    SWEEP_KEYS,
+    AlgoConfig,
+    AnnealConfig,
+    Config,
+    DiscoverAppConfig,
+    DiscoverConfig,
+    DRConfig,
+    DynamicsConfig,
+    EffectConfig,
+    EmpsConfig,
+    EnvConfig,
+    LoggerConfig,
+    LoopConfig,
+    NoiseConfig,
+    PathsConfig,
+    RangedEffectConfig,
+    RealConfig,
+    SweepConfig,
+    TaskConfig,
+    plant_has_effects,
+    register,
+    run_label,
+)
+from hds.config.validation import (
+    FLOAT32_MAX,
+    check_override_keys,
+    validate,
+)
+
+__all__ = [
+    "AlgoConfig",
+    "AnnealConfig",
+    "CONF_DIR",
+    "Config",
+    "DRConfig",
+    "DiscoverAppConfig",
+    "DiscoverConfig",
+    "DynamicsConfig",
+    "EffectConfig",
+    "EmpsConfig",
+    "EnvConfig",
+    "FLOAT32_MAX",
+    "LoggerConfig",
+    "LoopConfig",
+    "NoiseConfig",
+    "PathsConfig",
+    "RangedEffectConfig",
+    "RealConfig",
+    "SEED_MAX",
+    "SWEEP_KEYS",
+    "SweepConfig",
+    "TaskConfig",
+    "check_override_keys",
+    "cli_overrides",
+    "compose",
+    "config_groups",
+    "env_config",
+    "load_config",
+    "plant_has_effects",
+    "register",
+    "run_label",
+    "schema_of",
+    "validate",
+]
+
+# Registered on import, as Hydra compositions (the commands', and anyone's with Hydra's own
+# compose) expect. Storing a schema builds its defaults, and discover.effects' default asks the
+# effect library, which imports JAX: the one JAX import left on this path.
+register()

@@ -1,0 +1,105 @@
+"""Composing and loading configs: `compose(overrides)` as the commands compose theirs (Hydra,
+from hds/conf), `load_config` from a run directory's config.yaml, `env_config` from a plain
+dict, and the overrides of a command line. Every result is validated (hds.config.validation).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from hds.config.schemas import Config, DiscoverAppConfig, EnvConfig
+from hds.config.validation import check_override_keys, validate
+
+log = logging.getLogger("hds.config")
+
+
+def cli_overrides(argv: list[str]) -> list[str]:
+    """The overrides of a Hydra command line (what is not a flag nor a flag's value)."""
+    with_value = {"--config-dir", "-cd", "--config-name", "-cn", "--config-path", "-cp"}
+    with_value |= {"--cfg", "-c", "--package", "-p"}  # --cfg job|hydra|all: what to print
+    with_value |= {"--shell-completion", "-sc"}  # install=bash, query=bash: not overrides
+    out, skip = [], False
+    for arg in argv:
+        if skip or arg.startswith("-"):
+            skip = arg in with_value
+            continue
+        out.append(arg)
+    return out
+
+
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"  # hds/conf, package data
+
+
+def config_groups() -> list[str]:
+    """The config groups of conf/ (env, algo, method, ...): keys of an override too."""
+    return sorted(p.name for p in CONF_DIR.iterdir() if p.is_dir() and p.name != "hydra")
+
+
+def schema_of(config_name: str) -> type:
+    """The schema of a top-level config: hds.discover's ("discover") or the others' (Config)."""
+    return DiscoverAppConfig if config_name == "discover" else Config
+
+
+def compose(overrides=(), config_name: str = "config", check_memory: bool = True, config_dirs=()):
+    """The validated config of `python -m hds.run <overrides>` (config_name="config") or of
+    `python -m hds.discover <overrides>` ("discover"), composed without the command line:
+
+        cfg = hds.compose(["method=pods_cl", "seeds=3", "env.backend=analytic"])
+
+    config_dirs: further folders searched for config options, as `--config-dir` adds them
+    (a study's experiments beside the study)."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    check_override_keys(overrides, schema_of(config_name), config_groups())
+    search = [f"file://{Path(d).resolve()}" for d in config_dirs]
+    extra = [f"hydra.searchpath=[{','.join(search)}]"] if search else []
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        composed = hydra_compose(config_name, overrides=[*extra, *overrides])
+    return validate(composed, check_memory)
+
+
+def env_config(env: dict) -> EnvConfig:
+    """A checked EnvConfig from a plain dict (e.g. the env gap discovery corrected)."""
+    cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(EnvConfig), env))
+    cfg.check()
+    for effect in cfg.effects:
+        effect.check()
+    return cfg
+
+
+def load_config(path) -> Config:
+    """The validated config of a run from its saved config.yaml. Settings this version of
+    hds no longer has (a run directory written by an older one) are dropped with a warning
+    naming them, so that its policies stay loadable."""
+    schema = OmegaConf.structured(Config)
+    saved = OmegaConf.load(path)
+    removed = _drop_unknown_keys(saved, schema)
+    if removed:
+        log.warning(
+            "%s: ignored settings this version of hds no longer has: %s", path, ", ".join(removed)
+        )
+    return validate(OmegaConf.merge(schema, saved))
+
+
+def _drop_unknown_keys(node, schema, where: str = "") -> list[str]:
+    """Remove from `node` (in place) the keys of structured nodes that `schema` lacks;
+    returns their dotted paths."""
+    if not isinstance(node, DictConfig) or not isinstance(schema, DictConfig):
+        return []
+    if not dataclasses.is_dataclass(OmegaConf.get_type(schema)):
+        return []
+    allowed = {f.name for f in dataclasses.fields(OmegaConf.get_type(schema))}
+    removed = []
+    for key in [str(k) for k in node.keys()]:
+        path = f"{where}.{key}" if where else key
+        if key not in allowed:
+            removed.append(path)
+            del node[key]
+        elif not OmegaConf.is_missing(schema, key) and not OmegaConf.is_interpolation(node, key):
+            removed += _drop_unknown_keys(node[key], schema[key], path)
+    return removed
