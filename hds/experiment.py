@@ -43,6 +43,7 @@ from hds.logger import RunLogger, print_table
 from hds.real import make_plant
 from hds.real.brax_plant import BraxPlant
 from hds.results import Row, Summary
+from hds.utils.io import atomic_write_json
 from hds.utils.runtime import enable_compilation_cache, over_runs, runs_vmapped
 
 log = logging.getLogger("hds")
