@@ -43,7 +43,7 @@ from hds.logger import RunLogger, print_table
 from hds.real import make_plant
 from hds.real.brax_plant import BraxPlant
 from hds.utils.io import atomic_write_json, read_json
-from hds.utils.runtime import enable_compilation_cache, over_runs, runs_vmapped
+from hds.utils.runtime import RunByRun, enable_compilation_cache, over_runs, runs_vmapped
 
 log = logging.getLogger("hds")
 
@@ -295,6 +295,8 @@ def compiled_programs(cfg: Config, trainer: Trainer, hparams):
     runs = cfg.runs()
     keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray([r["seed"] for r in runs]))
     vmapped = runs_vmapped(cfg.vmap_runs, len(runs))
+    if vmapped == 1:  # one run's program, whatever the batch: compiled once (RunByRun)
+        return RunByRun(trainer.init), RunByRun(trainer.run_chunk), keys, hparams
     if vmapped == len(runs):  # a loop over the runs cannot be split across devices
         keys, hparams = _shard((keys, hparams))
     init = jax.jit(over_runs(trainer.init, vmapped, len(runs)))
@@ -306,8 +308,8 @@ def abstract_state(cfg: Config, trainer: Trainer):
     """The shapes and dtypes of the batch's train state, with nothing computed: what a
     checkpoint is restored into."""
     hparams = batch_hparams(cfg, trainer)
-    init, _, keys, hparams = compiled_programs(cfg, trainer, hparams)
-    return jax.eval_shape(init, keys, hparams)
+    _, _, keys, hparams = compiled_programs(cfg, trainer, hparams)
+    return jax.eval_shape(jax.vmap(trainer.init), keys, hparams)
 
 
 def train(
