@@ -67,7 +67,7 @@ class RunByRun:
     def __call__(self, *args):
         host = jax.tree.map(np.asarray, args)  # one run's slice is a view, not an eager op
         runs = jax.tree.leaves(host)[0].shape[0]
-        outs = [self.program(*jax.tree.map(lambda x: x[i], host)) for i in range(runs)]
+        outs = [self.program(*jax.tree.map(lambda x, i=i: x[i], host)) for i in range(runs)]
         return jax.tree.map(lambda *xs: jax.device_put(np.stack(xs)), *outs)
 
     def lower(self, *args):
