@@ -384,7 +384,8 @@ def _report_chunk(hooks: Hooks, logger, method: str, epoch0: int, metrics: dict,
 
 
 def _check_finite(state, method: str) -> None:
-    if not all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(state.policy)):
+    # numpy: jnp's eager isfinite and all compiled two small programs per parameter's shape
+    if not all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(state.policy)):
         raise FloatingPointError(
             f"{method}: the policy parameters are no longer finite; lower algo.learning_rate or "
             "algo.step_size, or check the simulator for NaN states (env.backend, env.timestep)"
