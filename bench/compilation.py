@@ -1,4 +1,6 @@
-"""Section `compile`: cold and warm compile of the trainer, each in its own process.
+"""Section `compile`: cold and warm compile of the trainer, each in its own process; and
+every program a method of the reference study compiles, with its trace, lowering and compile
+seconds (bench.worker's `programs`).
 
 Cold: a fresh, empty persistent compilation cache directory. Warm: a second process on the same
 directory (the persistent cache, `hds.utils.runtime.enable_compilation_cache`, as `python -m
@@ -18,6 +20,12 @@ from bench.common import REFERENCE, run_worker
 DEFAULT_BUDGET = {
     "backends": ["analytic", "generalized"],
     "overrides": [],  # config overrides on top of the reference configuration
+    # per program: `python -m hds.run +experiment=sim2real_friction method=M`, each method in
+    # its own process on an empty cache (pods_cl: the trainer and the evaluation; hds: the
+    # dynamics model's training; pods_corrected: discovery's fit and the retraining)
+    "methods": ["pods_cl", "hds", "pods_corrected"],
+    "method_overrides": [],  # e.g. smaller budgets: algo.epochs=10
+    "top": 8,  # programs listed per method (the rest summed in one row)
 }
 
 
@@ -57,8 +65,63 @@ def measure(backend: str, overrides: list[str]) -> dict:
     }
 
 
+def programs(method: str, overrides: list[str]) -> dict:
+    cache = Path(tempfile.mkdtemp(prefix="hds-bench-cache-"))
+    try:
+        spec = {
+            "overrides": [
+                "+experiment=sim2real_friction",
+                f"method={method}",
+                "logger=none",
+                *overrides,
+            ],
+            "cache": str(cache),
+        }
+        return {"method": method, **run_worker("programs", spec)}
+    finally:
+        shutil.rmtree(cache, ignore_errors=True)
+
+
+def program_rows(result: dict, top: int) -> list[list]:
+    """The method's `top` programs by trace + lowering + compile seconds, then the rest in one
+    row, then the whole."""
+
+    def total(p):
+        return p.get("trace_s", 0.0) + p.get("lower_s", 0.0) + p.get("compile_s", 0.0)
+
+    ranked = sorted(result["programs"].items(), key=lambda item: -total(item[1]))
+    size = result["chunk_size"]
+
+    def row(name, entries):
+        s = {k: sum(p.get(k, 0.0) for p in entries) for k in ("trace_s", "lower_s", "compile_s")}
+        ops = (
+            [size["stablehlo_ops"], size["hlo_instructions"]] if name == "run_chunk" else [None] * 2
+        )
+        return [
+            result["method"],
+            name,
+            sum(p["count"] for p in entries),
+            s["trace_s"],
+            s["lower_s"],
+            s["compile_s"],
+            sum(s.values()),
+            *ops,
+        ]
+
+    rows = [row(name, [p]) for name, p in ranked[:top]]
+    rest = ranked[top:]
+    if rest:
+        rows.append(row(f"{len(rest)} other programs", [p for _, p in rest]))
+    rows.append(row("all", [p for _, p in ranked]))
+    rows[-1].append(result["run_s"])
+    for r in rows[:-1]:
+        r.append(None)
+    return rows
+
+
 def run(budget: dict) -> dict:
     results = [measure(b, budget["overrides"]) for b in budget["backends"]]
+    per_program = [programs(m, budget["method_overrides"]) for m in budget["methods"]]
     rows = []
     for r in results:
         for kind in ("cold", "warm"):
@@ -98,7 +161,28 @@ def run(budget: dict) -> dict:
                     "process total",
                 ],
                 "rows": rows,
-            }
+            },
+            {
+                "caption": "Seconds per program, each method its own process from an empty "
+                "cache: python -m hds.run +experiment=sim2real_friction method=M"
+                + "".join(f" {o}" for o in budget["method_overrides"])
+                + " (5 seeds; every program jax traced, lowered and compiled, from its own "
+                "log records; ops: the trainer chunk's StableHLO ops as lowered and HLO "
+                "instructions after XLA's optimisation)",
+                "columns": [
+                    "method",
+                    "program",
+                    "compiles",
+                    "trace",
+                    "lower",
+                    "XLA compile",
+                    "total",
+                    "StableHLO ops",
+                    "HLO instructions",
+                    "whole run",
+                ],
+                "rows": [r for res in per_program for r in program_rows(res, budget["top"])],
+            },
         ],
         "notes": [
             "Cache sizes after the cold run: "
@@ -109,4 +193,5 @@ def run(budget: dict) -> dict:
             "cold one's (source files edited in between change the HLO's source locations).",
         ],
         "data": results,
+        "programs": per_program,
     }

@@ -8,7 +8,8 @@ other processes compete for the cores):
   peers_systems  the same on the double cart-pole swing-up (tree engine), 5 seeds: about 29
              minutes on its own on a shared 2-core CPU
   scaling    seeds vmapped, horizon, rollouts per epoch: wall time and peak memory
-  compile    cold and warm (persistent cache) compile, each in its own process
+  compile    cold and warm (persistent cache) compile, each in its own process; every
+             program a method of the study compiles: trace, lowering, XLA compile seconds
   engine     the tree engine vs brax generalized and MJX per system: compile, env-steps/s
   discovery  time to a gap-discovery report
   coverage   how often discovery's 95% intervals hold hidden effects (C MuJoCo plant, noise)

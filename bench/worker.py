@@ -5,8 +5,8 @@ KIND `train`: compose the config of SPEC["overrides"], build the env and trainer
 compile, optionally run, and write timings, XLA's memory analysis and peak RSS to OUT_JSON.
   SPEC["program"]  "train": trainer.train over SPEC["seeds"] seeds (the whole run as one
                    program); "chunk": what hds.run compiles, trainer.run_chunk over the seeds
-                   after a jitted init; both jitted, mapped over the seeds as hds.run maps them
-                   (hds.utils.runtime.over_runs)
+                   after a jitted init, mapped over the seeds as hds.run maps them (one run's
+                   program called on each, hds.utils.runtime.RunByRun, or over_runs)
   SPEC["vmapped"]  how many seeds are vmapped at a time, as hds.run's `vmap_runs` (default
                    null: what hds.run does here; 0: all; 1: a loop over them)
   SPEC["run"]      run the compiled program (default true): a first call (`first_run_s`, which
@@ -14,6 +14,10 @@ compile, optionally run, and write timings, XLA's memory analysis and peak RSS t
                    0) while they take less than SPEC["repeat_s"] seconds in all (default 30);
                    `run_s` is their median, or the first call's time where there are none
   SPEC["cache"]    a persistent compilation cache directory (default: none, a cold compile)
+
+KIND `programs`: run `hds.run`'s experiment of SPEC["overrides"] in-process on the empty
+persistent cache SPEC["cache"], and write every program's trace, lowering and XLA compile
+seconds (jax's own log records of them) and the trainer chunk's size in ops.
 """
 
 from __future__ import annotations
@@ -23,10 +27,12 @@ import time
 _START = time.perf_counter()
 
 import json  # noqa: E402
+import logging  # noqa: E402
+import re  # noqa: E402
 import sys  # noqa: E402
 
 from bench.common import best_of, block, compose, peak_rss_mb, timed  # noqa: E402
-from hds.utils.runtime import over_runs, runs_vmapped  # noqa: E402
+from hds.utils.runtime import RunByRun, over_runs, runs_vmapped  # noqa: E402
 
 
 def memory_analysis(compiled) -> dict | None:
@@ -80,9 +86,14 @@ def train(spec: dict) -> dict:
         "epochs": cfg.algo.epochs,
     }
     if spec.get("program", "train") == "chunk":
+        if vmapped == 1:  # as hds.run: one run's program, called on each run (RunByRun)
+            init, chunk = RunByRun(trainer.init), RunByRun(trainer.run_chunk)
+        else:
+            init = jax.jit(over_runs(trainer.init, vmapped, seeds))
+            chunk = jax.jit(over_runs(trainer.run_chunk, vmapped, seeds))
         with timed() as init_t:
-            state = block(jax.jit(over_runs(trainer.init, vmapped, seeds))(keys, hparams))
-        fn, args = jax.jit(over_runs(trainer.run_chunk, vmapped, seeds)), (state, hparams)
+            state = block(init(keys, hparams))
+        fn, args = chunk, (state, hparams)
         out.update(init_s=init_t.s, epochs_per_call=trainer.chunk)
     else:
         fn, args = jax.jit(over_runs(trainer.train, vmapped, seeds)), (keys, hparams)
@@ -90,7 +101,8 @@ def train(spec: dict) -> dict:
         lowered = fn.lower(*args)
     with timed() as comp:
         compiled = lowered.compile()
-    out.update(trace_s=trace.s, compile_s=comp.s, memory=memory_analysis(compiled))
+    memory = memory_analysis(getattr(compiled, "program", compiled))  # RunByRun: its one run's
+    out.update(trace_s=trace.s, compile_s=comp.s, memory=memory)
     if spec.get("run", True):
         out.update(run_calls(lambda: block(compiled(*args)), spec))
     out["peak_rss_mb"] = peak_rss_mb()
@@ -107,7 +119,90 @@ def run_calls(call, spec: dict) -> dict:
     return {"first_run_s": first.s, "run_s": median, "repeat_run_s": times}
 
 
-KINDS = {"train": train}
+# jax logs each program's trace, lowering and XLA compile (DEBUG; WARNING under
+# jax_log_compiles) with these messages; their format is jax's, so a record that no longer
+# matches is counted in `unparsed`, not misread
+COMPILE_LOGS = {
+    "trace_s": re.compile(r"Finished tracing \+ transforming (.+) for pjit in ([0-9.e-]+) sec"),
+    "lower_s": re.compile(r"Finished jaxpr to MLIR module conversion (.+) in ([0-9.e-]+) sec"),
+    "compile_s": re.compile(r"Finished XLA compilation of (.+) in ([0-9.e-]+) sec"),
+}
+
+
+class CompileLog(logging.Handler):
+    """Collects jax's per-program trace, lowering and compile seconds, by program name."""
+
+    def __init__(self):
+        super().__init__(logging.DEBUG)
+        self.programs: dict[str, dict] = {}
+        self.unparsed = 0
+
+    def emit(self, record):
+        message = record.getMessage()
+        if not message.startswith("Finished"):
+            return
+        for field, pattern in COMPILE_LOGS.items():
+            if m := pattern.search(message):
+                name = m.group(1).removeprefix("jit(").removesuffix(")")
+                entry = self.programs.setdefault(name, {"count": 0})
+                entry[field] = entry.get(field, 0.0) + float(m.group(2))
+                entry["count"] += field == "compile_s"
+                return
+        self.unparsed += 1
+
+
+def hlo_size(lowered) -> dict:
+    """A program's size: StableHLO ops as traced and lowered, and HLO instructions after
+    XLA's optimisation (what it generated code for)."""
+    text = lowered.as_text()
+    ops = len(re.findall(r"^\s*(?:%\S+(?:, %\S+)* = )?\"?(?:stablehlo|chlo)\.", text, re.M))
+    hlo = lowered.compile().as_text() or ""
+    instructions = len(re.findall(r"^\s*(?:ROOT )?%?[\w.\-]+ = ", hlo, re.M))
+    return {"stablehlo_ops": ops, "hlo_instructions": instructions}
+
+
+def programs(spec: dict) -> dict:
+    """Run `hds.run`'s experiment on SPEC["overrides"] in this process (SPEC["cache"]: an empty
+    persistent cache) and report every program jax traced, lowered and compiled on the way
+    (trainer chunk, evaluation, the dynamics model's training, discovery's fit, and the small
+    eager ones), then the size of the trainer's chunk program."""
+    import tempfile
+
+    import jax
+
+    from hds import experiment
+    from hds.algo.pods import make_train
+    from hds.envs import make_env
+    from hds.utils.runtime import enable_compilation_cache
+
+    enable_compilation_cache(spec["cache"])
+    handler = CompileLog()
+    dispatch = logging.getLogger("jax._src.dispatch")
+    dispatch.setLevel(logging.DEBUG)
+    dispatch.addHandler(handler)
+    dispatch.propagate = False  # DEBUG records stay here, off the console
+    import_s = time.perf_counter() - _START
+    cfg = compose(*spec["overrides"])
+    with tempfile.TemporaryDirectory(prefix="hds-bench-run-") as out, timed() as run:
+        experiment.run(cfg, out, experiment.Hooks(console=False))
+    dispatch.removeHandler(handler)
+    # the trainer's program of the configuration's first method: its size (XLA's compile comes
+    # from the persistent cache the run filled; tracing and lowering are done again)
+    trainer = make_train(cfg, make_env(cfg.env))
+    state = jax.eval_shape(trainer.init, jax.random.PRNGKey(0), trainer.default_hparams)
+    size = hlo_size(jax.jit(trainer.run_chunk).lower(state, trainer.default_hparams))
+    return {
+        "import_s": import_s,
+        "run_s": run.s,
+        "programs": handler.programs,
+        "unparsed": handler.unparsed,
+        "chunk_size": size,
+        "epochs_per_chunk": trainer.chunk,
+        "peak_rss_mb": peak_rss_mb(),
+    }
+
+
+KINDS = {"train": train, "programs": programs}
 
 
 def main() -> None:

@@ -87,7 +87,10 @@ class Evaluator:
         plants = plant if isinstance(plant, list) else [plant] * n_runs
         return np.stack(
             [
-                self.episodes(jax.tree.map(lambda x, s=s: x[s], params), plants[s]).returns
+                # one run's parameters sliced in numpy (jax compiled a slice per leaf's shape)
+                self.episodes(
+                    jax.tree.map(lambda x, s=s: np.asarray(x)[s], params), plants[s]
+                ).returns
                 for s in range(n_runs)
             ]
         )

@@ -44,7 +44,7 @@ from hds.real import make_plant
 from hds.real.brax_plant import BraxPlant
 from hds.results import Row, Summary
 from hds.utils.io import atomic_write_json
-from hds.utils.runtime import enable_compilation_cache, over_runs, runs_vmapped
+from hds.utils.runtime import RunByRun, enable_compilation_cache, over_runs, runs_vmapped
 
 log = logging.getLogger("hds")
 
@@ -322,6 +322,8 @@ def compiled_programs(cfg: Config, trainer: Trainer, hparams):
     runs = cfg.runs()
     keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray([r["seed"] for r in runs]))
     vmapped = runs_vmapped(cfg.vmap_runs, len(runs))
+    if vmapped == 1:  # one run's program, whatever the batch: compiled once (RunByRun)
+        return RunByRun(trainer.init), RunByRun(trainer.run_chunk), keys, hparams
     if vmapped == len(runs):  # a loop over the runs cannot be split across devices
         keys, hparams = _shard((keys, hparams))
     init = jax.jit(over_runs(trainer.init, vmapped, len(runs)))
@@ -333,8 +335,8 @@ def abstract_state(cfg: Config, trainer: Trainer):
     """The shapes and dtypes of the batch's train state, with nothing computed: what a
     checkpoint is restored into."""
     hparams = batch_hparams(cfg, trainer)
-    init, _, keys, hparams = compiled_programs(cfg, trainer, hparams)
-    return jax.eval_shape(init, keys, hparams)
+    _, _, keys, hparams = compiled_programs(cfg, trainer, hparams)
+    return jax.eval_shape(jax.vmap(trainer.init), keys, hparams)
 
 
 def train(
@@ -409,7 +411,8 @@ def _report_chunk(hooks: Hooks, logger, method: str, epoch0: int, metrics: dict,
 
 
 def _check_finite(state, method: str) -> None:
-    if not all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(state.policy)):
+    # numpy: jnp's eager isfinite and all compiled two small programs per parameter's shape
+    if not all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(state.policy)):
         raise FloatingPointError(
             f"{method}: the policy parameters are no longer finite; lower algo.learning_rate or "
             "algo.step_size, or check the simulator for NaN states (env.backend, env.timestep)"

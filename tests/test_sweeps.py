@@ -147,6 +147,27 @@ def test_runs_map_as_vmap_runs_says(setting, vmapped):
         np.testing.assert_allclose(out[1][i], alone[1], rtol=1e-6)
 
 
+def test_run_by_run_compiles_one_runs_program_for_every_batch():
+    """A single CPU trains a batch run by run through one program of one run's shapes
+    (RunByRun): each run's numbers bit for bit the lax.map loop's, and a batch of any size
+    reuses the one compile."""
+    from hds.utils.runtime import RunByRun, over_runs
+
+    def fn(x, scale):  # a branch, as early stopping has
+        return jax.lax.cond(x.sum() > 0, lambda: x * scale, lambda: -x), x.sum()
+
+    x = jax.random.normal(jax.random.PRNGKey(0), (5, 3))
+    scale = jax.numpy.arange(5.0)
+    looped = jax.jit(over_runs(fn, 1, 5))(x, scale)
+    program = RunByRun(fn).lower(x, scale).compile()
+    for out in (program(x, scale), RunByRun(fn)(x, scale)):
+        for a, b in zip(out, looped):
+            assert a.shape == b.shape
+            np.testing.assert_array_equal(a, b)
+    three = program(x[:3], scale[:3])  # another batch size: the same compiled program
+    np.testing.assert_array_equal(three[0], looped[0][:3])
+
+
 @pytest.mark.slow  # make test-slow: keeps make test under 10 min cold
 def test_the_batch_is_sharded_across_two_host_devices(tmp_path):
     code = (

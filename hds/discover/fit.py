@@ -46,9 +46,11 @@ class Engine:
         self.views = self._views()
         self.predict = jax.jit(self._predict)
         self.losses = jax.jit(jax.vmap(self._loss, in_axes=(0, 0, None)))
-        self._fit = jax.jit(self._fit_each, static_argnums=(5, 6))
+        # `iterations` only bounds the while loop, so it is traced: fits of any budget share a
+        # program; `estimate` changes the residuals' shapes and stays static
+        self._fit = jax.jit(self._fit_each, static_argnums=(6,))
 
-    def _fit_each(self, theta0, slots, delay, active, data, iterations: int, estimate: bool):
+    def _fit_each(self, theta0, slots, delay, active, data, iterations, estimate: bool):
         """The candidates' fits one after another (lax.map, not vmap): a vmapped while loop
         runs every row until the slowest converges, here each row stops at its own
         convergence (a fifth of the iterations in a typical round). Rows not `active` (the
@@ -224,7 +226,7 @@ class Engine:
             jnp.asarray(delay, jnp.int32),
             jnp.asarray(active),
             data,
-            int(iterations),
+            jnp.asarray(iterations, jnp.int32),
             bool(estimate),
         )
         h, g = np.asarray(h), np.asarray(g)

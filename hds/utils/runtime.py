@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 import jax
+import numpy as np
 
 DEFAULT_CACHE = Path(os.environ.get("HDS_JAX_CACHE", Path.home() / ".cache" / "hds" / "jax"))
 
@@ -48,3 +49,35 @@ def over_runs(fn, vmapped: int, runs: int):
     if vmapped >= runs:
         return jax.vmap(fn)
     return lambda *args: jax.lax.map(lambda a: fn(*a), args, batch_size=vmapped)
+
+
+class RunByRun:
+    """`fn` of one run, jitted once and called on each run of a batch (the leading axis of
+    every argument) in a host loop, the results stacked: how a single CPU trains a batch
+    (`runs_vmapped` 1). The program has one run's shapes, so every batch of runs of one
+    configuration (1 seed or 5, a sweep of step sizes or friction gaps, a plant's draw) and
+    every later process shares one compile and one persistent-cache entry, where a `lax.map`
+    over the batch compiled a program per batch size. Each run's numbers are bit for bit those
+    of the `lax.map` (the same loop body). `lower(*args).compile()` mirrors `jax.jit`'s AOT API."""
+
+    def __init__(self, fn, compiled=None):
+        self.fn = fn
+        self.program = compiled if compiled is not None else jax.jit(fn)
+
+    def __call__(self, *args):
+        host = jax.tree.map(np.asarray, args)  # one run's slice is a view, not an eager op
+        runs = jax.tree.leaves(host)[0].shape[0]
+        outs = [self.program(*jax.tree.map(lambda x, i=i: x[i], host)) for i in range(runs)]
+        return jax.tree.map(lambda *xs: jax.device_put(np.stack(xs)), *outs)
+
+    def lower(self, *args):
+        first = jax.tree.map(lambda x: np.asarray(x)[0], args)
+        return _LoweredRuns(self.fn, self.program.lower(*first))
+
+
+class _LoweredRuns:
+    def __init__(self, fn, lowered):
+        self.fn, self.lowered = fn, lowered
+
+    def compile(self) -> RunByRun:
+        return RunByRun(self.fn, self.lowered.compile())
