@@ -29,7 +29,6 @@ import numpy as np  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 
 from hds import experiment, plots, rundir  # noqa: E402
-from hds.algo.pods import make_train  # noqa: E402
 from hds.commands import before_hydra  # noqa: E402
 from hds.config import Config, env_config, validate  # noqa: E402
 from hds.data import collect, initial_states  # noqa: E402
@@ -37,8 +36,11 @@ from hds.data.format import Dataset, concatenate, load, save  # noqa: E402
 from hds.envs import make_env  # noqa: E402
 from hds.evaluation import mean_ci  # noqa: E402
 from hds.logger import print_table  # noqa: E402
+from hds.networks import make_policy  # noqa: E402
+from hds.simulators import Simulator  # noqa: E402
 from hds.utils import cli  # noqa: E402
 from hds.utils.io import atomic_write_json, read_json  # noqa: E402
+from hds.utils.runtime import enable_compilation_cache  # noqa: E402
 
 log = logging.getLogger("hds")
 
@@ -52,7 +54,7 @@ def record(cfg: Config, env, plant, params, key, scale: float, env_cfg=None) -> 
     k_deploy, k_excite, k_u = jax.random.split(key, 3)
     horizon = env.task.horizon
     first = jax.tree.map(lambda x: x[0], params)
-    act = jax.jit(make_train(cfg, env).policy.apply)
+    act = jax.jit(make_policy(cfg.algo.hidden, env.sim).apply)
     q0, qd0 = initial_states(env.task, k_deploy, cfg.loop.deploy_episodes)
     deployed = collect(plant, env.task, q0, qd0, lambda o: np.asarray(act(first, o)), horizon)
     excitation = dataclasses.replace(
@@ -126,7 +128,7 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
     """Every round of the loop (see the module's doc); returns the rounds' reports."""
     out_dir = Path(out_dir)
     hooks = hooks or experiment.Hooks()
-    experiment.enable_compilation_cache()
+    enable_compilation_cache()
     plants = experiment.run_plants(cfg)
     plant = plants[0]
     env_cfg, params, data, rounds = cfg.env, None, [], []
@@ -188,21 +190,12 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
         dyn = dataclasses.replace(cfg.dynamics, data=str(rdir / "model_data.npz"))
         model, model_report = build(dyn, env, None, jax.random.PRNGKey(cfg.seed), rdir / "dynamics")
     method = f"loop{r}"
+    simulator = Simulator(env)
 
     def train_and_evaluate(train_cfg, out_dir, init_params):
-        with experiment.method_logger(train_cfg, out_dir, method, hooks) as logger:
-            training = experiment.train(
-                train_cfg,
-                env,
-                out_dir,
-                method,
-                model,
-                hooks=hooks,
-                logger=logger,
-                init_params=init_params,
-            )
-            rows, _ = experiment.evaluate_training(train_cfg, training, plants)
-            logger.finish(rows, {})
+        training, rows, _ = experiment.train_and_evaluate(
+            train_cfg, method, simulator, out_dir, plants, hooks, model, init_params
+        )
         return training.params, rows
 
     trained, rows = train_and_evaluate(round_cfg, rdir, params)
