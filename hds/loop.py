@@ -31,7 +31,7 @@ from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from hds import experiment, plots, rundir  # noqa: E402
 from hds.commands import before_hydra  # noqa: E402
 from hds.config import Config, env_config, validate  # noqa: E402
-from hds.data import collect, initial_states  # noqa: E402
+from hds.data.acquire import deployed_and_excited  # noqa: E402
 from hds.data.format import Dataset, concatenate, load, save  # noqa: E402
 from hds.envs import make_env  # noqa: E402
 from hds.evaluation import mean_ci  # noqa: E402
@@ -46,39 +46,46 @@ log = logging.getLogger("hds")
 
 
 def record(cfg: Config, env, plant, params, key, scale: float, env_cfg=None) -> Dataset:
-    """One round's data: the policy (the batch's first run) deployed from the task's initial
-    states, and open-loop excitation whose amplitudes rise to `scale` of the half range
-    (discover.excitation = designed: designed on env_cfg, the simulator corrected so far)."""
+    """One round's data (hds.data.acquire.deployed_and_excited): the policy (the batch's first
+    run) deployed from the task's initial states, and open-loop excitation whose amplitudes
+    rise to `scale` of the half range (discover.excitation = designed: designed on env_cfg,
+    the simulator corrected so far)."""
     from hds.dynamics import excite
 
-    k_deploy, k_excite, k_u = jax.random.split(key, 3)
     horizon = env.task.horizon
     first = jax.tree.map(lambda x: x[0], params)
     act = jax.jit(make_policy(cfg.algo.hidden, env.sim).apply)
-    q0, qd0 = initial_states(env.task, k_deploy, cfg.loop.deploy_episodes)
-    deployed = collect(plant, env.task, q0, qd0, lambda o: np.asarray(act(first, o)), horizon)
     excitation = dataclasses.replace(
         cfg.dynamics,
         episodes=cfg.loop.excitation_episodes,
         horizon=horizon,
         excitation_scale=scale,
     )
-    q0, qd0 = initial_states(env.task, k_excite, cfg.loop.excitation_episodes)
-    controls = None
-    if cfg.discover.excitation == "designed":
-        from hds.discover.design import designed_controls
 
-        x0s = np.concatenate([q0, qd0], axis=1)[:4]  # the expected information over these
-        try:
-            controls = designed_controls(
-                env_cfg or cfg.env, cfg.discover, env.sim.dt, horizon, len(q0), scale, x0s, deployed
-            )
-        except ValueError as err:  # no design keeps the limits: random steps, as before
-            log.warning("designed excitation failed (%s); random steps instead", err)
-    if controls is None:
-        controls = excite(excitation, env, k_u)
-    excited = collect(plant, env.task, q0, qd0, controls, horizon)
-    return concatenate([deployed, excited])
+    def controls(k_u, q0, qd0, deployed):
+        if cfg.discover.excitation == "designed":
+            from hds.discover.design import designed_controls
+
+            x0s = np.concatenate([q0, qd0], axis=1)[:4]  # the expected information over these
+            design_on, n, dt = env_cfg or cfg.env, len(q0), env.sim.dt
+            try:
+                return designed_controls(
+                    design_on, cfg.discover, dt, horizon, n, scale, x0s, deployed
+                )
+            except ValueError as err:  # no design keeps the limits: random steps, as before
+                log.warning("designed excitation failed (%s); random steps instead", err)
+        return excite(excitation, env, k_u)
+
+    return deployed_and_excited(
+        plant,
+        env.task,
+        key,
+        lambda o: np.asarray(act(first, o)),
+        cfg.loop.deploy_episodes,
+        cfg.loop.excitation_episodes,
+        horizon,
+        controls,
+    )
 
 
 def excite_until_identifiable(cfg: Config, env, plant, params, key, data_so_far, env_cfg=None):

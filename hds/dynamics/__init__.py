@@ -52,12 +52,14 @@ def excite(cfg, env, key) -> np.ndarray:
 
 
 def collect_data(cfg, env, plant, key):
-    """A Dataset of cfg.episodes episodes recorded on `plant` from the task's initial states."""
-    from hds.data import collect, initial_states
+    """A Dataset of cfg.episodes episodes of excitation (`excite`) recorded on `plant` from
+    the task's initial states."""
+    from hds.data.acquire import excited
 
-    k_init, k_u = jax.random.split(key)
-    q0, qd0 = initial_states(env.task, k_init, cfg.episodes)
-    return collect(plant, env.task, q0, qd0, excite(cfg, env, k_u), cfg.horizon)
+    def controls(k_u, q0, qd0, deployed):
+        return excite(cfg, env, k_u)
+
+    return excited(plant, env.task, key, cfg.episodes, cfg.horizon, controls)
 
 
 def measured_data(cfg, env, plant, key):
