@@ -433,3 +433,26 @@ def test_no_module_imports_upward():
             above = TOOLS
         wrong = _imports(path) & above
         assert not wrong, f"{path.relative_to(ROOT)} imports {wrong}, a layer above it"
+
+
+def test_an_older_run_s_checkpoint_gives_the_kept_best_policy_where_one_was_found(tmp_path):
+    """algo.keep=best: a checkpoint holds the last iterate and the best one (progress.best);
+    read as stored, each run returns its best where it found one (best_return > -inf), else
+    its last iterate, as the trainer's final_policy does."""
+    import jax.numpy as jnp
+
+    from hds.algo.pods import TrainState
+    from hds.checkpoint import Checkpoints
+    from hds.policy_store import from_checkpoint
+
+    last = {"params": {"Dense_0": {"kernel": jnp.ones((2, 3, 4)), "bias": jnp.ones((2, 4))}}}
+    best = jax.tree.map(lambda x: 2 * x, last)
+    progress = {"best": best, "best_return": jnp.asarray([-5.0, -jnp.inf])}
+    state = TrainState(last, (), jnp.asarray([7, 7]), jnp.zeros((2, 2), jnp.uint32), progress)
+    ckpt = Checkpoints(tmp_path / "pods")
+    ckpt.save(7, state, {"history": {}, "method": "pods"})
+    ckpt.close()
+    params, epochs = from_checkpoint(tmp_path / "pods")
+    assert list(epochs) == [7, 7]
+    kernel = params["params"]["Dense_0"]["kernel"]
+    assert np.all(kernel[0] == 2.0) and np.all(kernel[1] == 1.0)
