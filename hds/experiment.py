@@ -1,10 +1,11 @@
 """The experiment layer: a validated config -> the batch of runs -> training with hooks ->
 evaluation on the simulator and the plant -> a typed `Result`.
 
-Everything above the jitted core calls this module (`python -m hds.run`, gap discovery's
-retrain, `hds.load_policy`, animations, benchmarks, tests); it calls only downward (config,
-envs, plants, the trainer, checkpoints, the logger). What it opens (checkpoint managers,
-progress bars, W&B runs) it closes, also when a run fails.
+Everything above the jitted core calls this module (`python -m hds.run`, the loop, gap
+discovery's retrain, animations, benchmarks, tests), each method through one
+`train_and_evaluate`; it calls only downward (config, the simulator kinds of hds.simulators,
+plants, the trainer, checkpoints, saved policies, the logger). What it opens (checkpoint
+managers, progress bars, W&B runs) it closes, also when a run fails.
 
     result = hds.train(hds.compose(["method=pods_cl", "seeds=3"]), out_dir="outputs/mine")
     result.rows                                      # per method and run: sim/real return, gap
