@@ -38,7 +38,7 @@ def _hydra_command(name: str, config_name: str = "config") -> None:
     script's own name (`eval "$(hds-run -sc install=bash)"`). No API name of hds is one of
     these modules' names, so importing them hides nothing."""
     command = importlib.import_module(name)
-    before_hydra(config_name)
+    before_hydra(config_name, loop=name == "hds.loop")
     command.main()
 
 
@@ -70,17 +70,18 @@ def dynamics() -> None:
     _run_module("hds.dynamics")
 
 
-def before_hydra(config_name: str = "config") -> None:
+def before_hydra(config_name: str = "config", loop: bool = False) -> None:
     """What a Hydra command does before handing sys.argv to Hydra: take out `--debug`, then
     refuse unknown keys and every invalid job (a single run: its configuration; a multirun:
-    each job's, one line each), before Hydra composes anything or launches a job."""
+    each job's, its data's size included, one line each), before Hydra composes anything or
+    launches a job. `loop`: the command is hds.loop (the data it records are the loop's)."""
     cli.strip_debug_flag()
     argv = sys.argv[1:]
     if INFO_FLAGS & set(argv) or cli.debug():
         return  # Hydra's help and printouts need no valid config; --debug: Hydra's traceback
     with cli.one_line_errors():
         check_command_line(argv, config_name)
-    if bad := invalid_jobs(argv, config_name):
+    if bad := invalid_jobs(argv, config_name, loop):
         for line in bad:
             print(f"error: {line}", file=sys.stderr)
         sys.exit(1)
@@ -107,15 +108,18 @@ def check_command_line(argv: list[str], config_name: str = "config") -> None:
     check_override_keys(cli_overrides(argv), schema_of(config_name), config_groups())
 
 
-def invalid_jobs(argv: list[str], config_name: str = "config") -> list[str]:
+def invalid_jobs(argv: list[str], config_name: str = "config", loop: bool = False) -> list[str]:
     """One line per job whose configuration is refused (Hydra's composition errors, an unknown
     option of a group or a value of the wrong type, included), naming a multirun's job by its
-    swept values: a sweep with a bad value launches no job at all. Empty for sweeps the basic
-    sweeper does not expand (interval sweeps of an optimizing sweeper)."""
+    swept values: a sweep with a bad value launches no job at all. A multirun's jobs are also
+    refused for data past their limits (hds.data.budget; a single run checks its own, once).
+    Empty for sweeps the basic sweeper does not expand (interval sweeps of an optimizing
+    sweeper)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
-    from hds.config import cli_overrides, compose
+    from hds.config import Config, cli_overrides, compose
+    from hds.data.budget import check_planned
 
     multirun = bool({"-m", "--multirun"} & set(argv))
     config_name = _flag_value(argv, ("--config-name", "-cn")) or config_name
@@ -144,12 +148,14 @@ def invalid_jobs(argv: list[str], config_name: str = "config") -> list[str]:
         try:
             # a sweep's jobs may run elsewhere (joblib's processes, SLURM's nodes): each checks
             # its memory where it runs, and this process keeps off the device (a GPU's memory)
-            compose(
+            cfg = compose(
                 [*fixed, *job],
                 config_name,
                 check_memory=not multirun,
                 config_dirs=[config_dir] if config_dir else [],
             )
+            if multirun and type(cfg) is Config:  # hds.discover checks its data as it loads it
+                check_planned(cfg, loop)
         except (*cli.USER_ERRORS, HydraException) as err:
             named = f"job {number} ({' '.join(job)}): " if multirun else ""
             lines.append(named + cli.describe(err))

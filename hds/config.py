@@ -277,6 +277,9 @@ class DynamicsConfig:
     # largest amplitude (share of the half range), spread evenly over the episodes; near 1 the
     # cart-pole slams into its rail limits
     excitation_scale: float = 0.2
+    # most recorded steps (episodes x steps) a model is fitted on; more is refused before it is
+    # processed, with its memory and time (hds.data.budget): window or resample the data
+    max_steps: int = 1_000_000
 
     def check(self):
         _one_of("dynamics.model", self.model, ("none", "mlp", "ensemble", "residual"))
@@ -285,6 +288,7 @@ class DynamicsConfig:
         _check_widths("dynamics.hidden", self.hidden, fewest=1)
         for key in ("ensemble_size", "minibatch", "epochs", "patience", "episodes", "horizon"):
             _in_range(f"dynamics.{key}", getattr(self, key), 1)
+        _in_range("dynamics.max_steps", self.max_steps, 1)
         _in_range("dynamics.learning_rate", self.learning_rate, 1e-12)
         _in_range("dynamics.val_fraction", self.val_fraction, 1e-6, 0.9)
         if not self.eval_steps or any(int(k) < 1 for k in self.eval_steps):
@@ -331,7 +335,7 @@ class DiscoverConfig:
     bins: int = 8  # bins of each feature when locating where the residual depends on it
     plot_episodes: int = 2  # held-out episodes drawn in the trajectory plot
     # most recorded steps (episodes x steps) discovery takes on; larger data is refused before
-    # it is processed, with its memory estimate (hds.discover's command): window or resample it
+    # it is processed, with its memory and time (hds.data.budget): window or resample it
     max_steps: int = 200_000
     # the loop's excitation episodes (hds.loop): steps = random steps (amplitude doubled while
     # the data cannot identify a candidate); designed = each round optimises them through the

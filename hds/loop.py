@@ -32,6 +32,7 @@ from hds import experiment, plots, rundir  # noqa: E402
 from hds.commands import before_hydra  # noqa: E402
 from hds.config import Config, env_config, validate  # noqa: E402
 from hds.data.acquire import deployed_and_excited  # noqa: E402
+from hds.data.budget import check_planned  # noqa: E402
 from hds.data.format import Dataset, concatenate, load, save  # noqa: E402
 from hds.envs import make_env  # noqa: E402
 from hds.evaluation import mean_ci  # noqa: E402
@@ -50,6 +51,7 @@ def record(cfg: Config, env, plant, params, key, scale: float, env_cfg=None) -> 
     run) deployed from the task's initial states, and open-loop excitation whose amplitudes
     rise to `scale` of the half range (discover.excitation = designed: designed on env_cfg,
     the simulator corrected so far)."""
+    from hds.discover.design import excitation_controls
     from hds.dynamics import excite
 
     horizon = env.task.horizon
@@ -63,18 +65,17 @@ def record(cfg: Config, env, plant, params, key, scale: float, env_cfg=None) -> 
     )
 
     def controls(k_u, q0, qd0, deployed):
-        if cfg.discover.excitation == "designed":
-            from hds.discover.design import designed_controls
-
-            x0s = np.concatenate([q0, qd0], axis=1)[:4]  # the expected information over these
-            design_on, n, dt = env_cfg or cfg.env, len(q0), env.sim.dt
-            try:
-                return designed_controls(
-                    design_on, cfg.discover, dt, horizon, n, scale, x0s, deployed
-                )
-            except ValueError as err:  # no design keeps the limits: random steps, as before
-                log.warning("designed excitation failed (%s); random steps instead", err)
-        return excite(excitation, env, k_u)
+        return excitation_controls(
+            cfg.discover,
+            env_cfg or cfg.env,
+            env.sim.dt,
+            horizon,
+            q0,
+            qd0,
+            scale,
+            lambda: excite(excitation, env, k_u),
+            deployed,
+        )
 
     return deployed_and_excited(
         plant,
@@ -276,10 +277,11 @@ def main(dcfg) -> float:
     hydra_dir = out_dir / HydraConfig.get().output_subdir
     with cli.one_line_errors(), rundir.claim(out_dir, dcfg, hydra_dir):  # locked
         cfg = validate(dcfg)  # every range check, before anything compiles
+        check_planned(cfg, loop=True)  # its data past the limits: refused with the numbers
         rounds = run_loop(cfg, out_dir)
     return float(rounds[-1]["real_return"][0])
 
 
 if __name__ == "__main__":
-    before_hydra()
+    before_hydra(loop=True)
     main()

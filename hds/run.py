@@ -25,6 +25,7 @@ from hydra.types import RunMode  # noqa: E402
 from hds import rundir  # noqa: E402
 from hds.commands import before_hydra  # noqa: E402
 from hds.config import validate  # noqa: E402
+from hds.data.budget import check_planned  # noqa: E402
 from hds.evaluation import no_finite_result  # noqa: E402
 from hds.experiment import Hooks, run  # noqa: E402
 from hds.simulators import method_name  # noqa: E402
@@ -62,6 +63,7 @@ def main(dcfg) -> float:
     try:
         with rundir.claim(out_dir, dcfg, hydra_dir):  # locked; its config.yaml is dcfg's
             cfg = validate(dcfg)  # every range check, before anything compiles
+            check_planned(cfg)  # data past its limits: refused with its memory and time
             enable_compilation_cache()
             result = run(cfg, out_dir, Hooks(live_progress=one_job_at_a_time(hydra_cfg)))
         if failure := no_finite_result(result.rows):

@@ -205,31 +205,15 @@ class Corrected(SimulatorKind):
 
 
 def corrected_simulator(cfg: Config, env: Env, plant, out_dir: Path):
-    """The simulator plus the effects gap discovery names on data measured on the plant (the
-    data a learned model of this seed is fitted on, and, while they cannot identify what more
-    excitation would, more of it at doubled amplitude: hds.discover.record_until_identifiable);
-    the data and the report go to out_dir/discovery. Returns (env, JSON-ready summary of the
-    findings)."""
-    from hds.data import concatenate, save
-    from hds.discover import corrected_env, discover, record_until_identifiable, write_report
-    from hds.dynamics import collect_data, measured_data
+    """The simulator plus the effects gap discovery names on data measured on the plant
+    (`discovery_data`); the data and the report go to out_dir/discovery. Returns (env,
+    JSON-ready summary of the findings)."""
+    from hds.data import save
+    from hds.discover import corrected_env, discover, write_report
 
-    key = jax.random.split(jax.random.PRNGKey(cfg.seed))[0]
-    data, source = measured_data(cfg.dynamics, env, plant, key)
+    data, source = discovery_data(cfg, env, plant)
     if source["data"] == "plant":
-
-        def record(scale, attempt):  # the first: the learned model's data
-            if not attempt:
-                return data
-            dyn = dataclasses.replace(cfg.dynamics, excitation_scale=scale)
-            return collect_data(dyn, env, plant, jax.random.fold_in(key, attempt))
-
-        recorded, scale, notes = record_until_identifiable(
-            record, cfg.env, cfg.discover, cfg.dynamics.excitation_scale
-        )
-        data = concatenate(recorded)
-        source |= {"episodes": data.n_episodes, "excitation_scale": scale, "notes": notes}
-        for note in notes:
+        for note in source["notes"]:
             log.info("active excitation: %s", note)
         save(data, out_dir / "discovery" / "data.npz")  # what discovery read, to re-run it on
     result = discover(data, cfg.env, cfg.discover)
@@ -245,6 +229,44 @@ def corrected_simulator(cfg: Config, env: Env, plant, out_dir: Path):
         log.warning("gap discovery: %s", warning)
     summary = {**source, "effects": found, "warnings": result.warnings}
     return make_env(env_config(corrected_env(cfg.env, result))), summary
+
+
+def discovery_data(cfg: Config, env: Env, plant):
+    """The data the corrected simulator's discovery reads, and where they came from: the data
+    a learned model of this seed is fitted on (dynamics.data, or recorded on the plant) and,
+    while those cannot identify what more excitation would, more of it at doubled amplitude
+    (hds.discover.record_until_identifiable). discover.excitation = designed: every record
+    designed on the simulator (its nominal values: nothing is estimated yet) through the
+    function the loop's rounds use, random steps the fallback (hds.discover.design)."""
+    from hds.data import concatenate
+    from hds.discover import record_until_identifiable
+    from hds.discover.design import excitation_controls
+    from hds.dynamics import collect_data, measured_data
+
+    key = jax.random.split(jax.random.PRNGKey(cfg.seed))[0]
+    data, source = measured_data(cfg.dynamics, env, plant, key)
+    if source["data"] != "plant":
+        return data, source
+    designed = cfg.discover.excitation == "designed"
+
+    def record(scale, attempt):  # the first: the learned model's data, unless designed
+        if not attempt and not designed:
+            return data
+        dyn = dataclasses.replace(cfg.dynamics, excitation_scale=scale)
+
+        def controls(q0, qd0, signal):
+            h, dt = dyn.horizon, env.sim.dt
+            return excitation_controls(cfg.discover, cfg.env, dt, h, q0, qd0, scale, signal, data)
+
+        return collect_data(dyn, env, plant, jax.random.fold_in(key, attempt), controls)
+
+    recorded, scale, notes = record_until_identifiable(
+        record, cfg.env, cfg.discover, cfg.dynamics.excitation_scale
+    )
+    recorded = concatenate(recorded)
+    source |= {"episodes": recorded.n_episodes, "excitation_scale": scale, "notes": notes}
+    source["excitation"] = "designed" if designed else source["excitation"]
+    return recorded, source
 
 
 def corrected_env_config(run_dir: Path):

@@ -9,6 +9,7 @@ from __future__ import annotations
 import errno
 import logging
 import os
+import re
 import subprocess
 import sys
 import tomllib
@@ -178,13 +179,139 @@ def test_discover_refuses_bad_data_in_one_line(case, discover_main, tmp_path, ca
     assert not (tmp_path / "config.yaml").exists()  # refused before the run wrote anything
 
 
-def test_discover_refuses_data_past_max_steps_with_the_numbers(discover_main, tmp_path, capsys):
-    path = save(dataset(episodes=4, steps=26), tmp_path / "data.npz")  # 104 steps
-    cfg = discover_config(f"data={path}", "discover.max_steps=100")
+# --- large data: every command that reads or records data estimates it first (hds.data.budget)
+
+
+def past_the_limit(tmp_path):
+    """A dataset of 104 recorded steps (4 episodes x 26): just past a limit of 100."""
+    return save(dataset(episodes=4, steps=26), tmp_path / "data.npz")
+
+
+def assert_refused(line: str, where: str, key: str, fix: str):
+    """The refusal's one line: what holds how many steps, the limit's key, the memory and time
+    it would need, the fix and the limit raised."""
+    assert f"{where} holds " in line and f"more than {key} = 100" in line, line
+    assert re.search(r"would need about [\d.]+ [MG]B of memory and \d+ (s|min|h)", line), line
+    assert fix.lower() in line.lower() and f"raise {key}" in line, line
+
+
+@pytest.mark.parametrize("key", ["data", "validation"])
+def test_discover_refuses_data_past_max_steps_with_the_numbers(
+    discover_main, key, tmp_path, capsys
+):
+    path = past_the_limit(tmp_path)
+    small = save(dataset(episodes=2, steps=20), tmp_path / "small.npz")
+    files = {"data": small, "validation": small} | {key: path}
+    cfg = discover_config(*(f"{k}={v}" for k, v in files.items()), "discover.max_steps=100")
     line = one_line(capsys, discover_main, cfg, tmp_path)
-    assert f"data = {path} holds 104 steps (4 episodes x 26)" in line
-    assert "more than discover.max_steps = 100" in line and "GB of memory" in line
-    assert "resample" in line and "raise discover.max_steps" in line
+    assert f"{key} = {path} holds 104 steps (4 episodes x 26)" in line
+    assert_refused(line, f"{key} = {path}", "discover.max_steps", "resample it to a coarser dt")
+
+
+def hydra_command(module: str, *overrides: str, tmp_path):
+    """`python -m <module> <overrides>` in this process, as its __main__ runs it (Hydra's
+    logging configures nothing), for a refusal that comes before anything compiles."""
+    import runpy
+
+    from hydra.core.global_hydra import GlobalHydra
+
+    def run():
+        argv = sys.argv
+        sys.argv = [module, *overrides, f"hydra.run.dir={tmp_path / 'run'}"]
+        sys.argv += ["hydra.job_logging.root=null", "hydra.hydra_logging.root=null"]
+        try:
+            runpy.run_module(module)["main"]()
+        finally:
+            sys.argv = argv
+            GlobalHydra.instance().clear()
+
+    return run
+
+
+@pytest.mark.parametrize(
+    "overrides, key",
+    [
+        (["method=hds"], "dynamics.max_steps"),  # a learned model fitted on the data
+        (["simulator=corrected"], "discover.max_steps"),  # gap discovery on the data
+    ],
+)
+def test_run_refuses_dynamics_data_past_the_limit(overrides, key, tmp_path, capsys):
+    path = past_the_limit(tmp_path)
+    run = hydra_command(
+        "hds.run", *overrides, f"dynamics.data={path}", f"{key}=100", tmp_path=tmp_path
+    )
+    line = one_line(capsys, run)
+    assert f"dynamics.data = {path} holds 104 steps (4 episodes x 26)" in line
+    assert_refused(line, f"dynamics.data = {path}", key, "resample it to a coarser dt")
+
+
+def test_run_refuses_plant_data_past_the_limit_before_recording(tmp_path, capsys):
+    overrides = ["method=hds", "dynamics.episodes=4", "dynamics.horizon=26"]
+    run = hydra_command("hds.run", *overrides, "dynamics.max_steps=100", tmp_path=tmp_path)
+    line = one_line(capsys, run)
+    where = "the data recorded on the plant (dynamics.episodes x dynamics.horizon)"
+    assert_refused(line, where, "dynamics.max_steps", "lower dynamics.episodes")
+
+
+def test_loop_refuses_its_data_past_the_limit_before_round_0(tmp_path, capsys):
+    """2 rounds of 1 + 1 episodes of the task's 26 steps: 104 steps to discover on."""
+    overrides = ["loop.rounds=2", "loop.deploy_episodes=1", "loop.excitation_episodes=1"]
+    overrides += ["env.task.horizon=26", "discover.max_steps=100"]
+    line = one_line(capsys, hydra_command("hds.loop", *overrides, tmp_path=tmp_path))
+    assert "holds 104 steps (4 episodes x 26)" in line
+    assert_refused(
+        line,
+        "the loop's data (loop.rounds = 2, 2 episodes each)",
+        "discover.max_steps",
+        "lower loop.rounds",
+    )
+    assert not (tmp_path / "run" / "rounds").exists()  # nothing trained or recorded
+
+
+def test_dynamics_command_refuses_its_data_past_the_limit(tmp_path, capsys):
+    from tests.conftest import command_main
+
+    args = ["dynamics.episodes=4", "dynamics.horizon=26", "dynamics.max_steps=100"]
+    line = one_line(capsys, command_main("hds.dynamics"), args)
+    where = "the data recorded on the plant (dynamics.episodes x dynamics.horizon)"
+    assert_refused(line, where, "dynamics.max_steps", "lower dynamics.episodes")
+
+
+def test_a_multirun_refuses_its_jobs_data_past_the_limit_before_launching_any(
+    tmp_path, capsys, monkeypatch
+):
+    """One job's data past dynamics.max_steps (the other's within it): no job launches."""
+    path = past_the_limit(tmp_path)
+    argv = ["-m", "method=hds", f"dynamics.data={path}", "dynamics.max_steps=100,1000"]
+    monkeypatch.setattr(sys, "argv", ["hds.run", *argv, f"hydra.sweep.dir={tmp_path / 'sweep'}"])
+    with pytest.raises(SystemExit) as ended:
+        commands.before_hydra()
+    assert ended.value.code == 1
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 2 and "Traceback" not in err, lines
+    assert lines[0].startswith("error: job 0 (dynamics.max_steps=100): dynamics.data = ")
+    assert_refused(lines[0], f"dynamics.data = {path}", "dynamics.max_steps", "resample it")
+    assert "1 of 2 jobs refused, none launched" in lines[1]
+    assert not (tmp_path / "sweep").exists()
+
+
+def test_discovery_itself_refuses_data_past_the_limit_and_shows_progress(caplog):
+    """The API's `discover` (the loop's and the corrected simulator's discovery too) refuses
+    data past discover.max_steps before it compiles; within it, its estimate and stages go to
+    the log (`Progress`, checked on its own: a discovery run is not cheap)."""
+    from hds.data.budget import DISCOVERY, Progress
+    from hds.discover import DiscoverConfig, discover
+
+    env = compose([]).env
+    with pytest.raises(ValueError, match="the data holds 104 steps, more than discover.max_"):
+        discover(dataset(episodes=4, steps=26), env, DiscoverConfig(max_steps=100))
+    with caplog.at_level(logging.INFO, logger="hds"):
+        progress = Progress(DISCOVERY, 2_000_000, logging.getLogger("hds"))
+        progress("the gap located")
+    first, stage = (r.getMessage() for r in caplog.records[-2:])
+    assert first.startswith("gap discovery on 2000000 recorded steps: about 10.8 GB of memory")
+    assert stage.startswith("gap discovery: the gap located (0 s so far, about ")
 
 
 def test_discover_takes_good_data_past_its_checks(tmp_path):

@@ -225,3 +225,81 @@ def test_a_run_trained_again_from_scratch_gets_the_loop_s_epochs_so_far():
     assert (first.algo.epochs, second.algo.epochs) == (150 + 40, 150 + 80)
     assert first.anneal == loop.round_config(cfg, 1).anneal
     assert first.anneal.ramp_when_solved
+
+
+# --- discover.excitation = designed: the loop's rounds and the corrected simulator record
+# their excitation through one function (hds.discover.design.excitation_controls)
+
+DESIGNED = ("discover.excitation=designed", "loop.deploy_episodes=1", "loop.excitation_episodes=2")
+
+
+def untrained_policy(cfg, env):
+    from hds.algo.pods import make_train
+
+    trainer = make_train(cfg, env)
+    return jax.vmap(trainer.init, in_axes=(0, None))(
+        jax.random.split(jax.random.PRNGKey(0), 1), trainer.default_hparams
+    ).policy
+
+
+def test_a_designed_round_with_nothing_to_design_records_the_random_steps(caplog):
+    """discover.design_effects = [action_delay] (an integer shift: no parameter the information
+    is taken of): the round's excitation falls back to the very random steps of
+    discover.excitation = steps, and a warning says why."""
+    steps_cfg = make_config(*LOOP, *DESIGNED[1:])
+    cfg = make_config(*LOOP, *DESIGNED, "discover.design_effects=[action_delay]")
+    env, plant = make_env(cfg.env), run_plants(cfg)[0]
+    params, key = untrained_policy(cfg, env), jax.random.PRNGKey(3)
+    expected = loop.record(steps_cfg, env, plant, params, key, 0.4)
+    with caplog.at_level("WARNING", logger="hds"):
+        got = loop.record(cfg, env, plant, params, key, 0.4)
+    assert "designed excitation failed (discover.design_effects = ['action_delay']" in caplog.text
+    np.testing.assert_array_equal(got.actions, expected.actions)
+    assert got.n_episodes == 3
+
+
+def test_the_corrected_simulator_designs_through_the_loop_s_function_with_its_fallback(caplog):
+    """simulator=corrected with discover.excitation = designed records its data through the
+    loop's function: with nothing to design, fresh random steps (not the learned model's data),
+    doubled while the data cannot identify (the fallback keeps active excitation)."""
+    from hds.simulators import discovery_data
+
+    over = ("simulator=corrected", "dynamics.episodes=4", "dynamics.horizon=40")
+    steps_cfg = make_config(*LOOP, *over)
+    cfg = make_config(*LOOP, *over, *DESIGNED[:1], "discover.design_effects=[action_delay]")
+    env, plant = make_env(cfg.env), run_plants(cfg)[0]
+    model_data, steps_source = discovery_data(steps_cfg, env, plant)
+    with caplog.at_level("WARNING", logger="hds"):
+        data, source = discovery_data(cfg, env, plant)
+    assert "designed excitation failed" in caplog.text
+    assert source["excitation"] == "designed" and steps_source["excitation"] == "steps"
+    assert data.n_episodes == source["episodes"] and data.n_episodes % 4 == 0
+    assert not np.array_equal(data.actions[:4], model_data.actions[:4])  # recorded afresh
+    half = np.abs(np.diff(env.sim.ctrl_range[0])) / 2
+    assert np.abs(data.actions[:4]).max() <= source["excitation_scale"] * half + 1e-9
+
+
+@pytest.mark.slow  # compiles the design's nested derivatives: minutes of CPU from a cold cache
+def test_designed_excitation_in_a_round_and_in_the_corrected_simulator():
+    """With friction and gain to design for, a round's excitation episodes and the corrected
+    simulator's records are one designed signal (every episode the same, within the round's
+    amplitude), not random steps."""
+    from hds.simulators import discovery_data
+
+    cfg = make_config(*LOOP, *DESIGNED, "env.backend=analytic")
+    env, plant = make_env(cfg.env), run_plants(cfg)[0]
+    params, key = untrained_policy(cfg, env), jax.random.PRNGKey(3)
+    steps = loop.record(make_config(*LOOP, *DESIGNED[1:]), env, plant, params, key, 0.4)
+    got = loop.record(cfg, env, plant, params, key, 0.4)
+    excited = got.actions[1:]  # after the deployed episode
+    np.testing.assert_array_equal(excited[0], excited[1])  # one designed signal
+    assert not np.array_equal(excited, steps.actions[1:])
+    low, high = env.sim.ctrl_range[0]
+    middle, half = (low + high) / 2, (high - low) / 2
+    assert np.abs(excited - middle).max() <= 0.4 * half + 1e-6
+    assert np.abs(excited - middle).max() > 0.1 * half  # it excites
+
+    over = ("simulator=corrected", "dynamics.episodes=2", "dynamics.horizon=50")
+    data, source = discovery_data(make_config(*LOOP, *over, *DESIGNED[:1]), env, plant)
+    assert source["excitation"] == "designed"
+    np.testing.assert_array_equal(data.actions[0], data.actions[1])

@@ -3,11 +3,14 @@ authors' published identification: `make pendulum` (README.md beside this file).
 
 For the single and the double pendulum:
   (a) start from the authors' parameters without their damping (multiarm_*.xml): discovery
-      names the joint friction (candidates: viscous damping, Coulomb friction, on every hinge);
+      names the joint friction (viscous damping, Coulomb friction, quadratic drag on every
+      hinge) and any inertial mismatch the authors' parameters leave in this simulator;
   (b) start from a nominal model with every mass, centre of mass and inertia 10% off (each
       factor 0.9 or 1.1, the sign drawn by numpy's default_rng(draw)): discovery names the
-      inertial mismatch (candidates: mass_scale, com_scale, inertia_scale on every body) as
-      well as the friction.
+      inertial mismatch as well as the friction.
+Both starts offer the same candidates: the friction laws on every hinge and mass_scale,
+com_scale, inertia_scale on every body (a user's nominal model is never exact, and a free
+swing's period shows a 0.1% error in it within seconds).
 Discovery fits on the Y_id segments only (decimated, k-step windows: DISCOVER below); every
 model is then scored on the held-out Y_vad segments at the recordings' own 1 ms, in one
 simulator (hds's, the env's tree engine, MuJoCo's Euler at 1 ms, frames = 1): nominal,
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -33,6 +37,7 @@ from hds.data import multiarm
 from hds.discover import DiscoverConfig, discover, write_report
 from hds.envs.system import load_spec, make_simulator
 from hds.utils.io import atomic_write_json
+from hds.utils.runtime import enable_compilation_cache
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
@@ -43,7 +48,7 @@ FILES = {
     "double": "DoublePendulumDataForParameterEstimation.mat",
 }
 ARMS = {"single": 1, "double": 2}
-FRICTION = ["viscous_damping", "coulomb_friction"]
+FRICTION = ["viscous_damping", "coulomb_friction", "quadratic_drag"]
 INERTIAL = ["mass_scale", "com_scale", "inertia_scale"]
 # Discovery's sampling and windows (item 5: under 60 s on 2 cores). The single pendulum swings
 # slowly (period 0.8 s) and its friction shows only over seconds: 10 ms samples, 3 s windows
@@ -53,7 +58,7 @@ DISCOVER = {
     "single": {"dt": 0.01, "horizon": 300, "stride": 50},
     "double": {"dt": 0.01, "horizon": 100, "stride": 50},
 }
-DRAWS = {"single": 5, "double": 2}  # seeded draws of start (b) (the double's take ~3x longer)
+DRAWS = {"single": 5, "double": 5}  # seeded draws of start (b)
 KS = (10, 100, 1000)  # k-step horizons, in 1 ms samples
 KSTRIDE = 50  # a k-step window starts every 50 samples of a held-out segment
 HOLD = 0.1  # rad: a prediction "holds" while its RMS world-angle error stays below this
@@ -95,9 +100,9 @@ def run_discovery(system: str, env, effects: list[str], label: str):
         slot_buckets=[],  # one compile of the fits (max_effects slots): compiles dominate
         seed=0,
     )
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     result = discover(ident, env, cfg, validation=held)
-    seconds = time.perf_counter() - start
+    seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
     write_report(result, env, OUT / label)
     named = [
         {
@@ -112,6 +117,11 @@ def run_discovery(system: str, env, effects: list[str], label: str):
         "named": named,
         "stopped": result.stopped,
         "seconds": seconds,
+        # CPU seconds of this process (all its threads): on a shared machine, what the wall
+        # time would be on an idle one is between cpu / cores and cpu
+        "cpu_seconds": cpu,
+        "load_average_1min": os.getloadavg()[0],  # the machine is shared: say how busy it was
+        "timing_s": {k: float(v) for k, v in result.timing.items()},
         "heldout_kstep_before": float(result.error("before").normalized),
         "heldout_kstep_after": float(result.error("after").normalized),
     }
@@ -236,7 +246,11 @@ def tables(results: dict) -> str:
                 f"| {name} | {cell(r['whole_rms_rad'])} | {' | '.join(ks)} | "
                 f"{holds(r['holds_ms'])} |"
             )
-        lines += ["", "| start | named (95% CI) | discovery s |", "| --- | --- | --- |"]
+        lines += [
+            "",
+            "| start | named (95% CI) | discovery s (1-min load average) |",
+            "| --- | --- | --- |",
+        ]
         for label, infos in (("a", [out["discoveries"]["a"]]), ("b", out["discoveries"]["b"])):
             for i, info in enumerate(infos):
                 named = (
@@ -251,7 +265,8 @@ def tables(results: dict) -> str:
                     or "nothing"
                 )
                 tag = label if label == "a" else f"b, draw {i} {_factors(info['factors'])}"
-                lines.append(f"| {tag} | {named} | {info['seconds']:.0f} |")
+                load = info.get("load_average_1min", float("nan"))
+                lines.append(f"| {tag} | {named} | {info['seconds']:.0f} ({load:.1f}) |")
     return "\n".join(lines)
 
 
@@ -289,6 +304,97 @@ def diagnostics() -> str:
             best = ks[np.argmin(err[e])]
             edge = " (the grid's edge)" if best in (ks[0], ks[-1]) else ""
             lines.append(f"| {name}[{e}] | {best:.2e}{edge} |")
+    return "\n".join(lines) + "\n" + swing_losses()
+
+
+def half_swings(segments, offset: float):
+    """Per half swing of the single pendulum's segments (turning point to turning point):
+    amplitude (rad from hanging, the mean of its two turning points; `offset` the hanging
+    angle's offset), half period (s), the energy lost (J, from the authors' J and m g a), the
+    integrals of qd^2, |qd|, |qd|^3 dt over it (the loss of viscous damping, dry friction and
+    quadratic drag per coefficient) and its direction (the sign of qd)."""
+    p = multiarm.PUBLISHED[1]
+    J, G = p["m1"] * p["a1"] ** 2 + p["I1"], p["m1"] * p["g"] * p["a1"]
+    rows = []
+    for th, w in segments:
+        energy = 0.5 * J * w**2 + G * np.cos(th - offset)
+        turns = np.flatnonzero(np.sign(w[1:]) != np.sign(w[:-1]))
+        keep = [turns[0]]
+        for i in turns[1:]:  # a sign change of the de-noised velocity within 0.15 s is noise
+            if i - keep[-1] > 150:
+                keep.append(i)
+        for a, b in zip(keep[:-1], keep[1:]):
+            v = np.abs(w[a : b + 1])
+            amplitude = 0.5 * (abs(np.pi + offset - th[a]) + abs(np.pi + offset - th[b]))
+            integrals = [(v**k).sum() * multiarm.SAMPLE_DT for k in (2, 1, 3)]
+            period = (b - a) * multiarm.SAMPLE_DT
+            direction = np.sign(w[(a + b) // 2])
+            rows.append([amplitude, period, energy[a] - energy[b], *integrals, direction])
+    return np.array(rows), J, G
+
+
+def swing_losses() -> str:
+    """Which friction law the single pendulum's recordings support, from energy alone (numpy,
+    no simulator, no phase): the loss per half swing regressed on each law's integral, on the
+    identification segments only; the amplitude's fall per half swing by amplitude; the
+    half period against the frictionless model's (the authors' J / (m g a)). The hanging
+    angle's offset is where the two directions' losses agree."""
+    from scipy.special import ellipk
+
+    raw = multiarm.read_mat(DATA / FILES["single"])
+    offsets = np.linspace(-0.004, 0.004, 81)
+    every = raw["Y_id"] + raw["Y_vad"]
+
+    def alternation(offset):
+        rows, _, _ = half_swings(every, offset)
+        k, up = rows[:, 2] / rows[:, 3], rows[:, 6] > 0
+        return abs(k[up].mean() - k[~up].mean())
+
+    offset = float(min(offsets, key=alternation))
+    ident, J, G = half_swings(raw["Y_id"], offset)
+    lines = [
+        f"\nSingle pendulum, energy per half swing (hanging offset {offset * 1e3:.1f} mrad): "
+        f"the loss on the {len(ident)} identification half swings regressed on each law",
+        "",
+        "| laws | viscous (N m s/rad) | Coulomb (N m) | quadratic (N m s^2/rad^2) | "
+        "relative residual |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for name, cols in (
+        ("viscous", [0]),
+        ("viscous + Coulomb", [0, 1]),
+        ("Coulomb + quadratic", [1, 2]),
+        ("all three", [0, 1, 2]),
+    ):
+        X = ident[:, [3 + c for c in cols]]
+        coef, *_ = np.linalg.lstsq(X, ident[:, 2], rcond=None)
+        value = ["-"] * 3
+        for c, v in zip(cols, coef):
+            value[c] = f"{v:.3g}"
+        res = ident[:, 2] - X @ coef
+        rel = np.sqrt(np.mean(res**2) / np.mean(ident[:, 2] ** 2))
+        lines.append(f"| {name} | {' | '.join(value)} | {rel:.3f} |")
+    rows = np.concatenate([half_swings([seg], offset)[0] for seg in every])
+    amp, fall = rows[:, 0], []
+    for seg in every:  # the fall between consecutive turning points, within a segment
+        r = half_swings([seg], offset)[0]
+        fall += [np.nan] + list(-np.diff(r[:, 0]))
+    fall = np.array(fall)
+    lines += [
+        "",
+        "| amplitude (rad) | half swings | fall per half swing (mrad) | fall / amplitude | "
+        "half period measured / model |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    model = 2 * np.sqrt(J / G) * ellipk(np.sin(rows[:, 0] / 2) ** 2)
+    for lo in np.arange(0.2, 1.7, 0.2):
+        m = (amp >= lo) & (amp < lo + 0.2) & np.isfinite(fall)
+        if m.any():
+            ratio = (rows[m, 1] / model[m]).mean()
+            lines.append(
+                f"| {lo:.1f}-{lo + 0.2:.1f} | {m.sum()} | {fall[m].mean() * 1e3:.2f} | "
+                f"{(fall[m] / amp[m]).mean():.4f} | {ratio:.4f} |"
+            )
     return "\n".join(lines)
 
 
@@ -319,6 +425,7 @@ def main(argv=None):
         print(tables(json.loads((HERE / "results.json").read_text())))
         print(diagnostics())
         return
+    enable_compilation_cache()  # as `python -m hds.discover` does: a rerun skips the compiles
     results = {"date": "2026-11-27", "discover": DISCOVER, "ks": KS, "hold_rad": HOLD}
     for system in args.systems:
         arms = ARMS[system]
@@ -333,8 +440,8 @@ def main(argv=None):
             rows[label] = scorer.score(model_xml, effects)
             curves[label] = rows[label].pop("trajectory")
         out = {"rows": rows, "discoveries": {}}
-        # (a): friction from the authors' parameters without damping
-        result, info = run_discovery(system, env_config(system), FRICTION, f"{system}_a")
+        # (a): from the authors' parameters without damping
+        result, info = run_discovery(system, env_config(system), FRICTION + INERTIAL, f"{system}_a")
         label = "hds corrected (a)"
         rows[label] = scorer.score(xml, result.corrected_effects)
         curves[label] = rows[label].pop("trajectory")

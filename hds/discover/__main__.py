@@ -19,6 +19,7 @@ from omegaconf import OmegaConf  # noqa: E402
 
 from hds.commands import before_hydra  # noqa: E402
 from hds.config import validate  # noqa: E402
+from hds.data.budget import DISCOVERY, check_dataset  # noqa: E402
 from hds.discover import config as _schema  # noqa: E402,F401  (registers discover_schema)
 from hds.discover.data import check_size  # noqa: E402
 from hds.discover.io import load_dataset  # noqa: E402
@@ -28,11 +29,6 @@ from hds.utils import cli  # noqa: E402
 from hds.utils.runtime import enable_compilation_cache  # noqa: E402
 
 log = logging.getLogger("hds")
-
-
-# Discovery's memory grows with the recorded steps: 2 episodes of a million steps took it to
-# 10.5 GB (issue 41), about 5 kB a step.
-BYTES_PER_STEP = 5_000
 
 
 @hydra.main(config_path="../conf", config_name="discover", version_base="1.3")
@@ -55,22 +51,9 @@ def load_data(cfg):
             datasets.append(None)
             continue
         dataset = check_data(load_dataset(path, cfg.emps), sim, where=f"{key} = {path}")
-        check_steps(dataset, f"{key} = {path}", cfg.discover.max_steps)
+        check_dataset(DISCOVERY, dataset, cfg.discover.max_steps, f"{key} = {path}")
         datasets.append(dataset)
     return datasets
-
-
-def check_steps(dataset, where: str, max_steps: int) -> None:
-    """Refuse data discovery cannot hold in memory in reasonable time, with the numbers."""
-    steps = dataset.n_episodes * dataset.horizon
-    if steps > max_steps:
-        raise ValueError(
-            f"{where} holds {steps} steps ({dataset.n_episodes} episodes x {dataset.horizon}), "
-            f"more than discover.max_steps = {max_steps}: discovery would need about "
-            f"{steps * BYTES_PER_STEP / 1e9:.2g} GB of memory. Give it a window of the data "
-            "(fewer or shorter episodes) or resample it to a coarser dt, or raise "
-            "discover.max_steps if the machine has the memory"
-        )
 
 
 def run(dcfg, out_dir: Path) -> float:

@@ -40,6 +40,7 @@ predicted.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 
@@ -52,6 +53,8 @@ from scipy import stats
 
 from hds.discover.fit import get_engine
 from hds.envs.system import load_spec
+
+log = logging.getLogger("hds")
 
 CRITERIA = ("D", "A")
 PENALTY = 1e3  # weight of a limit's squared violation (in units of the limit) against the criterion
@@ -635,8 +638,34 @@ def designed_controls(
     names = list(discover_cfg.design_effects)
     probe = get_engine(env_cfg, dt, names, 0, 0, discover_cfg.horizon).model
     keys = [c.key for c in probe.candidates if not c.shifts_actions]
+    if not keys:
+        raise ValueError(
+            f"discover.design_effects = {names} has no effect with a parameter to design for "
+            "on this system (an action delay is an integer shift, not a parameter the "
+            "information is taken of): add e.g. coulomb_friction or actuator_gain"
+        )
     designer = Designer(env_cfg, keys, dt, steps, discover_cfg.horizon, discover_cfg.stride)
     noise = None if data is None else noise_level(np.asarray(data.obs, np.float64))
     limits = limits_of(env_cfg, float(scale))
     design = designer.design(None, x0s, noise, limits, seed=discover_cfg.seed)
     return np.repeat(design.controls()[None], episodes, axis=0)
+
+
+def excitation_controls(
+    discover_cfg, env_cfg, dt: float, steps: int, q0, qd0, scale: float, random_steps, data=None
+) -> np.ndarray:
+    """The open-loop controls [E, steps, n_act] of excitation episodes recorded on the plant
+    from the initial states (q0 [E, nq], qd0 [E, nv]), as every caller records them (the loop's
+    rounds, the corrected simulator): with discover.excitation = designed, designed on `env_cfg`
+    (the simulator corrected so far: its effects hold the current estimates) within `scale` of
+    the actuators' half range (`designed_controls`, the expected information over the first
+    few initial states, the noise measured on `data`); otherwise, and where no design keeps
+    the limits (a warning says why), `random_steps()`: the fallback, random steps whose
+    amplitude `record_until_identifiable` doubles while the data cannot identify a candidate."""
+    if discover_cfg.excitation == "designed":
+        x0s = np.concatenate([q0, qd0], axis=1)[:4]  # the expected information over these
+        try:
+            return designed_controls(env_cfg, discover_cfg, dt, steps, len(q0), scale, x0s, data)
+        except ValueError as err:  # no design keeps the limits: random steps, as before
+            log.warning("designed excitation failed (%s); random steps instead", err)
+    return random_steps()

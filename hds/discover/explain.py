@@ -16,6 +16,7 @@ not exclude no effect (`_refuse_law_mismatch`).
 from __future__ import annotations
 
 import dataclasses
+import logging
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -24,6 +25,9 @@ from scipy import stats
 
 from hds.discover.fit import Engine, confidence_intervals, curvature_inverse
 from hds.discover.model import Candidate
+from hds.effects.library import effect_type
+
+log = logging.getLogger("hds")
 
 
 @dataclass
@@ -109,12 +113,19 @@ def candidate_params(model, cand: Candidate, theta, delay) -> dict[str, float]:
 
 
 def forward_selection(
-    engine: Engine, ident, heldout, cfg, estimate: bool = False, floor: float = 0.0, banned=()
+    engine: Engine,
+    ident,
+    heldout,
+    cfg,
+    estimate: bool = False,
+    floor: float = 0.0,
+    banned=(),
+    progress=None,
 ) -> Selection:
     """Select effects; `ident` and `heldout` are `Data.arrays(...)` of the two episode sets;
     `estimate`: fit each window's initial state too (noisy data); `floor`: the held-out
     normalized RMSE measurement noise alone leaves; `banned`: keys of candidates the data
-    cannot identify (fitted, never selected)."""
+    cannot identify (fitted, never selected); `progress(stage)`: told as each round ends."""
     model = engine.model
     sw = _slot_width(model)
     sizes = sorted(
@@ -158,6 +169,13 @@ def forward_selection(
                 }
             )
         rounds.append(rows)
+        if progress:
+            best_row = min(rows, key=lambda row: row["heldout_error"])
+            progress(
+                f"selection round {round_index}: {len(rows)} candidates fitted, the best "
+                f"{best_row['name']}@{best_row['target']} (held-out error "
+                f"{best_row['heldout_error']:.3g})"
+            )
         # the selected effects refitted together (a candidate already selected adds nothing
         # new: its row is a longer refit of the current model, or another delay length)
         refits = [i for i, c in enumerate(model.candidates) if c.key in state.keys]
@@ -224,11 +242,31 @@ def forward_selection(
         dropped += gone
         banned.update(c.key for c in gone)
         state = states[-1]
-    states[-1] = _settle(fit, states[-1])
-    states = _refuse_law_mismatch(fit, states, mismatch)
-    states = _refuse_within_heldout_mismatch(fit, states, mismatch)
+    split_states, split = _split_proxy(fit, states, banned)
+    if split:
+        # the pair is judged as any final model is; it stands only if both of it survive,
+        # else the effect it replaced stays (a pair cut to one is no better than it)
+        pair = split_states[-1].selected[-2:]
+        kept = [m for m in mismatch if m[0].selected[-1].key not in split_states[-1].keys]
+        trial = _finish(fit, split_states, kept)
+        if all(c.key in trial[-1].keys for c in pair):
+            states, mismatch, dropped = trial, kept, dropped + split
+        else:
+            log.info("the pair %s did not stand as named", " and ".join(c.key for c in pair))
+            split = []
+    if not split:
+        states = _finish(fit, states, mismatch)
     shown = _shown(fit, states[-1])
     return Selection(states, rounds, stopped, dropped, mismatch, unidentified, shown)
+
+
+def _finish(fit, states: list[State], mismatch: list) -> list[State]:
+    """The selection's last model settled and judged (`_refuse_law_mismatch`,
+    `_refuse_within_heldout_mismatch`; each refusal appended to `mismatch`): the chain."""
+    states = list(states)
+    states[-1] = _settle(fit, states[-1])
+    states = _refuse_law_mismatch(fit, states, mismatch)
+    return _refuse_within_heldout_mismatch(fit, states, mismatch)
 
 
 TRADE_OFF = 0.5  # |correlation| of two effects' parameters above which their fits trade off
@@ -285,6 +323,65 @@ def _swap(fit, states: list[State], grown: State):
     if not gone or not trial[-1].heldout_error < current.heldout_error:
         return None
     return trial, gone
+
+
+def _split_proxy(fit, states: list[State], banned) -> tuple[list[State], list[Candidate]]:
+    """Whether a selected effect stands for two others at its place that only together
+    beat it; forward selection, adding one effect at a time, cannot find such a pair. A
+    bearing's dry friction takes the same energy per swing, most felt at small swings, an
+    arm's air drag takes most at large ones: over a middle range of amplitudes the two
+    together lose per swing about what viscous damping does, so viscous damping is chosen
+    first, and neither of the two improves on it alone or beside it (the real single
+    pendulum, experiments/multiarm_pendulum). For each selected friction law (an effect with
+    a `friction` parameter), every pair of unselected friction laws on its joint replaces
+    it, fitted jointly with the others (theirs from the current values, the pair's from its
+    start). The best pair is kept where it predicts the held-out episodes better than the
+    current model by the selection margin, within discover.max_effects, and the data show
+    each of the two (`_within_mismatch`: not a fit of the noise). Returns (the chain rebuilt
+    with the pair in the replaced effect's stead, [the replaced effect]) or (states, [])."""
+    from itertools import combinations
+
+    model, cfg = fit.engine.model, fit.cfg
+    state = states[-1]
+    if len(state.selected) + 1 > cfg.max_effects:
+        return states, []
+    laws = {c.key for c in model.candidates if effect_type(c.name).friction and c.slots}
+    trials = []
+    for j, out in enumerate(state.selected):
+        if out.key not in laws:
+            continue
+        free = [
+            c
+            for c in model.candidates
+            if c.key in laws
+            and c.target == out.target
+            and c.key not in state.keys
+            and c.key not in banned
+        ]
+        others = [c for c in state.selected if c is not out]
+        trials += [(j, others + [a, b]) for a, b in combinations(free, 2)]
+    trials = trials[: len(model.candidates)]  # one batched fit: as many rows as candidates
+    if not trials:
+        return states, []
+    theta = model.start.copy()
+    theta[state.slots] = state.theta[state.slots]  # the others from where they are
+    start = dataclasses.replace(state, theta=theta)
+    fitted = fit.sets(start, [chosen for _, chosen in trials])
+    best = int(np.argmin([f.heldout_error for f in fitted]))
+    (j, chosen), pair = trials[best], fitted[best]
+    better = pair.heldout_error < (1.0 - cfg.stop_margin) * state.heldout_error
+    shown = not any(_within_mismatch(model, pair, c, cfg.min_scale_change) for c in chosen[-2:])
+    if not (better and shown and np.isfinite(pair.heldout_error)):
+        return states, []
+    log.info(
+        "%s stood for %s together: held-out error %.4g -> %.4g",
+        state.selected[j].key,
+        " and ".join(c.key for c in chosen[-2:]),
+        state.heldout_error,
+        pair.heldout_error,
+    )
+    prefixes = [chosen[:n] for n in range(j + 1, len(chosen))]
+    return states[: j + 1] + fit.sets(start, prefixes) + [pair], [state.selected[j]]
 
 
 def _unidentifiable_explains_more(model, keys: set[str], held, best: int) -> str:

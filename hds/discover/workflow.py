@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
+from hds.data.budget import DISCOVERY, Progress, check
 from hds.data.format import Dataset
 from hds.discover.compare import Errors, Residuals, compare
 from hds.discover.config import DiscoverConfig
@@ -187,6 +188,11 @@ def discover(
     further dataset whose errors are reported before and after, never fitted."""
     cfg = cfg or DiscoverConfig()
     cfg.check()
+    # refused past discover.max_steps before anything compiles (every caller: the commands,
+    # the loop, the corrected simulator, the API); long work shows its stages as they end
+    steps = sum(d.n_episodes * d.horizon for d in (dataset, validation) if d is not None)
+    check(DISCOVERY, steps, cfg.max_steps, "the data" + (" and validation" if validation else ""))
+    progress = Progress(DISCOVERY, steps, log)
     timing = {}
     start = time.perf_counter()
     backend = fit_backend(env_cfg, cfg.backend)
@@ -206,6 +212,7 @@ def discover(
     nominal, no_delay = model.nominal, np.zeros(len(model.sim.action_names), np.int32)
     before = compare(engine, data, nominal, no_delay)
     timing["compare"] = time.perf_counter() - start
+    progress("the simulator compared with the data")
 
     t0 = time.perf_counter()
     checks = identifiability(dataset, env_cfg, cfg.min_motion, cfg.effects)
@@ -215,6 +222,7 @@ def discover(
     t0 = time.perf_counter()
     location = locate(data, model.sim, before["identification"][0], cfg.bins)
     timing["locate"] = time.perf_counter() - t0
+    progress("the gap located")
 
     t0 = time.perf_counter()
     relative_noise = data.noise / np.asarray(data.scale, dtype=np.float64)
@@ -229,7 +237,7 @@ def discover(
     floor = float(np.sqrt(np.mean(relative_noise**2)))
     ident = data.arrays("identification")
     selection = forward_selection(
-        engine, ident, data.arrays("heldout"), cfg, estimate, floor, banned
+        engine, ident, data.arrays("heldout"), cfg, estimate, floor, banned, progress
     )
     # What the selected effects leave: if a feature still explains much of it, the gap has a
     # structure no effect of the library has, and an effect that explains less than that
@@ -309,6 +317,7 @@ def discover(
     result.no_gap = no_gap
     result.warnings = warnings(result, cfg)
     timing["total"] = time.perf_counter() - start
+    progress("done")
     return result
 
 

@@ -51,15 +51,20 @@ def excite(cfg, env, key) -> np.ndarray:
     return middle + scales[:, None, None] * (u - middle)
 
 
-def collect_data(cfg, env, plant, key):
-    """A Dataset of cfg.episodes episodes of excitation (`excite`) recorded on `plant` from
-    the task's initial states."""
+def collect_data(cfg, env, plant, key, controls=None):
+    """A Dataset of cfg.episodes episodes recorded on `plant` from the task's initial states
+    (hds.data.acquire.excited), driven by the excitation signal (`excite`), or by
+    `controls(q0, qd0, signal)`: controls chosen from the episodes' initial states, `signal()`
+    the excitation signal's."""
     from hds.data.acquire import excited
 
-    def controls(k_u, q0, qd0, deployed):
-        return excite(cfg, env, k_u)
+    def chosen(k_u, q0, qd0, deployed):
+        def signal():
+            return excite(cfg, env, k_u)
 
-    return excited(plant, env.task, key, cfg.episodes, cfg.horizon, controls)
+        return signal() if controls is None else controls(q0, qd0, signal)
+
+    return excited(plant, env.task, key, cfg.episodes, cfg.horizon, chosen)
 
 
 def measured_data(cfg, env, plant, key):

@@ -36,6 +36,7 @@ def main(argv: list[str]) -> dict:
 
     from hds import dynamics
     from hds.config import compose
+    from hds.data.budget import check_planned
     from hds.envs import make_env
     from hds.real import make_plant
     from hds.utils.io import atomic_write_json
@@ -44,6 +45,8 @@ def main(argv: list[str]) -> dict:
     cfg = compose(overrides)  # unknown keys and range errors: one line (cli.run)
     enable_compilation_cache()
     dcfg = cfg.dynamics if cfg.dynamics.model != "none" else replace(cfg.dynamics, model="mlp")
+    # it records dynamics.episodes on the plant (dynamics.data is not read here) and fits on them
+    check_planned(replace(cfg, dynamics=replace(dcfg, data=None)), fit=True)
     env = make_env(cfg.env)
     plant = make_plant(cfg.real, cfg.env)
     key = jax.random.PRNGKey(cfg.seed)

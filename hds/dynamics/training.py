@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from hds.data.budget import DYNAMICS_FIT, Progress
 from hds.data.format import split_episodes
 from hds.dynamics.metrics import multistep_errors
 from hds.dynamics.model import (
@@ -198,6 +199,8 @@ def fit(
             "dropping %d of %d episodes with NaN or inf values", int((~good).sum()), len(good)
         )
         obs, actions = obs[good], actions[good]
+    # the estimate on the console as it starts (the fit is one compiled program: no stages)
+    progress = Progress(DYNAMICS_FIT, obs.shape[0] * (obs.shape[1] - 1), log, cfg.epochs)
     k_split, k_init, k_order = jax.random.split(key, 3)
     seed = int(jax.random.randint(k_split, (), 0, 2**31 - 1))
     train_ep, val_ep = split_episodes(len(obs), cfg.val_fraction, seed, "fitting a model")
@@ -239,6 +242,7 @@ def fit(
         )
     model = replace(model, params=best, norm=norm)
     fit_s = time.perf_counter() - start_time
+    progress("fitted")
 
     at_best = [
         h[int(b), 0] if b >= 0 else np.nan

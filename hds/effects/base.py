@@ -118,6 +118,12 @@ class Effect:
         applies (qfrc_applied)."""
         raise self._missing("plant_force")
 
+    def plant_velocity_force(self, site, p, qd: float) -> float:
+        """A substep effect MuJoCo lacks whose force depends on the joint's velocity: the force
+        on the joint's dof at velocity `qd`, which the plant applies (qfrc_applied) from the
+        velocity at the start of each MuJoCo step, as the simulator's substep law does."""
+        raise self._missing("plant_velocity_force")
+
     def plant_observe(self, site, p, obs):
         """Observations [B, n_obs] after the effect; obs may be edited in place."""
         raise self._missing("plant_observe")

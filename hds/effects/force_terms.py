@@ -89,6 +89,7 @@ FEATURES = (
         "{F} s^2/{Q}^2",
         "quadratic drag (coefficient = -coefficient)",
         lambda xp, q, qd, s, u: xp.abs(qd) * qd,
+        same_law=("quadratic_drag", "coefficient"),
     ),
     Feature(
         "u",

@@ -1,4 +1,4 @@
-"""Joint friction: Coulomb (dry) friction and viscous damping."""
+"""Joint friction: Coulomb (dry) friction, viscous damping and quadratic (aerodynamic) drag."""
 
 from __future__ import annotations
 
@@ -88,3 +88,37 @@ class ViscousDamping(Effect):
 
     def write_mjcf(self, spec, site, p):
         spec.joint(site.target).damping[0] += p["coefficient"]
+
+
+class QuadraticDrag(Effect):
+    name = "quadratic_drag"
+    target_kind = JOINT
+    description = (
+        "drag proportional to the square of the joint's velocity, opposing it: -c |qd| qd "
+        "(air or a fluid at high Reynolds number; on a hinge, an arm's aerodynamic drag)"
+    )
+    physical_name = "quadratic (aerodynamic) drag"
+    params = (Param("coefficient", "N s^2/m^2 or N m s^2/rad^2", 0.0, lower=0.0),)
+    stage, order = SUBSTEP, 1
+    friction = "coefficient"
+    # opt-in: a swinging or fast body's friction law; each added default candidate costs every
+    # discovery a fit per joint and changes what the existing studies measured
+    default_candidate = False
+
+    # Why it is in the library: a bearing's dry friction takes the same energy per swing, so it
+    # shows most when the swing is small, while an arm's air drag (each element at r moves at
+    # r qd: force ~ (r qd)^2, torque ~ qd^2 times the integral of r^3 over the arm) takes most
+    # when it is large. Between the two, over a range of amplitudes, the loss per swing grows
+    # about as the square of the amplitude: what viscous damping alone gives. Identification data
+    # that span only that range are fitted by viscous damping; its extrapolation to small (or
+    # large) swings is then wrong (the real multi-arm pendulum: experiments/multiarm_pendulum).
+    # On a chained arm the drag follows the arm's speed through the air, not its joint's
+    # relative velocity: this law is exact on a first hinge or a slide, an approximation beyond.
+
+    def substep(self, site, p, state, u, force, q, qd, h, sharpness, gradient_sharpness):
+        v = qd[site.index]
+        return u, force.at[site.index].add(-p["coefficient"] * jnp.abs(v) * v), state
+
+    def plant_velocity_force(self, site, p, qd: float) -> float:
+        """The plant's law (numpy, float64): the force at the joint's velocity `qd`."""
+        return -p["coefficient"] * abs(qd) * qd

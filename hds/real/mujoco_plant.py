@@ -14,7 +14,7 @@ import mujoco
 import numpy as np
 
 from hds.effects import place
-from hds.effects.base import COMMAND, OBSERVE, SUBSTEP, SYSTEM
+from hds.effects.base import COMMAND, OBSERVE, SUBSTEP, SYSTEM, Effect
 from hds.effects.library import effect_type
 from hds.envs.system import load_spec, state_names, target_names
 
@@ -71,8 +71,13 @@ class MujocoPlant:
         self.ctrl_range = np.array(self.model.actuator_ctrlrange, dtype=np.float64)
         self.ctrl_range[self.model.actuator_ctrllimited == 0] = [-np.inf, np.inf]
         self._forces = np.zeros(self.model.nv)  # the substep effects MuJoCo lacks
+        self._velocity_forces = []  # ... and those of them whose force follows the velocity
         for i, site, effect in self.effects.at(SUBSTEP):
-            if not effect.mjcf:
+            if effect.mjcf:
+                continue
+            if _overrides(effect, "plant_velocity_force"):
+                self._velocity_forces.append((site, effect, self.params[i]))
+            else:
                 self._forces[site.index] += effect.plant_force(site, self.params[i])
         self._data: list[mujoco.MjData] = []
         self._states: dict[int, np.ndarray] = {}
@@ -104,7 +109,15 @@ class MujocoPlant:
         u = np.clip(u, self.ctrl_range[:, 0], self.ctrl_range[:, 1])
         for data, ui in zip(self._data, u, strict=True):
             data.ctrl[:] = ui
-            mujoco.mj_step(self.model, data, nstep=self.frames)
+            if not self._velocity_forces:
+                mujoco.mj_step(self.model, data, nstep=self.frames)
+                continue
+            for _ in range(self.frames):  # a velocity's force, from each step's start
+                data.qfrc_applied[:] = self._forces
+                for site, effect, p in self._velocity_forces:
+                    qd = float(data.qvel[site.index])
+                    data.qfrc_applied[site.index] += effect.plant_velocity_force(site, p, qd)
+                mujoco.mj_step(self.model, data)
         return self._observe()
 
     def state(self) -> tuple[np.ndarray, np.ndarray]:
@@ -118,3 +131,8 @@ class MujocoPlant:
         for i, site, effect in self.effects.at(OBSERVE):
             obs = effect.plant_observe(site, self.params[i], obs)
         return obs
+
+
+def _overrides(effect, method: str) -> bool:
+    """Whether the effect's class defines `method` (beyond the base class's refusal)."""
+    return getattr(type(effect), method) is not getattr(Effect, method)
