@@ -16,6 +16,7 @@ import logging
 from pathlib import Path
 
 import jax
+import numpy as np
 import orbax.checkpoint as ocp
 
 log = logging.getLogger("hds")
@@ -105,6 +106,33 @@ class Checkpoints:
             )
             if resuming:
                 self.manager.delete(step)
+
+    def restore_stored(self):
+        """(state, meta) of the latest readable checkpoint as stored: nested dicts of NumPy
+        arrays named as the state's fields, for a reader that has no state to restore into
+        (loading a policy of an older run directory). Never deletes a checkpoint."""
+        epochs = sorted(self.manager.all_steps(), reverse=True)
+        if not epochs:
+            raise FileNotFoundError(
+                f"no checkpoint in {self.directory}: train first, or point to a run directory "
+                "that has a checkpoints/ folder"
+            )
+        reason = ""
+        for step in epochs:
+            try:
+                stored = self.manager.item_metadata(step)["state"]
+                target = jax.tree.map(lambda leaf: np.empty(leaf.shape, leaf.dtype), stored.tree)
+                restored = self.manager.restore(
+                    step,
+                    args=ocp.args.Composite(
+                        state=ocp.args.StandardRestore(target), meta=ocp.args.JsonRestore()
+                    ),
+                )
+                return restored.state, restored.meta
+            except Exception as err:  # TensorStore and Orbax raise many types for a bad file
+                reason = f"{type(err).__name__}: {str(err).strip().splitlines()[0][:200]}"
+                log.warning("checkpoint %s/%d cannot be read (%s)", self.directory, step, reason)
+        raise ValueError(f"no checkpoint in {self.directory} can be read (the last: {reason})")
 
     def _restore_by_name(self, step: int, stored, abstract):
         """Restore into the stored tree's own containers (`stored`: its metadata), then move

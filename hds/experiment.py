@@ -1,10 +1,11 @@
 """The experiment layer: a validated config -> the batch of runs -> training with hooks ->
 evaluation on the simulator and the plant -> a typed `Result`.
 
-Everything above the jitted core calls this module (`python -m hds.run`, gap discovery's
-retrain, `hds.load_policy`, animations, benchmarks, tests); it calls only downward (config,
-envs, plants, the trainer, checkpoints, the logger). What it opens (checkpoint managers,
-progress bars, W&B runs) it closes, also when a run fails.
+Everything above the jitted core calls this module (`python -m hds.run`, the loop, gap
+discovery's retrain, animations, benchmarks, tests), each method through one
+`train_and_evaluate`; it calls only downward (config, the simulator kinds of hds.simulators,
+plants, the trainer, checkpoints, saved policies, the logger). What it opens (checkpoint
+managers, progress bars, W&B runs) it closes, also when a run fails.
 
     result = hds.train(hds.compose(["method=pods_cl", "seeds=3"]), out_dir="outputs/mine")
     result.rows                                      # per method and run: sim/real return, gap
@@ -29,24 +30,38 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from hds import plots
+from hds import plots, policy_store, simulators
 from hds.algo.pods import Trainer, make_train
-from hds.algo.randomize import randomized_env
 from hds.animate import animate_episodes
 from hds.checkpoint import Checkpoints
 from hds.config import Config, env_config
-from hds.data import concatenate, save
-from hds.effects.apply import applied, place
+from hds.effects.apply import applied
 from hds.envs import Env, make_env
 from hds.evaluation import Evaluator, diverged, gap_rows
 from hds.logger import RunLogger, print_table
 from hds.real import make_plant
 from hds.real.brax_plant import BraxPlant
 from hds.results import Row, Summary
+from hds.simulators import Simulator, friction_gap_of
 from hds.utils.io import atomic_write_json
 from hds.utils.runtime import RunByRun, enable_compilation_cache, over_runs, runs_vmapped
 
 log = logging.getLogger("hds")
+
+# the interface the commands and the API call (hds.run, hds.loop, hds.discover's retrain,
+# hds.report, hds.train); the rest are this module's stages
+__all__ = [
+    "Hooks",
+    "Result",
+    "Training",
+    "retrain",
+    "run",
+    "run_plants",
+    "sim_vs_real_gif",
+    "simulator_of",
+    "train",
+    "train_and_evaluate",
+]
 
 
 @dataclass
@@ -132,39 +147,6 @@ class Result:
 # --- the batch of runs ------------------------------------------------------------------------
 
 
-def method_name(cfg: Config) -> str:
-    """The label of the run's rows: its algorithm, learned model and simulator (pods, hds+mlp,
-    pods+corrected, oracle)."""
-    if cfg.simulator == "real":
-        return "oracle" if cfg.algo.name == "pods_cl" else f"{cfg.algo.name}+oracle"
-    parts = [cfg.algo.name]
-    if cfg.uses_model():
-        parts.append(cfg.dynamics.model)
-    if cfg.simulator == "corrected":
-        parts.append("corrected")
-    if cfg.simulator == "randomized":
-        parts.append("dr")
-    return "+".join(parts)
-
-
-def friction_gap_of(cfg: Config, run: dict) -> float:
-    return run.get("friction_gap", cfg.real.friction_gap)
-
-
-# --- what each method trains on -----------------------------------------------------------------
-
-
-def real_dynamics(cfg: Config):
-    """The simulator with the plant's own effects (friction smoothed so it differentiates),
-    and each run's effect parameters (its friction gap), stacked."""
-    env = make_env(cfg.env, effects=list(cfg.real.effects), friction_gap=cfg.real.friction_gap)
-    per_run = [
-        place(list(cfg.real.effects), env.sim.targets, friction_gap_of(cfg, r))[1]
-        for r in cfg.runs()
-    ]
-    return env, jax.tree.map(lambda *x: jnp.stack(x), *per_run)
-
-
 def run_plants(cfg: Config) -> list:
     """The plant each run of the batch is evaluated on: one per friction gap."""
     gaps = [friction_gap_of(cfg, r) for r in cfg.runs()]
@@ -183,111 +165,24 @@ def dynamics_model(cfg: Config, env, plant, out_dir: Path):
     return build(cfg.dynamics, env, plant, jax.random.PRNGKey(cfg.seed), out_dir / "dynamics")
 
 
-def corrected_simulator(cfg: Config, env, plant, out_dir: Path):
-    """The simulator plus the effects gap discovery names on data measured on the plant
-    (`discovery_data`); the data and the report go to out_dir/discovery. Returns (env,
-    JSON-ready summary of the findings)."""
-    from hds.discover import corrected_env, discover, write_report
-
-    data, source = discovery_data(cfg, env, plant)
-    if source["data"] == "plant":
-        for note in source["notes"]:
-            log.info("active excitation: %s", note)
-        save(data, out_dir / "discovery" / "data.npz")  # what discovery read, to re-run it on
-    result = discover(data, cfg.env, cfg.discover)
-    write_report(
-        result, cfg.env, out_dir / "discovery", cfg.discover.plot_episodes, cfg.discover.bins
-    )
-    found = [e.to_json() for e in result.missing_effects]
-    log.info(
-        "gap discovery named: %s",
-        ", ".join(f"{e['name']}@{e['target']} {e['params']}" for e in found) or "nothing",
-    )
-    for warning in result.warnings:
-        log.warning("gap discovery: %s", warning)
-    summary = {**source, "effects": found, "warnings": result.warnings}
-    return make_env(env_config(corrected_env(cfg.env, result))), summary
-
-
-def discovery_data(cfg: Config, env, plant):
-    """The data the corrected simulator's discovery reads, and where they came from: the data
-    a learned model of this seed is fitted on (dynamics.data, or recorded on the plant) and,
-    while those cannot identify what more excitation would, more of it at doubled amplitude
-    (hds.discover.record_until_identifiable). discover.excitation = designed: every record
-    designed on the simulator (its nominal values: nothing is estimated yet) through the
-    function the loop's rounds use, random steps the fallback (hds.discover.design)."""
-    from hds.discover import record_until_identifiable
-    from hds.discover.design import excitation_controls
-    from hds.dynamics import collect_data, measured_data
-
-    key = jax.random.split(jax.random.PRNGKey(cfg.seed))[0]
-    data, source = measured_data(cfg.dynamics, env, plant, key)
-    if source["data"] != "plant":
-        return data, source
-    designed = cfg.discover.excitation == "designed"
-
-    def record(scale, attempt):  # the first: the learned model's data, unless designed
-        if not attempt and not designed:
-            return data
-        dyn = dataclasses.replace(cfg.dynamics, excitation_scale=scale)
-
-        def controls(q0, qd0, signal):
-            h, dt = dyn.horizon, env.sim.dt
-            return excitation_controls(cfg.discover, cfg.env, dt, h, q0, qd0, scale, signal, data)
-
-        return collect_data(dyn, env, plant, jax.random.fold_in(key, attempt), controls)
-
-    recorded, scale, notes = record_until_identifiable(
-        record, cfg.env, cfg.discover, cfg.dynamics.excitation_scale
-    )
-    recorded = concatenate(recorded)
-    source |= {"episodes": recorded.n_episodes, "excitation_scale": scale, "notes": notes}
-    source["excitation"] = "designed" if designed else source["excitation"]
-    return recorded, source
-
-
-def simulator_of(cfg: Config, run_dir: Path, method: str | None = None) -> tuple[Env, object]:
-    """The simulator a finished run's `method` trained on, and its runs' effect parameters
-    (None: the env's own), rebuilt from what the run wrote (no data is measured again)."""
-    method = method or method_name(cfg)
-    if cfg.simulator == "real" or method == "oracle":
-        return real_dynamics(cfg)
-    if cfg.simulator == "corrected":
-        return make_env(corrected_env_config(run_dir)), None
-    if cfg.simulator == "randomized":
-        return randomized_env(cfg), None
-    return make_env(cfg.env), None
-
-
-def corrected_env_config(run_dir: Path):
-    """The env config gap discovery wrote into a finished corrected-simulator run."""
-    from omegaconf import OmegaConf
-
-    found = sorted((Path(run_dir) / "discovery" / "conf" / "env").glob("*.yaml"))
-    if not found:
-        raise FileNotFoundError(
-            f"{run_dir}/discovery/conf/env/ holds no corrected env config: the run did not "
-            "finish its gap discovery; train it again on the same directory"
-        )
-    return env_config(OmegaConf.to_container(OmegaConf.load(found[0])))
+def simulator_of(cfg: Config, run_dir: Path, method: str | None = None) -> Simulator:
+    """The simulator a finished run's `method` trained on (its kind's `restore`), rebuilt
+    from what the run wrote (no data is measured again)."""
+    return simulators.of(cfg, method).restore(cfg, Path(run_dir))
 
 
 def methods_of(cfg: Config, out_dir: Path, plant):
-    """(method, env, effects, model) of each policy the run trains, and the JSON reports of the
-    learned model and of gap discovery."""
+    """(method, Simulator, model) of each policy the run trains (its simulator kind's build,
+    and an oracle beside it: `oracle`), and the JSON report of the learned model."""
     env = make_env(cfg.env)
     model, model_report = dynamics_model(cfg, env, plant, out_dir)
-    train_env, effects, discovery = env, None, {}
-    if cfg.simulator == "real":
-        train_env, effects = real_dynamics(cfg)
-    elif cfg.simulator == "corrected":
-        train_env, discovery = corrected_simulator(cfg, env, plant, out_dir)
-    elif cfg.simulator == "randomized":
-        train_env = randomized_env(cfg)
-    methods = [(method_name(cfg), train_env, effects, model)]
-    if cfg.oracle and cfg.real.plant == "brax" and cfg.simulator != "real":
-        methods.append(("oracle", *real_dynamics(cfg), None))
-    return methods, model_report, discovery
+    kind = simulators.of(cfg)
+    methods = [(kind.label(cfg), kind.build(cfg, env, plant, out_dir), model)]
+    if cfg.oracle and cfg.real.plant == "brax" and kind.name != "real":
+        methods.append(
+            ("oracle", simulators.of(cfg, "oracle").build(cfg, env, plant, out_dir), None)
+        )
+    return methods, model_report
 
 
 # --- training ----------------------------------------------------------------------------------
@@ -349,13 +244,16 @@ def train(
     hooks: Hooks | None = None,
     logger: RunLogger | None = None,
     init_params=None,
+    randomization=None,
 ) -> Training:
     """Train the batch of `cfg.runs()` together on `env` (and a learned `model`);
-    `effects`: each run's effect parameters of env, stacked. Resumes from
-    out_dir/checkpoints/<method> when it has a checkpoint; `logger` (optional) shows progress
-    and records to W&B; `init_params` (the policies of every run, stacked) warm-starts it."""
+    `effects`: each run's effect parameters of env, stacked; `randomization`: each rollout's
+    drawn (hds.algo.randomize). Resumes from out_dir/checkpoints/<method> when it has a
+    checkpoint; `logger` (optional) shows progress and records to W&B; `init_params` (the
+    policies of every run, stacked) warm-starts it. The returned policies are saved to
+    out_dir/policies/<method> (hds.policy_store), what `hds.load_policy` reads."""
     hooks = hooks or Hooks()
-    trainer = make_train(cfg, env, model)
+    trainer = make_train(cfg, env, model, randomization)
     hparams = batch_hparams(cfg, trainer, effects)
     init, run_chunk, keys, hparams = compiled_programs(cfg, trainer, hparams)
 
@@ -397,7 +295,11 @@ def train(
         timing["train_cpu_s"] = time.process_time() - cpu_start
     finally:
         ckpt.close()
-    return Training(method, trainer.final_policy(state), history, timing, trainer, env, effects)
+    params = trainer.final_policy(state)
+    policy_store.save(
+        out_dir / "policies" / method, trainer.policy, params, cfg.runs(), state.epoch
+    )
+    return Training(method, params, history, timing, trainer, env, effects)
 
 
 def _report_chunk(hooks: Hooks, logger, method: str, epoch0: int, metrics: dict, seconds: float):
@@ -457,10 +359,49 @@ def eval_plants(cfg: Config) -> list[tuple]:
 # --- the whole experiment ------------------------------------------------------------------------
 
 
+def train_and_evaluate(
+    cfg: Config,
+    method: str,
+    simulator: Simulator,
+    out_dir: Path,
+    plants,
+    hooks: Hooks | None = None,
+    model=None,
+    init_params=None,
+    figures: bool = False,
+    before_close: Callable | None = None,
+) -> tuple[Training, list[dict], list[dict]]:
+    """One method: its progress bar and W&B run opened, trained on `simulator` (and a learned
+    `model`; warm-started from `init_params`), evaluated on `plants` (each run's) and on
+    cfg.eval_plants, the rows logged (with the learning curves and sim-vs-real figures when
+    `figures`), `before_close(logger, training)` called, the logger closed however it ends.
+    Returns (training, rows on the runs' plants, rows on eval_plants). `hds.train`, the
+    loop's rounds and the discovery's retrain all train through this."""
+    hooks = hooks or Hooks()
+    with method_logger(cfg, out_dir, method, hooks) as logger:
+        training = train(
+            cfg,
+            simulator.env,
+            out_dir,
+            method,
+            model,
+            simulator.effects,
+            hooks,
+            logger,
+            init_params=init_params,
+            randomization=simulator.randomization,
+        )
+        rows, rows_eval_plants = evaluate_training(cfg, training, plants)
+        logger.finish(rows, _method_figures(method, training.history, rows) if figures else {})
+        if before_close:
+            before_close(logger, training)
+    return training, rows, rows_eval_plants
+
+
 def run(cfg: Config, out_dir: str | Path | None = None, hooks: Hooks | None = None) -> Result:
     """Train and evaluate every method of the run (`hds.train`); write out_dir/summary.json,
-    checkpoints/, plots/ and W&B logs (default out_dir: outputs/runs/<name>/<time>). A
-    directory that already has its summary.json is a finished job (of a sweep started again):
+    checkpoints/, policies/, plots/ and W&B logs (default out_dir: outputs/runs/<name>/<time>).
+    A directory that already has its summary.json is a finished job (of a sweep started again):
     its result is read back, nothing is trained."""
     hooks = hooks or Hooks()
     enable_compilation_cache()
@@ -474,7 +415,8 @@ def run(cfg: Config, out_dir: str | Path | None = None, hooks: Hooks | None = No
 
         atomic_write_json(out_dir / "truth.json", draw(cfg.real.family, cfg.real.draw))
     # all alike unless the gap is swept, which excludes a learned model and a corrected simulator
-    methods, model_report, discovery = methods_of(cfg, out_dir, plants[0])
+    methods, model_report = methods_of(cfg, out_dir, plants[0])
+    discovery = methods[0][1].report
     result = Result(
         cfg.name,
         out_dir,
@@ -489,18 +431,18 @@ def run(cfg: Config, out_dir: str | Path | None = None, hooks: Hooks | None = No
             "effects": applied(cfg.real.effects, cfg.real.friction_gap),
         },
     )
-    for method, method_env, method_effects, method_model in methods:
-        with method_logger(cfg, out_dir, method, hooks) as logger:
-            training = train(
-                cfg, method_env, out_dir, method, method_model, method_effects, hooks, logger
-            )
-            rows, rows_eval_plants = evaluate_training(cfg, training, plants)
-            logger.finish(rows, _method_figures(method, training.history, rows))
+    for method, simulator, model in methods:
+
+        def extras(logger, training, method=method):
             if discovery and method == methods[0][0]:
                 logger.log_discovery("discovery_report", out_dir / "discovery")
             if cfg.gif:
                 gif = sim_vs_real_gif(cfg, training, plants[0], out_dir / "plots")
                 logger.log_files({"sim_vs_real_gif": gif})
+
+        training, rows, rows_eval_plants = train_and_evaluate(
+            cfg, method, simulator, out_dir, plants, hooks, model, figures=True, before_close=extras
+        )
         result.rows += rows
         result.rows_eval_plants += rows_eval_plants
         result.histories[method], result.timing[method] = training.history, training.timing
@@ -534,10 +476,8 @@ def retrain(cfg: Config, corrected_env: dict, out_dir: Path) -> dict:
     rows = []
     for method, env_cfg in (("original", cfg.env), ("corrected", env_config(corrected_env))):
         log.info("retrain: PODS on the %s simulator", method)
-        with method_logger(cfg, Path(out_dir), method, Hooks()) as logger:
-            training = train(cfg, make_env(env_cfg), Path(out_dir), method, logger=logger)
-            method_rows, _ = evaluate_training(cfg, training, plant)
-            logger.finish(method_rows, {})
+        simulator = Simulator(make_env(env_cfg))
+        _, method_rows, _ = train_and_evaluate(cfg, method, simulator, Path(out_dir), plant)
         rows += method_rows
     plant_desc = {
         "plant": cfg.real.plant,

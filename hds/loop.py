@@ -29,54 +29,64 @@ import numpy as np  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 
 from hds import experiment, plots, rundir  # noqa: E402
-from hds.algo.pods import make_train  # noqa: E402
 from hds.commands import before_hydra  # noqa: E402
 from hds.config import Config, env_config, validate  # noqa: E402
-from hds.data import collect, initial_states  # noqa: E402
+from hds.data.acquire import deployed_and_excited  # noqa: E402
 from hds.data.budget import check_planned  # noqa: E402
 from hds.data.format import Dataset, concatenate, load, save  # noqa: E402
 from hds.envs import make_env  # noqa: E402
 from hds.evaluation import mean_ci  # noqa: E402
 from hds.logger import print_table  # noqa: E402
+from hds.networks import make_policy  # noqa: E402
+from hds.simulators import Simulator  # noqa: E402
 from hds.utils import cli  # noqa: E402
 from hds.utils.io import atomic_write_json, read_json  # noqa: E402
+from hds.utils.runtime import enable_compilation_cache  # noqa: E402
 
 log = logging.getLogger("hds")
 
 
 def record(cfg: Config, env, plant, params, key, scale: float, env_cfg=None) -> Dataset:
-    """One round's data: the policy (the batch's first run) deployed from the task's initial
-    states, and open-loop excitation whose amplitudes rise to `scale` of the half range
-    (discover.excitation = designed: designed on env_cfg, the simulator corrected so far)."""
+    """One round's data (hds.data.acquire.deployed_and_excited): the policy (the batch's first
+    run) deployed from the task's initial states, and open-loop excitation whose amplitudes
+    rise to `scale` of the half range (discover.excitation = designed: designed on env_cfg,
+    the simulator corrected so far)."""
     from hds.discover.design import excitation_controls
     from hds.dynamics import excite
 
-    k_deploy, k_excite, k_u = jax.random.split(key, 3)
     horizon = env.task.horizon
     first = jax.tree.map(lambda x: x[0], params)
-    act = jax.jit(make_train(cfg, env).policy.apply)
-    q0, qd0 = initial_states(env.task, k_deploy, cfg.loop.deploy_episodes)
-    deployed = collect(plant, env.task, q0, qd0, lambda o: np.asarray(act(first, o)), horizon)
+    act = jax.jit(make_policy(cfg.algo.hidden, env.sim).apply)
     excitation = dataclasses.replace(
         cfg.dynamics,
         episodes=cfg.loop.excitation_episodes,
         horizon=horizon,
         excitation_scale=scale,
     )
-    q0, qd0 = initial_states(env.task, k_excite, cfg.loop.excitation_episodes)
-    controls = excitation_controls(
-        cfg.discover,
-        env_cfg or cfg.env,
-        env.sim.dt,
+
+    def controls(k_u, q0, qd0, deployed):
+        return excitation_controls(
+            cfg.discover,
+            env_cfg or cfg.env,
+            env.sim.dt,
+            horizon,
+            q0,
+            qd0,
+            scale,
+            lambda: excite(excitation, env, k_u),
+            deployed,
+        )
+
+    return deployed_and_excited(
+        plant,
+        env.task,
+        key,
+        lambda o: np.asarray(act(first, o)),
+        cfg.loop.deploy_episodes,
+        cfg.loop.excitation_episodes,
         horizon,
-        q0,
-        qd0,
-        scale,
-        lambda: excite(excitation, env, k_u),
-        deployed,
+        controls,
     )
-    excited = collect(plant, env.task, q0, qd0, controls, horizon)
-    return concatenate([deployed, excited])
 
 
 def excite_until_identifiable(cfg: Config, env, plant, params, key, data_so_far, env_cfg=None):
@@ -126,7 +136,7 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
     """Every round of the loop (see the module's doc); returns the rounds' reports."""
     out_dir = Path(out_dir)
     hooks = hooks or experiment.Hooks()
-    experiment.enable_compilation_cache()
+    enable_compilation_cache()
     plants = experiment.run_plants(cfg)
     plant = plants[0]
     env_cfg, params, data, rounds = cfg.env, None, [], []
@@ -188,21 +198,12 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
         dyn = dataclasses.replace(cfg.dynamics, data=str(rdir / "model_data.npz"))
         model, model_report = build(dyn, env, None, jax.random.PRNGKey(cfg.seed), rdir / "dynamics")
     method = f"loop{r}"
+    simulator = Simulator(env)
 
     def train_and_evaluate(train_cfg, out_dir, init_params):
-        with experiment.method_logger(train_cfg, out_dir, method, hooks) as logger:
-            training = experiment.train(
-                train_cfg,
-                env,
-                out_dir,
-                method,
-                model,
-                hooks=hooks,
-                logger=logger,
-                init_params=init_params,
-            )
-            rows, _ = experiment.evaluate_training(train_cfg, training, plants)
-            logger.finish(rows, {})
+        training, rows, _ = experiment.train_and_evaluate(
+            train_cfg, method, simulator, out_dir, plants, hooks, model, init_params
+        )
         return training.params, rows
 
     trained, rows = train_and_evaluate(round_cfg, rdir, params)

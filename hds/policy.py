@@ -20,21 +20,14 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from hds.algo.pods import make_train
-from hds.checkpoint import Checkpoints
+from hds import policy_store, simulators
 from hds.config import Config, EnvConfig, RealConfig, load_config, run_label
 from hds.data import initial_states
 from hds.effects.apply import applied
 from hds.envs import Env, make_env
 from hds.envs.system import load_spec, resolve_xml
 from hds.evaluation import MeanCI, mean_ci
-from hds.experiment import (
-    abstract_state,
-    corrected_env_config,
-    friction_gap_of,
-    method_name,
-    simulator_of,
-)
+from hds.networks import make_policy
 from hds.real import Episodes, make_plant, rollout
 from hds.utils.io import atomic_write_bytes, atomic_write_json
 
@@ -87,7 +80,8 @@ class Policy:
         plant to evaluate on: `hds.evaluate(policy, plant=policy.training_plant())`."""
         from hds.real.brax_plant import BraxPlant
 
-        return BraxPlant(simulator_of(self.config, self.run_dir, self.method)[0])
+        kind = simulators.of(self.config, self.method)
+        return BraxPlant(kind.restore(self.config, self.run_dir).env)
 
     @property
     def obs_names(self) -> tuple[str, ...]:
@@ -154,29 +148,35 @@ def run_config(run_dir: Path) -> Config:
 
 def load_policy(run_dir: str | Path, method: str | None = None, seed: int | None = None, **setting):
     """The trained policy of one run of a run directory (`python -m hds.run`, `hds.train`),
-    from its config.yaml and latest checkpoint. `method`: whose policy (default: the run's own
+    from its config.yaml and saved policies (policies/<method>: the network's spec and
+    parameters; hds.policy_store), or, in a directory written before those were saved, its
+    latest checkpoint. No trainer is built. `method`: whose policy (default: the run's own
     method, e.g. pods or hds+mlp; an oracle trained beside it is `oracle`); `seed` and swept
     settings (e.g. step_size=0.04) pick the run of a batch (default: the first)."""
     run_dir = Path(run_dir)
     cfg = run_config(run_dir)
-    root = run_dir / "checkpoints"
-    trained = sorted(p.name for p in root.iterdir() if p.is_dir()) if root.is_dir() else []
-    method = method or method_name(cfg)
+    method = method or simulators.method_name(cfg)
+    trained = set()
+    for root in (run_dir / "policies", run_dir / "checkpoints"):
+        trained |= {p.name for p in root.iterdir() if p.is_dir()} if root.is_dir() else set()
     if method not in trained:
         raise FileNotFoundError(
-            f"no checkpoint of method '{method}' in {root}; it has {trained or 'none'}: "
-            "choose one with method=..., or train the run first"
+            f"no checkpoint of method '{method}' and no saved policy of it in {run_dir}; it "
+            f"has {sorted(trained) or 'none'}: choose one with method=..., or train the run first"
         )
     index = _pick_run(cfg, seed, setting)
-    trainer = make_train(cfg, make_env(cfg.env))
-    state, _ = Checkpoints(root / method).restore(abstract_state(cfg, trainer))
-    epoch = int(state.epoch[index])
+    if (run_dir / "policies" / method / "policy.json").is_file():
+        module, params, epochs = policy_store.load(run_dir / "policies" / method)
+    else:  # an older run directory: its last checkpoint, read as stored
+        params, epochs = policy_store.from_checkpoint(run_dir / "checkpoints" / method)
+        module = make_policy(cfg.algo.hidden, make_env(cfg.env).sim)
+    epoch = int(epochs[index])
     if epoch < cfg.algo.epochs:
         log.warning(
             "%s: %s is at epoch %d of %d (unfinished)", run_dir, method, epoch, cfg.algo.epochs
         )
-    params = jax.tree.map(lambda x: x[index], trainer.final_policy(state))
-    return Policy(trainer.policy, params, cfg.env, method, cfg.runs()[index], epoch, cfg, run_dir)
+    params = jax.tree.map(lambda x: jnp.asarray(x[index]), params)
+    return Policy(module, params, cfg.env, method, cfg.runs()[index], epoch, cfg, run_dir)
 
 
 # --- evaluation ----------------------------------------------------------------------------------
@@ -243,29 +243,8 @@ def trained_on(policy: Policy) -> tuple[dict, EnvConfig, list[dict]]:
     """What `policy` trained on, as policy.json records it (the simulator's kind: nominal,
     corrected by gap discovery, randomized or the plant's own dynamics for the oracle; its
     effects with the values applied), and that system's env config and effects, for its MJCF."""
-    cfg, env_cfg = policy.config, policy.env
-    if cfg.simulator == "real" or policy.method == "oracle":  # as experiment.real_dynamics
-        kind, effects = "oracle", applied(cfg.real.effects, friction_gap_of(cfg, policy.run))
-    elif cfg.simulator == "corrected":
-        kind, env_cfg = "corrected", corrected_env_config(policy.run_dir)
-        effects = applied(env_cfg.effects)
-    else:
-        kind, effects = cfg.simulator, applied(env_cfg.effects)
-    description = {
-        "simulator": kind,
-        "effects": effects,
-        "about": {
-            "nominal": "the env's MJCF with its own effects (env.effects)",
-            "corrected": "the env's MJCF with the effects gap discovery named on plant data",
-            "randomized": "the env's MJCF with each rollout's effects drawn from ranges",
-            "oracle": "the plant's own effects (real.effects at the run's friction gap)",
-        }[kind],
-    }
-    if kind == "randomized":
-        description["randomized"] = [
-            {"name": e.name, "target": e.target, "ranges": dict(e.ranges)} for e in cfg.dr.effects
-        ]
-    return description, env_cfg, effects
+    kind = simulators.of(policy.config, policy.method)
+    return kind.trained_on(policy.config, policy.run, policy.run_dir)
 
 
 # --- export --------------------------------------------------------------------------------------

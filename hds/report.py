@@ -143,7 +143,7 @@ def discoveries(root: Path, rows: list[Row], found_loops: list[tuple] = ()) -> l
                     "warnings": summary.discovery.get("warnings", []),
                 }
             )
-    from hds.experiment import method_name
+    from hds.simulators import method_name
 
     for loop_dir, cfg, rounds in found_loops:
         truth = applied(cfg.real.effects, cfg.real.friction_gap)
@@ -213,7 +213,7 @@ def loop_rows(found: list[tuple], root: Path) -> list[Row]:
     """The rows of every round of the `loops` found below root, each with its loop's plant,
     labelled by the loop's method and round (pods_cl+loop1, hds+mlp+loop1): loops of two
     methods on one plant stay apart."""
-    from hds.experiment import method_name
+    from hds.simulators import method_name
 
     rows = []
     for loop_dir, cfg, rounds in found:
@@ -464,7 +464,7 @@ def optuna_trial(job: Path, keys: list[str]) -> dict | None:
     """One finished trial of an Optuna study: its sampled `keys` (its Hydra overrides), its
     objective's name, and the real and simulator returns of its own method's runs (mean and
     95% interval over seeds); None if unfinished."""
-    from hds.experiment import method_name
+    from hds.simulators import method_name
 
     overrides = job / ".hydra" / "overrides.yaml"
     if not all(p.is_file() for p in (overrides, job / "summary.json", job / "config.yaml")):

@@ -102,6 +102,33 @@ def test_a_saved_policy_loads_and_gives_the_run_s_numbers(sweep_run):
         hds.load_policy(out, method="hds+mlp")
 
 
+def test_a_policy_loads_from_its_saved_artefact_and_from_an_older_run_s_checkpoint(
+    sweep_run, tmp_path
+):
+    """The run saves each method's policies (network spec + parameters, policies/<method>):
+    loading one builds no trainer. A run directory written before that artefact existed (only
+    config.yaml and checkpoints/) loads the same policy from its last checkpoint."""
+    import shutil
+
+    from hds.policy_store import FORMAT
+
+    out, _ = sweep_run
+    spec = json.loads((out / "policies" / "pods" / "policy.json").read_text())
+    assert spec["format"] == FORMAT and spec["epochs"] == [3, 3, 3, 3]
+    assert [r["step_size"] for r in spec["runs"]] == [0.01, 0.01, 0.04, 0.04]
+    older = tmp_path / "older"
+    shutil.copytree(out / "checkpoints", older / "checkpoints")
+    shutil.copy(out / "config.yaml", older / "config.yaml")
+    for seed, step_size in ((0, 0.01), (1, 0.04)):
+        saved = hds.load_policy(out, seed=seed, step_size=step_size)
+        restored = hds.load_policy(older, seed=seed, step_size=step_size)
+        assert restored.epoch == saved.epoch == 3
+        for a, b in zip(jax.tree.leaves(saved.params), jax.tree.leaves(restored.params)):
+            np.testing.assert_array_equal(a, b)
+        obs = np.random.default_rng(seed).normal(size=(5, len(saved.obs_names)))
+        np.testing.assert_array_equal(saved(obs), restored(obs))
+
+
 def test_a_policy_runs_on_a_raw_mujoco_data_as_the_readme_says(sweep_run):
     out, _ = sweep_run
     policy = hds.load_policy(out, seed=0, step_size=0.01)
@@ -406,3 +433,26 @@ def test_no_module_imports_upward():
             above = TOOLS
         wrong = _imports(path) & above
         assert not wrong, f"{path.relative_to(ROOT)} imports {wrong}, a layer above it"
+
+
+def test_an_older_run_s_checkpoint_gives_the_kept_best_policy_where_one_was_found(tmp_path):
+    """algo.keep=best: a checkpoint holds the last iterate and the best one (progress.best);
+    read as stored, each run returns its best where it found one (best_return > -inf), else
+    its last iterate, as the trainer's final_policy does."""
+    import jax.numpy as jnp
+
+    from hds.algo.pods import TrainState
+    from hds.checkpoint import Checkpoints
+    from hds.policy_store import from_checkpoint
+
+    last = {"params": {"Dense_0": {"kernel": jnp.ones((2, 3, 4)), "bias": jnp.ones((2, 4))}}}
+    best = jax.tree.map(lambda x: 2 * x, last)
+    progress = {"best": best, "best_return": jnp.asarray([-5.0, -jnp.inf])}
+    state = TrainState(last, (), jnp.asarray([7, 7]), jnp.zeros((2, 2), jnp.uint32), progress)
+    ckpt = Checkpoints(tmp_path / "pods")
+    ckpt.save(7, state, {"history": {}, "method": "pods"})
+    ckpt.close()
+    params, epochs = from_checkpoint(tmp_path / "pods")
+    assert list(epochs) == [7, 7]
+    kernel = params["params"]["Dense_0"]["kernel"]
+    assert np.all(kernel[0] == 2.0) and np.all(kernel[1] == 1.0)

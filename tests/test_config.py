@@ -199,7 +199,7 @@ def test_retrain_composes_with_a_plant_that_has_effects():
 
 
 def test_method_presets_choose_the_groups_and_the_row_label():
-    from hds.experiment import method_name
+    from hds.simulators import method_name
 
     expected = {
         "pods": ("pods", "none", "none", "nominal", "pods"),

@@ -498,3 +498,31 @@ def test_collect_rejects_bad_arguments(plant, cartpole_env, starts):
         collect(plant, task, *starts, lambda obs: obs[:, :1])
     with pytest.raises(ValueError, match="longer than"):
         collect(plant, task, *starts, np.zeros((E, T, 1)), horizon=T + 1)
+
+
+def test_active_excitation_doubles_the_amplitude_until_the_data_identify():
+    """hds.data.acquire.until_identifiable: while the check names something the data so far
+    cannot identify, it records again at twice the amplitude (at most the whole range), and
+    its notes say why; what the full range still cannot identify is noted, not hidden."""
+    from hds.data.acquire import until_identifiable
+
+    asked = []
+
+    def record(scale, attempt):
+        asked.append((scale, attempt))
+        return make_dataset(n_ep=1, seed=attempt)
+
+    def held_until(n):  # the joint moves once n datasets are in
+        return lambda data: [] if data.n_episodes >= n else ["slider never moves"]
+
+    data, scale, notes = until_identifiable(record, held_until(3), 0.2)
+    assert asked == [(0.2, 0), (0.4, 1), (0.8, 2)] and scale == 0.8 and len(data) == 3
+    assert notes == [
+        "slider never moves (excitation 0.2 of the half range): recorded more at 0.4",
+        "slider never moves (excitation 0.4 of the half range): recorded more at 0.8",
+    ]
+    asked.clear()
+    earlier = [make_dataset(n_ep=1, seed=9)]
+    data, scale, notes = until_identifiable(record, held_until(99), 0.5, earlier)
+    assert asked == [(0.5, 0), (1.0, 1)] and scale == 1.0 and data[0] is earlier[0]
+    assert notes[-1] == "still not identifiable at full excitation: slider never moves"

@@ -7,6 +7,7 @@ import jax
 import numpy as np
 import pytest
 
+from hds import simulators
 from hds.algo.pods import make_train
 from hds.algo.randomize import effect_ranges, randomized_env, sample_effects
 from hds.envs import make_env
@@ -57,9 +58,9 @@ def test_dr_without_valid_ranges_is_refused(overrides, message):
     assert message in str(err.value)
 
 
-def _trained(cfg, env):
+def _trained(cfg, env, randomization=None):
     """A trainer's compiled `train` for one seed: hparams -> (policy, training returns)."""
-    trainer = make_train(cfg, env)
+    trainer = make_train(cfg, env, randomization=randomization)
     train = jax.jit(lambda h: trainer.train(jax.random.PRNGKey(3), h))
 
     def run(hparams_of=lambda h: h):
@@ -79,7 +80,8 @@ def test_a_range_of_no_width_trains_as_that_value_alone():
     )
     plain_policy, plain_return = _trained(plain, make_env(plain.env))()
     cfg = make_config(*TINY, "method=dr", f"dr.effects=[{FRICTION % 'ranges: {force: [20, 20]}'}]")
-    run = _trained(cfg, randomized_env(cfg))
+    simulator = simulators.of(cfg).restore(cfg, None)  # the env and its randomization
+    run = _trained(cfg, simulator.env, simulator.randomization)
     policy, returns = run()
     for a, b in zip(jax.tree.leaves(plain_policy), jax.tree.leaves(policy)):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)

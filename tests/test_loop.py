@@ -262,7 +262,7 @@ def test_the_corrected_simulator_designs_through_the_loop_s_function_with_its_fa
     """simulator=corrected with discover.excitation = designed records its data through the
     loop's function: with nothing to design, fresh random steps (not the learned model's data),
     doubled while the data cannot identify (the fallback keeps active excitation)."""
-    from hds.experiment import discovery_data
+    from hds.simulators import discovery_data
 
     over = ("simulator=corrected", "dynamics.episodes=4", "dynamics.horizon=40")
     steps_cfg = make_config(*LOOP, *over)
@@ -284,7 +284,7 @@ def test_designed_excitation_in_a_round_and_in_the_corrected_simulator():
     """With friction and gain to design for, a round's excitation episodes and the corrected
     simulator's records are one designed signal (every episode the same, within the round's
     amplitude), not random steps."""
-    from hds.experiment import discovery_data
+    from hds.simulators import discovery_data
 
     cfg = make_config(*LOOP, *DESIGNED, "env.backend=analytic")
     env, plant = make_env(cfg.env), run_plants(cfg)[0]

@@ -246,7 +246,7 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
             assert found["params"]["force"] == pytest.approx(20.0, rel=0.1)
             assert (tmp_path / simulator / "discovery" / "report.md").is_file()
             # the GIF of hds.report rebuilds this simulator from what the run wrote
-            sites = simulator_of(cfg, tmp_path / simulator)[0].sim.effects.sites
+            sites = simulator_of(cfg, tmp_path / simulator).env.sim.effects.sites
             assert [(e.name, e.target) for e in sites] == [("coulomb_friction", "slider")]
     assert gaps["corrected"] < 0.25 * gaps["nominal"], gaps
     assert gaps["real"] < 0.25 * gaps["nominal"], gaps
@@ -291,7 +291,8 @@ def test_the_corrected_simulator_excites_harder_until_the_data_can_identify(tmp_
     from hds.data import load
     from hds.discover import identifiability
     from hds.envs import make_env
-    from hds.experiment import corrected_simulator, run_plants
+    from hds.experiment import run_plants
+    from hds.simulators import corrected_simulator
 
     cfg = make_config(
         *TINY, "dynamics.episodes=16", "dynamics.horizon=60", "discover.stride=2",

@@ -27,9 +27,9 @@ from hds.discover.data import noise_level
 from hds.discover.design import Designer, WindowFit, limits_of
 from hds.discover.workflow import fit_backend, with_backend
 from hds.envs import make_env
-from hds.experiment import enable_compilation_cache
 from hds.real import make_plant
 from hds.utils.io import atomic_write_bytes, atomic_write_json
+from hds.utils.runtime import enable_compilation_cache
 
 HERE = Path(__file__).resolve().parent
 CONF = Path(__file__).resolve().parents[2] / "hds" / "conf"

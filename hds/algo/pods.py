@@ -30,7 +30,6 @@ from flax import struct
 
 from hds import anneal, noise
 from hds.algo.improve import ImproveSettings, improve
-from hds.algo.randomize import effect_ranges, sample_effects
 from hds.algo.regress import regress
 from hds.algo.rollout import perturbed_rollout, policy_rollout
 from hds.networks import make_policy
@@ -96,9 +95,11 @@ def branch_starts(visited, n_used, count: int, key):
     return jax.vmap(draw)(jax.random.split(key, count))
 
 
-def make_train(cfg, env, model=None) -> Trainer:
+def make_train(cfg, env, model=None, randomization=None) -> Trainer:
     """`cfg` is a validated `hds.config.Config`; `model` an optional learned dynamics engine
-    (reset/step/observe/qqd) through which a share `cfg.dynamics.beta` of rollouts runs."""
+    (reset/step/observe/qqd) through which a share `cfg.dynamics.beta` of rollouts runs;
+    `randomization` (hds.algo.randomize.Randomization, as brax's randomization_fn) draws each
+    simulator rollout's effect parameters (None: every rollout on the run's own)."""
     algo, task, sim = cfg.algo, env.task, env.sim
     low, high = jnp.asarray(sim.ctrl_range[:, 0]), jnp.asarray(sim.ctrl_range[:, 1])
     policy = make_policy(algo.hidden, sim)
@@ -219,7 +220,7 @@ def make_train(cfg, env, model=None) -> Trainer:
 
         return jax.tree.map(pick, state.progress["best"], state.policy)
 
-    randomized = cfg.simulator == "randomized"
+    randomized = randomization is not None
 
     def collect(
         engine, params, count, policy_params, hparams, epoch, key, per_rollout=False, starts=None
@@ -329,7 +330,7 @@ def make_train(cfg, env, model=None) -> Trainer:
         # is folded in, so a range of no width trains exactly as that value alone
         drawn = randomized and params_key == "effects"
         if drawn:
-            params = sample_effects(jax.random.fold_in(key, 1), *hparams["effect_ranges"], count)
+            params = randomization(jax.random.fold_in(key, 1), hparams, count)
         if params_key == "effects":
             params = anneal.effect_ramp(params, sim.effects.sites, state.epoch, *ramp, delay)
         episodes = starts is None  # given starts: branches, mid-episode
@@ -420,7 +421,7 @@ def make_train(cfg, env, model=None) -> Trainer:
         "effects": env.params,
     }
     if randomized:
-        hparams["effect_ranges"] = effect_ranges(cfg, env)
+        hparams |= randomization.hparams()
     stages = Stages(
         functools.partial(collect, env), functools.partial(improve_batch, env), regress_batch
     )

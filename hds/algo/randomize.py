@@ -1,9 +1,15 @@
 """Domain randomization (`method=dr`): every rollout runs on the simulator with the parameters of
 the effects of `dr.effects` drawn uniformly from their ranges (one draw per rollout, inside the
 jitted epoch, from the epoch's key). The simulator's own effects (env.effects) keep their values.
+
+As brax's `randomization_fn`, randomization is a function handed to the trainer
+(`make_train(cfg, env, randomization=randomization(cfg, env))`), not a flag it reads: the
+registry of simulator kinds (hds.simulators) builds it for `simulator=randomized`.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
@@ -44,3 +50,25 @@ def sample_effects(key, low, high, count: int):
         for k, lo, hi in zip(keys, leaves, jax.tree.leaves(high))
     ]
     return jax.tree.unflatten(tree, draws)
+
+
+@dataclass(frozen=True)
+class Randomization:
+    """Each rollout's effect parameters drawn uniformly in [low, high] (aligned with the env's
+    params). The ranges travel in the trainer's hparams (`hparams()`), stacked per run as
+    every numeric setting is, so a batch may give each run its own ranges."""
+
+    low: object
+    high: object
+
+    def hparams(self) -> dict:
+        return {"effect_ranges": (self.low, self.high)}
+
+    def __call__(self, key, hparams, count: int):
+        """`count` draws of the effect parameters (stacked on axis 0), from hparams' ranges."""
+        return sample_effects(key, *hparams["effect_ranges"], count)
+
+
+def randomization(cfg, env) -> Randomization:
+    """The domain randomization of `cfg.dr` on `env` (`randomized_env(cfg)`)."""
+    return Randomization(*effect_ranges(cfg, env))

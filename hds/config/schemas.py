@@ -466,6 +466,9 @@ class LoggerConfig:
         _one_of("logger.mode", self.mode, ("offline", "disabled"))
 
 
+# the kinds of simulator a method trains on (`simulator=`); each is a class registered in
+# hds.simulators (tests/test_simulators.py checks the two lists agree)
+SIMULATORS = ("nominal", "corrected", "real", "randomized")
 SWEEP_KEYS = ("step_size", "noise_scale", "noise_decay", "friction_gap", "beta")
 
 
@@ -580,7 +583,7 @@ class Config:
         return self.dynamics.model != "none" and max([self.dynamics.beta, *self.sweep.beta]) > 0
 
     def check(self):
-        _one_of("simulator", self.simulator, ("nominal", "corrected", "real", "randomized"))
+        _one_of("simulator", self.simulator, SIMULATORS)
         _one_of("objective", self.objective, ("real_return", "sim_return"))
         if self.simulator == "randomized" and not self.dr.effects:
             raise ValueError(

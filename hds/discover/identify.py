@@ -20,13 +20,13 @@ them.
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
 
-from hds.data.format import Dataset, concatenate
+from hds.data.acquire import until_identifiable
+from hds.data.format import Dataset
 from hds.discover.data import noise_level
 from hds.effects.base import ACTUATOR, BODY, JOINT, OBSERVATION
 from hds.effects.library import default_candidates, effect_type
@@ -303,25 +303,24 @@ def _reaches_limit(facts: _Facts, j: int, target: str) -> bool:
 CHECKS = {JOINT: _joint, ACTUATOR: _actuator, BODY: _body, OBSERVATION: _observation}
 
 
+def unidentified(env_cfg, discover_cfg):
+    """data -> what more excitation would identify in them: a reason for each candidate of
+    discover_cfg.effects they cannot identify (a joint that friction holds still, an actuator
+    never driven across its range; not a structural limit such as a free cart's position
+    bias). The check `hds.data.acquire.until_identifiable` excites with."""
+
+    def reasons(data):
+        rows = identifiability(data, env_cfg, discover_cfg.min_motion, discover_cfg.effects)
+        return [r.reason for r in rows if not r.identifiable and not r.structural]
+
+    return reasons
+
+
 def record_until_identifiable(record, env_cfg, discover_cfg, scale: float, data_so_far=()):
     """Record plant data with `record(scale, attempt) -> Dataset` (its excitation's amplitude
     `scale` of the actuators' half range); while all data so far cannot identify a candidate
-    of discover_cfg.effects that more excitation would (a joint that friction holds still, an
-    actuator never driven across its range; not a structural limit such as a free cart's
-    position bias), double the amplitude, up to the whole range, and record again. Returns
+    of discover_cfg.effects that more excitation would (`unidentified`), double the amplitude,
+    up to the whole range, and record again (hds.data.acquire.until_identifiable). Returns
     (every dataset so far, the last amplitude, notes saying what was done and why)."""
-    data, notes = list(data_so_far), []
-    for attempt in itertools.count():
-        data.append(record(scale, attempt))
-        rows = identifiability(
-            concatenate(data), env_cfg, discover_cfg.min_motion, discover_cfg.effects
-        )
-        reasons = sorted({r.reason for r in rows if not r.identifiable and not r.structural})
-        if not reasons or scale >= 1.0:
-            notes += [f"still not identifiable at full excitation: {r}" for r in reasons]
-            return data, scale, notes
-        notes.append(
-            f"{'; '.join(reasons)} (excitation {scale:g} of the half range): recorded more at "
-            f"{min(1.0, 2 * scale):g}"
-        )
-        scale = min(1.0, 2 * scale)
+    check = unidentified(env_cfg, discover_cfg)
+    return until_identifiable(record, check, scale, data_so_far)

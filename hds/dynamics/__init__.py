@@ -52,19 +52,19 @@ def excite(cfg, env, key) -> np.ndarray:
 
 
 def collect_data(cfg, env, plant, key, controls=None):
-    """A Dataset of cfg.episodes episodes recorded on `plant` from the task's initial states,
-    driven by the excitation signal (`excite`), or by `controls(q0, qd0, signal)`: controls
-    chosen from the episodes' initial states, `signal()` the excitation signal's."""
-    from hds.data import collect, initial_states
+    """A Dataset of cfg.episodes episodes recorded on `plant` from the task's initial states
+    (hds.data.acquire.excited), driven by the excitation signal (`excite`), or by
+    `controls(q0, qd0, signal)`: controls chosen from the episodes' initial states, `signal()`
+    the excitation signal's."""
+    from hds.data.acquire import excited
 
-    k_init, k_u = jax.random.split(key)
-    q0, qd0 = initial_states(env.task, k_init, cfg.episodes)
+    def chosen(k_u, q0, qd0, deployed):
+        def signal():
+            return excite(cfg, env, k_u)
 
-    def signal():
-        return excite(cfg, env, k_u)
+        return signal() if controls is None else controls(q0, qd0, signal)
 
-    u = signal() if controls is None else controls(q0, qd0, signal)
-    return collect(plant, env.task, q0, qd0, u, cfg.horizon)
+    return excited(plant, env.task, key, cfg.episodes, cfg.horizon, chosen)
 
 
 def measured_data(cfg, env, plant, key):
