@@ -58,14 +58,14 @@ def train(spec: dict) -> dict:
         from hds.utils.runtime import enable_compilation_cache
 
         enable_compilation_cache(spec["cache"])
-    from hds.algo.pods import make_train
+    from hds.algo.pods import make_train_from_config
     from hds.envs import make_env
 
     import_s = time.perf_counter() - _START
     with timed() as build:
         cfg = compose(*spec["overrides"])
         env = make_env(cfg.env)
-        trainer = make_train(cfg, env)
+        trainer = make_train_from_config(cfg, env)
     rss_built = peak_rss_mb()
     seeds = int(spec.get("seeds", 1))
     keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(seeds))

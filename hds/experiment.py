@@ -30,7 +30,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from hds import plots
-from hds.algo.pods import Trainer, make_train
+from hds.algo.pods import Trainer, make_train_from_config
 from hds.algo.randomize import randomized_env
 from hds.animate import animate_episodes
 from hds.checkpoint import Checkpoints
@@ -326,7 +326,7 @@ def train(
     out_dir/checkpoints/<method> when it has a checkpoint; `logger` (optional) shows progress
     and records to W&B; `init_params` (the policies of every run, stacked) warm-starts it."""
     hooks = hooks or Hooks()
-    trainer = make_train(cfg, env, model)
+    trainer = make_train_from_config(cfg, env, model)
     hparams = batch_hparams(cfg, trainer, effects)
     init, run_chunk, keys, hparams = compiled_programs(cfg, trainer, hparams)
 

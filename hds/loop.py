@@ -29,7 +29,7 @@ import numpy as np  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 
 from hds import experiment, plots, rundir  # noqa: E402
-from hds.algo.pods import make_train  # noqa: E402
+from hds.algo.pods import make_train_from_config  # noqa: E402
 from hds.commands import before_hydra  # noqa: E402
 from hds.config import Config, env_config, validate  # noqa: E402
 from hds.data import collect, initial_states  # noqa: E402
@@ -52,7 +52,7 @@ def record(cfg: Config, env, plant, params, key, scale: float, env_cfg=None) -> 
     k_deploy, k_excite, k_u = jax.random.split(key, 3)
     horizon = env.task.horizon
     first = jax.tree.map(lambda x: x[0], params)
-    act = jax.jit(make_train(cfg, env).policy.apply)
+    act = jax.jit(make_train_from_config(cfg, env).policy.apply)
     q0, qd0 = initial_states(env.task, k_deploy, cfg.loop.deploy_episodes)
     deployed = collect(plant, env.task, q0, qd0, lambda o: np.asarray(act(first, o)), horizon)
     excitation = dataclasses.replace(

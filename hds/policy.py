@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from hds.algo.pods import make_train
+from hds.algo.pods import make_train_from_config
 from hds.checkpoint import Checkpoints
 from hds.config import Config, EnvConfig, RealConfig, load_config, run_label
 from hds.data import initial_states
@@ -168,7 +168,7 @@ def load_policy(run_dir: str | Path, method: str | None = None, seed: int | None
             "choose one with method=..., or train the run first"
         )
     index = _pick_run(cfg, seed, setting)
-    trainer = make_train(cfg, make_env(cfg.env))
+    trainer = make_train_from_config(cfg, make_env(cfg.env))
     state, _ = Checkpoints(root / method).restore(abstract_state(cfg, trainer))
     epoch = int(state.epoch[index])
     if epoch < cfg.algo.epochs:

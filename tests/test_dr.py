@@ -7,7 +7,7 @@ import jax
 import numpy as np
 import pytest
 
-from hds.algo.pods import make_train
+from hds.algo.pods import make_train_from_config
 from hds.algo.randomize import effect_ranges, randomized_env, sample_effects
 from hds.envs import make_env
 from tests.conftest import make_config
@@ -59,7 +59,7 @@ def test_dr_without_valid_ranges_is_refused(overrides, message):
 
 def _trained(cfg, env):
     """A trainer's compiled `train` for one seed: hparams -> (policy, training returns)."""
-    trainer = make_train(cfg, env)
+    trainer = make_train_from_config(cfg, env)
     train = jax.jit(lambda h: trainer.train(jax.random.PRNGKey(3), h))
 
     def run(hparams_of=lambda h: h):

@@ -5,6 +5,8 @@ jitted epoch, from the epoch's key). The simulator's own effects (env.effects) k
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 
@@ -44,3 +46,17 @@ def sample_effects(key, low, high, count: int):
         for k, lo, hi in zip(keys, leaves, jax.tree.leaves(high))
     ]
     return jax.tree.unflatten(tree, draws)
+
+
+class Randomization(NamedTuple):
+    """Domain randomization as a trainer's part: every simulator rollout draws its effect
+    parameters from `ranges` ((low, high), as `effect_ranges` gives them; the trainer's
+    hparams["effect_ranges"], so they may be swept)."""
+
+    ranges: tuple
+
+    def hparams(self) -> dict:
+        return {"effect_ranges": self.ranges}
+
+    def draw(self, key, hparams, count: int):
+        return sample_effects(key, *hparams["effect_ranges"], count)
