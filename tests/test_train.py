@@ -12,11 +12,22 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
-from hds.algo.pods import make_train_from_config
+from hds.algo.continuation import Continuation
+from hds.algo.improve import ImproveSettings
+from hds.algo.pods import (
+    Budget,
+    Exploration,
+    Improvement,
+    Regression,
+    make_train,
+    make_train_from_config,
+)
 from hds.envs import make_env
 from hds.evaluation import Evaluator
+from hds.networks import make_policy
 from tests.conftest import ROOT, make_config, trained
 
 # Small budgets on the analytic backend, which compiles in seconds (tests/test_analytic.py
@@ -53,6 +64,28 @@ def test_pods_improves_the_return(setup):
     assert np.all(r1 > r0 + 0.1 * np.abs(r0)), (r0, r1)
     assert np.all(np.asarray(metrics["accepted"]) > 0)
     assert int(np.sum(metrics["skipped"])) == 0
+
+
+def test_a_trainer_built_from_its_parts_trains_as_the_config_s(setup):
+    """make_train's parts written by hand for TINY's settings (open-loop PODS, line search, no
+    noise, no continuation: docs/trainer.md) make the trainer make_train_from_config builds:
+    the same policies to the last bit."""
+    cfg, env, _, _, keys, state, _ = setup
+    epochs = cfg.algo.epochs
+    trainer = make_train(
+        env=env,
+        policy=make_policy([64, 64], env.sim),
+        improvement=Improvement(
+            ImproveSettings("first", 1e3, 1e-3, 8, "line_search"), step_size=0.02
+        ),
+        regression=Regression(optax.adam(1e-3), inner_epochs=4, minibatch=256, early_stop=0.0),
+        continuation=Continuation(epochs, horizon=env.task.horizon),
+        exploration=Exploration(lambda scale, decay: lambda epoch: jnp.zeros(()), scale=0.0),
+        budget=Budget(epochs, rollouts=16, chunk=3),
+    )
+    built, _ = jax.jit(jax.vmap(trainer.train, in_axes=(0, None)))(keys, trainer.default_hparams)
+    for a, b in zip(jax.tree.leaves(built.policy), jax.tree.leaves(state.policy), strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.slow  # make test-slow: keeps make test under 10 min cold
