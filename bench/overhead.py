@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from bench.common import REFERENCE, best_of, block, compose, steps_per_epoch, timed
-from hds.algo.pods import make_train
+from hds.algo.pods import make_train_from_config
 
 DEFAULT_BUDGET = {
     "backends": ["analytic", "generalized"],
@@ -44,7 +44,7 @@ def setup(backend: str, budget: dict):
         f"algo.chunk={budget['chunk']}",
     )
     env = make_env(cfg.env)
-    return cfg, env, make_train(cfg, env)
+    return cfg, env, make_train_from_config(cfg, env)
 
 
 def sample_batch(cfg, env, trainer, key):
@@ -196,7 +196,7 @@ def measure(backend: str, budget: dict) -> dict:
     if parts:
         no_stop = dataclasses.replace(cfg, algo=dataclasses.replace(cfg.algo, early_stop=-jnp.inf))
         every_epoch = time_trainer_epoch(
-            make_train(no_stop, env), state, max(1, budget["repeats"] // 2)
+            make_train_from_config(no_stop, env), state, max(1, budget["repeats"] // 2)
         )
         flops = regression_flops(
             state.policy,

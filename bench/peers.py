@@ -132,7 +132,7 @@ def task_env(task: str, budget: dict):
 # ------------------------------------------------------------------------------------ PODS, HDS
 def pods_curve(method: str, task: str, budget: dict, seed: int) -> dict:
     """PODS or HDS (the method presets), one compiled epoch at a time, evaluated after each."""
-    from hds.algo.pods import make_train
+    from hds.algo.pods import make_train_from_config
     from hds.envs import make_env
 
     clock = Clock()
@@ -144,7 +144,7 @@ def pods_curve(method: str, task: str, budget: dict, seed: int) -> dict:
         "algo.chunk=1",
     )
     env = make_env(cfg.env)
-    trainer = make_train(cfg, env)
+    trainer = make_train_from_config(cfg, env)
     hparams = trainer.default_hparams
     state = jax.jit(trainer.init)(jax.random.PRNGKey(seed), hparams)
     epoch = jax.jit(trainer.run_chunk).lower(state, hparams).compile()

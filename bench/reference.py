@@ -67,12 +67,12 @@ class Evaluations:
 def train_timed(cfg) -> dict:
     """Build, trace, compile and run one training; returns timings, the compiled program and
     the trained state of seed `cfg.seed`."""
-    from hds.algo.pods import make_train
+    from hds.algo.pods import make_train_from_config
     from hds.envs import make_env
 
     with timed() as build:
         env = make_env(cfg.env)
-        trainer = make_train(cfg, env)
+        trainer = make_train_from_config(cfg, env)
     key, hparams = jax.random.PRNGKey(cfg.seed), trainer.default_hparams
     with timed() as trace:
         lowered = jax.jit(trainer.train).lower(key, hparams)

@@ -64,14 +64,14 @@ def train(spec: dict) -> dict:
         from hds.utils.runtime import enable_compilation_cache
 
         enable_compilation_cache(spec["cache"])
-    from hds.algo.pods import make_train
+    from hds.algo.pods import make_train_from_config
     from hds.envs import make_env
 
     import_s = time.perf_counter() - _START
     with timed() as build:
         cfg = compose(*spec["overrides"])
         env = make_env(cfg.env)
-        trainer = make_train(cfg, env)
+        trainer = make_train_from_config(cfg, env)
     rss_built = peak_rss_mb()
     seeds = int(spec.get("seeds", 1))
     keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(seeds))
@@ -171,7 +171,7 @@ def programs(spec: dict) -> dict:
     import jax
 
     from hds import experiment
-    from hds.algo.pods import make_train
+    from hds.algo.pods import make_train_from_config
     from hds.envs import make_env
     from hds.utils.runtime import enable_compilation_cache
 
@@ -188,7 +188,7 @@ def programs(spec: dict) -> dict:
     dispatch.removeHandler(handler)
     # the trainer's program of the configuration's first method: its size (XLA's compile comes
     # from the persistent cache the run filled; tracing and lowering are done again)
-    trainer = make_train(cfg, make_env(cfg.env))
+    trainer = make_train_from_config(cfg, make_env(cfg.env))
     state = jax.eval_shape(trainer.init, jax.random.PRNGKey(0), trainer.default_hparams)
     size = hlo_size(jax.jit(trainer.run_chunk).lower(state, trainer.default_hparams))
     return {

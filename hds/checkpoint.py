@@ -6,7 +6,10 @@ atomic write) is skipped with a warning naming it and why, and the one before it
 training, which writes that epoch again, deletes it (a reader, such as `load_policy`, does
 not).
 A checkpoint whose arrays do not fit the state (another network, batch or optimizer) is not
-damaged: restoring it is refused, naming the arrays that differ."""
+damaged: restoring it is refused, naming the arrays that differ. One written by hds before the
+train state had one structure for every configuration stored only the `progress` arrays its
+configuration used: the others (which that configuration does not read) restore at the
+state's own values (zeros where the state is abstract)."""
 
 from __future__ import annotations
 
@@ -20,6 +23,9 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 log = logging.getLogger("hds")
+
+# arrays under these names (TrainState.progress) an older checkpoint may lack
+OPTIONAL = ("progress.",)
 
 
 class Checkpoints:
@@ -86,7 +92,7 @@ class Checkpoints:
             try:
                 stored = self.manager.item_metadata(step)["state"]
                 self._check_structure(step, stored, abstract)
-                return self._restore_by_name(step, stored, abstract)
+                return self._restore_by_name(step, stored, like)
             except StructureError:
                 raise
             except Exception as err:  # TensorStore and Orbax raise many types for a bad file
@@ -134,13 +140,14 @@ class Checkpoints:
                 log.warning("checkpoint %s/%d cannot be read (%s)", self.directory, step, reason)
         raise ValueError(f"no checkpoint in {self.directory} can be read (the last: {reason})")
 
-    def _restore_by_name(self, step: int, stored, abstract):
+    def _restore_by_name(self, step: int, stored, like):
         """Restore into the stored tree's own containers (`stored`: its metadata), then move
-        each array to the leaf of `abstract` of the same name (_check_structure: the names
-        match), so a field that holds no arrays (an unused TrainState.progress) does not make
-        older checkpoints unreadable."""
-        by_name = {_name(path): x for path, x in jax.tree.leaves_with_path(abstract)}
-        target = jax.tree.map(lambda leaf: by_name[leaf.name], stored.tree)
+        each array to the leaf of `like` of the same name (_check_structure: the names
+        match), so a field that holds no arrays does not make older checkpoints unreadable;
+        an OPTIONAL array the checkpoint lacks takes `like`'s value."""
+        by_name = {_name(path): x for path, x in jax.tree.leaves_with_path(like)}
+        abstract = {k: ocp.utils.to_shape_dtype_struct(x) for k, x in by_name.items()}
+        target = jax.tree.map(lambda leaf: abstract[leaf.name], stored.tree)
         restored = self.manager.restore(
             step,
             args=ocp.args.Composite(
@@ -148,14 +155,15 @@ class Checkpoints:
             ),
         )
         arrays = {_name(path): x for path, x in jax.tree.leaves_with_path(restored.state)}
-        leaves = [arrays[name] for name in by_name]
-        return jax.tree.unflatten(jax.tree.structure(abstract), leaves), restored.meta
+        leaves = [arrays[k] if k in arrays else _value(x) for k, x in by_name.items()]
+        return jax.tree.unflatten(jax.tree.structure(like), leaves), restored.meta
 
     def _check_structure(self, step: int, stored, abstract) -> None:
         """Refuse a checkpoint whose arrays (`stored`: its metadata) are not the state's:
         another configuration's."""
         stored = {leaf.name: tuple(leaf.shape) for leaf in jax.tree.leaves(stored)}
         wanted = {_name(path): tuple(x.shape) for path, x in jax.tree.leaves_with_path(abstract)}
+        wanted = {k: v for k, v in wanted.items() if k in stored or not k.startswith(OPTIONAL)}
         if stored != wanted:
             differ = sorted(
                 f"{k} {stored.get(k, '(absent)')} -> {wanted.get(k, '(absent)')}"
@@ -175,6 +183,13 @@ class Checkpoints:
 
 class StructureError(ValueError):
     """A checkpoint's arrays are not the restored state's."""
+
+
+def _value(x):
+    """A leaf's value: its own, or zeros of its shape where it is abstract."""
+    if isinstance(x, jax.ShapeDtypeStruct):
+        return jax.numpy.zeros(x.shape, x.dtype)
+    return x
 
 
 def _name(path) -> str:

@@ -31,7 +31,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from hds import plots, policy_store, simulators
-from hds.algo.pods import Trainer, make_train
+from hds.algo.pods import Trainer, make_train_from_config
 from hds.animate import animate_episodes
 from hds.checkpoint import Checkpoints
 from hds.config import Config, env_config
@@ -253,7 +253,7 @@ def train(
     policies of every run, stacked) warm-starts it. The returned policies are saved to
     out_dir/policies/<method> (hds.policy_store), what `hds.load_policy` reads."""
     hooks = hooks or Hooks()
-    trainer = make_train(cfg, env, model, randomization)
+    trainer = make_train_from_config(cfg, env, model, randomization)
     hparams = batch_hparams(cfg, trainer, effects)
     init, run_chunk, keys, hparams = compiled_programs(cfg, trainer, hparams)
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hds import simulators
-from hds.algo.pods import make_train
+from hds.algo.pods import make_train_from_config
 from hds.algo.randomize import effect_ranges, randomized_env, sample_effects
 from hds.envs import make_env
 from tests.conftest import make_config
@@ -60,7 +60,7 @@ def test_dr_without_valid_ranges_is_refused(overrides, message):
 
 def _trained(cfg, env, randomization=None):
     """A trainer's compiled `train` for one seed: hparams -> (policy, training returns)."""
-    trainer = make_train(cfg, env, randomization=randomization)
+    trainer = make_train_from_config(cfg, env, randomization=randomization)
     train = jax.jit(lambda h: trainer.train(jax.random.PRNGKey(3), h))
 
     def run(hparams_of=lambda h: h):

@@ -298,11 +298,11 @@ def test_dynamics_configs_compose_and_bad_values_are_named():
 
 
 def test_a_model_drives_rollouts_inside_the_trainer(setup, fitted):
-    from hds.algo.pods import make_train
+    from hds.algo.pods import make_train_from_config
 
     cfg, env, *_ = setup
     model, _ = fitted("ensemble")
-    trainer = make_train(cfg, env, model)
+    trainer = make_train_from_config(cfg, env, model)
     hparams = trainer.default_hparams
     key = jax.random.PRNGKey(0)
     before = trainer.init(key, hparams).policy
@@ -316,7 +316,7 @@ def test_a_model_drives_rollouts_inside_the_trainer(setup, fitted):
     ]
     assert all(changed)
     # the model's share of the rollouts matters: without it (the same keys) training differs
-    alone = make_train(cfg, env)
+    alone = make_train_from_config(cfg, env)
     state_alone, _ = jax.jit(alone.train)(key, alone.default_hparams)
     first, first_alone = jax.tree.leaves(state.policy)[0], jax.tree.leaves(state_alone.policy)[0]
     assert not np.allclose(first, first_alone)
@@ -343,14 +343,14 @@ def test_branched_model_rollouts_start_from_states_the_used_simulator_rollouts_v
 def test_branched_model_rollouts_drive_the_trainer(setup, fitted):
     """dynamics.branch=5 (of a 10-step horizon): training through the model stays finite,
     and its short rollouts from simulator states train otherwise than whole ones."""
-    from hds.algo.pods import make_train
+    from hds.algo.pods import make_train_from_config
 
     cfg, env, *_ = setup
     model, _ = fitted("ensemble")
     key = jax.random.PRNGKey(0)
     results = {}
     for branch in (0, 5):
-        trainer = make_train(
+        trainer = make_train_from_config(
             replace(cfg, dynamics=replace(cfg.dynamics, branch=branch)), env, model
         )
         state, metrics = jax.jit(trainer.train)(key, trainer.default_hparams)

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from conftest import make_config
 
-from hds.algo.pods import make_train
+from hds.algo.pods import make_train_from_config
 from hds.effects import LIBRARY, Effect, Param, place, register
 from hds.effects.base import JOINT, SUBSTEP
 from hds.envs import make_env
@@ -131,7 +131,7 @@ def test_pods_trains_with_it_and_the_policy_holds_on_the_plant():
     plant carrying it too (and nothing else): the policy improves on both."""
     cfg = make_config(*TINY, f"env.effects=[{TOY}]", "real=mujoco", f"real.effects=[{TOY}]")
     env = make_env(cfg.env)
-    trainer = make_train(cfg, env)
+    trainer = make_train_from_config(cfg, env)
     keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(2))
     state, _ = jax.jit(jax.vmap(trainer.train, in_axes=(0, None)))(keys, trainer.default_hparams)
     before = jax.vmap(trainer.init, in_axes=(0, None))(keys, trainer.default_hparams).policy

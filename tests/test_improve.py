@@ -224,7 +224,7 @@ def test_an_improvement_horizon_counts_only_its_first_steps(closed_loop, order):
 
 
 def test_the_improvement_horizon_grows_from_its_start_to_the_whole_horizon():
-    from hds.anneal import counted_steps
+    from hds.algo.continuation import counted_steps
 
     masks = [counted_steps(jnp.int32(e), 10, 20.0, 100) for e in (0, 10, 20, 30)]
     assert [int(m.sum()) for m in masks] == [10, 55, 100, 100]

@@ -84,9 +84,9 @@ def test_active_excitation_pushes_harder_within_the_actuator_range():
     )
     env = make_env(cfg.env)
     plant = run_plants(cfg)[0]
-    from hds.algo.pods import make_train
+    from hds.algo.pods import make_train_from_config
 
-    trainer = make_train(cfg, env)
+    trainer = make_train_from_config(cfg, env)
     params = jax.vmap(trainer.init, in_axes=(0, None))(
         jax.random.split(jax.random.PRNGKey(0), 1), trainer.default_hparams
     ).policy
@@ -234,9 +234,9 @@ DESIGNED = ("discover.excitation=designed", "loop.deploy_episodes=1", "loop.exci
 
 
 def untrained_policy(cfg, env):
-    from hds.algo.pods import make_train
+    from hds.algo.pods import make_train_from_config
 
-    trainer = make_train(cfg, env)
+    trainer = make_train_from_config(cfg, env)
     return jax.vmap(trainer.init, in_axes=(0, None))(
         jax.random.split(jax.random.PRNGKey(0), 1), trainer.default_hparams
     ).policy

@@ -20,7 +20,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from hds import experiment, rundir
-from hds.algo.pods import make_train
+from hds.algo.pods import make_train_from_config
 from hds.callbacks import StartChecks
 from hds.checkpoint import Checkpoints
 from hds.data import Dataset, validate
@@ -160,7 +160,7 @@ def test_reading_past_a_corrupt_checkpoint_leaves_it_in_place(uninterrupted, tmp
     for data in (directory / str(cfg.algo.epochs)).glob("state/**/d/*"):
         os.truncate(data, data.stat().st_size // 2)
     checkpoints = Checkpoints(directory)
-    like = experiment.abstract_state(cfg, make_train(cfg, env))
+    like = experiment.abstract_state(cfg, make_train_from_config(cfg, env))
     state, _ = checkpoints.restore(like)
     assert int(state.epoch[0]) == 2 and "reading checkpoint 2" in caplog.text
     assert checkpoints.latest() == cfg.algo.epochs  # still there
@@ -170,7 +170,7 @@ def test_reading_past_a_corrupt_checkpoint_leaves_it_in_place(uninterrupted, tmp
 def test_a_checkpoint_of_another_network_is_named_as_such(uninterrupted):
     _, env, out, *_ = uninterrupted
     other = make_config(*S, "algo.hidden=[32]")
-    trainer = make_train(other, env)
+    trainer = make_train_from_config(other, env)
     one_run = jax.tree.map(lambda x: x[None], trainer.default_hparams)
     like = jax.eval_shape(jax.vmap(trainer.init), jax.random.PRNGKey(0)[None], one_run)
     checkpoints = Checkpoints(out / "checkpoints" / "pods")
@@ -301,18 +301,28 @@ def test_a_launcher_timeout_of_zero_is_refused_before_the_sweep(tmp_path):
         StartChecks().on_multirun_start(config)
 
 
-def test_a_checkpoint_written_before_a_field_without_arrays_existed_restores(tmp_path):
-    """TrainState.progress is empty where a configuration tracks nothing: checkpoints written
-    before the field existed (the same arrays, without it) restore into today's state."""
+def test_a_checkpoint_written_before_progress_had_one_structure_restores(tmp_path):
+    """Checkpoints written before TrainState.progress had one structure for every
+    configuration hold only the progress arrays their configuration used (none, or keep-best's
+    two): they restore into today's state, the arrays they lack at the state's own values."""
+    from hds.algo.continuation import Continuation
     from hds.algo.pods import TrainState
 
-    state = TrainState({"w": jnp.arange(3.0)}, (jnp.zeros(2),), jnp.array(4), jax.random.PRNGKey(1))
-    before = {"policy": state.policy, "opt_state": state.opt_state, "epoch": state.epoch}
+    policy = {"w": jnp.arange(3.0)}
+    progress = Continuation(epochs=6).init(policy)
+    state = TrainState(policy, (jnp.zeros(2),), jnp.array(4), jax.random.PRNGKey(1), progress)
+    plain = {"policy": policy, "opt_state": state.opt_state, "epoch": state.epoch}
+    plain |= {"key": state.key}
+    kept = plain | {"progress": {"best": {"w": jnp.arange(3.0) + 1}, "best_return": 2.0}}
     ckpt = Checkpoints(tmp_path / "ckpt")
-    ckpt.save(4, before | {"key": state.key}, {"history": {}})
-    restored, meta = ckpt.restore(state)
+    ckpt.save(4, plain, {"history": {}})
+    ckpt.save(5, kept, {"history": {}})
+    restored, meta = ckpt.restore(state, epoch=4)
+    restored_kept, _ = ckpt.restore(state, epoch=5)
     ckpt.close()
-    assert isinstance(restored, TrainState) and restored.progress == {}
-    assert meta == {"history": {}}
+    assert isinstance(restored, TrainState) and meta == {"history": {}}
     for a, b in zip(jax.tree.leaves(restored), jax.tree.leaves(state), strict=True):
         np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(restored_kept.progress.best["w"], [1.0, 2.0, 3.0])
+    assert float(restored_kept.progress.best_return) == 2.0
+    assert int(restored_kept.progress.solved) == 6  # the state's own: not yet solved

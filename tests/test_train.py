@@ -12,11 +12,22 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
-from hds.algo.pods import make_train
+from hds.algo.continuation import Continuation
+from hds.algo.improve import ImproveSettings
+from hds.algo.pods import (
+    Budget,
+    Exploration,
+    Improvement,
+    Regression,
+    make_train,
+    make_train_from_config,
+)
 from hds.envs import make_env
 from hds.evaluation import Evaluator
+from hds.networks import make_policy
 from tests.conftest import ROOT, make_config, trained
 
 # Small budgets on the analytic backend, which compiles in seconds (tests/test_analytic.py
@@ -37,7 +48,7 @@ TINY = (
 def setup():
     cfg = make_config(*TINY)
     env = make_env(cfg.env)
-    trainer = make_train(cfg, env)
+    trainer = make_train_from_config(cfg, env)
     train = jax.jit(jax.vmap(trainer.train, in_axes=(0, None)))
     keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(2))
     state, metrics = train(keys, trainer.default_hparams)
@@ -55,13 +66,35 @@ def test_pods_improves_the_return(setup):
     assert int(np.sum(metrics["skipped"])) == 0
 
 
+def test_a_trainer_built_from_its_parts_trains_as_the_config_s(setup):
+    """make_train's parts written by hand for TINY's settings (open-loop PODS, line search, no
+    noise, no continuation: docs/trainer.md) make the trainer make_train_from_config builds:
+    the same policies to the last bit."""
+    cfg, env, _, _, keys, state, _ = setup
+    epochs = cfg.algo.epochs
+    trainer = make_train(
+        env=env,
+        policy=make_policy([64, 64], env.sim),
+        improvement=Improvement(
+            ImproveSettings("first", 1e3, 1e-3, 8, "line_search"), step_size=0.02
+        ),
+        regression=Regression(optax.adam(1e-3), inner_epochs=4, minibatch=256, early_stop=0.0),
+        continuation=Continuation(epochs, horizon=env.task.horizon),
+        exploration=Exploration(lambda scale, decay: lambda epoch: jnp.zeros(()), scale=0.0),
+        budget=Budget(epochs, rollouts=16, chunk=3),
+    )
+    built, _ = jax.jit(jax.vmap(trainer.train, in_axes=(0, None)))(keys, trainer.default_hparams)
+    for a, b in zip(jax.tree.leaves(built.policy), jax.tree.leaves(state.policy), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 @pytest.mark.slow  # make test-slow: keeps make test under 10 min cold
 def test_more_improvement_steps_reach_better_targets(setup):
     """algo.improve_steps: further line-searched steps from the improved actions. The first
     epoch starts from the same rollouts, and the line search accepts only improvements, so
     every sequence ends at least as high as after one step."""
     cfg, env, trainer, _, keys, _, metrics = setup
-    more = make_train(make_config(*TINY, "algo.improve_steps=3"), env)
+    more = make_train_from_config(make_config(*TINY, "algo.improve_steps=3"), env)
     _, more_metrics = jax.jit(jax.vmap(more.run_chunk, in_axes=(0, None)))(
         jax.vmap(more.init, in_axes=(0, None))(keys, more.default_hparams), more.default_hparams
     )
@@ -83,7 +116,7 @@ def test_closed_loop_improvement_trains_and_never_accepts_worse(setup):
 
     cfg, env, *_ = setup
     closed_cfg = make_config(*TINY, "algo.improve_in=closed_loop", "algo.epochs=30")
-    trainer = make_train(closed_cfg, env)
+    trainer = make_train_from_config(closed_cfg, env)
     keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(2))
     state, metrics = jax.jit(jax.vmap(trainer.train, in_axes=(0, None)))(
         keys, trainer.default_hparams
@@ -160,7 +193,7 @@ class PoisonedEnv:
 
 def test_a_nan_gradient_is_skipped_and_counted(setup):
     cfg, env = setup[0], setup[1]
-    trainer = make_train(cfg, PoisonedEnv(env))
+    trainer = make_train_from_config(cfg, PoisonedEnv(env))
     state, metrics = jax.jit(trainer.train)(jax.random.PRNGKey(0), trainer.default_hparams)
     skipped = np.asarray(metrics["skipped"])
     assert np.all(skipped > 0) and np.all(skipped < cfg.algo.rollouts)
@@ -321,7 +354,7 @@ def test_a_surrogate_friction_gradient_keeps_the_sharp_value():
 
 
 def test_the_effect_ramp_grows_effects_from_nominal_to_their_values(cartpole_cfg):
-    from hds.anneal import effect_ramp
+    from hds.algo.continuation import effect_ramp
 
     effects = [
         {"name": "coulomb_friction", "target": "slider", "params": {"force": 20.0}},
@@ -346,7 +379,7 @@ def _ramped_training(*overrides):
     cfg = make_config(
         *TINY, "algo.epochs=10", "algo.chunk=1", "anneal.effect_ramp=[0.2,0.4]", *overrides
     )
-    trainer = make_train(cfg, make_env(cfg.env))
+    trainer = make_train_from_config(cfg, make_env(cfg.env))
     run = jax.jit(trainer.run_chunk)
     state = trainer.init(jax.random.PRNGKey(0), trainer.default_hparams)
     states, chunks = [], []

@@ -379,13 +379,13 @@ def test_a_short_training_improves_the_return():
     cart-pole (one system: a trainer's compile is the cost; at this budget the Furuta balance
     and acrobot swing-up returns barely move: experiments/systems/README.md)."""
     task = "double_cartpole_balance"
-    from hds.algo.pods import make_train
+    from hds.algo.pods import make_train_from_config
     from hds.envs import make_env
     from hds.evaluation import Evaluator
 
     cfg = make_config(f"env={task}", *TINY)
     env = make_env(cfg.env)
-    trainer = make_train(cfg, env)
+    trainer = make_train_from_config(cfg, env)
     keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(2))
     state, _ = jax.jit(jax.vmap(trainer.train, in_axes=(0, None)))(keys, trainer.default_hparams)
     evaluator = Evaluator(env, trainer.policy, plant=None, episodes=16)
@@ -412,7 +412,7 @@ def test_the_acrobot_learns_only_when_its_cost_reads_the_links_world_angles():
     """Costing the elbow's own angle makes hanging still a local optimum: every bend of the
     elbow, which pumping needs, costs. With the links' world angles the return moves (measured,
     2 seeds: -4,198 to -3,647; with joint angles -2,999 stays -2,999)."""
-    from hds.algo.pods import make_train
+    from hds.algo.pods import make_train_from_config
     from hds.envs import make_env
     from hds.evaluation import Evaluator
 
@@ -420,7 +420,7 @@ def test_the_acrobot_learns_only_when_its_cost_reads_the_links_world_angles():
     for angles in ("world", "joint"):
         cfg = make_config(*ACROBOT_SHORT, f"env.task.angles={angles}")
         env = make_env(cfg.env)
-        trainer = make_train(cfg, env)
+        trainer = make_train_from_config(cfg, env)
         keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(2))
         train = jax.jit(jax.vmap(trainer.train, in_axes=(0, None)))
         state, _ = train(keys, trainer.default_hparams)
@@ -435,7 +435,7 @@ def test_the_acrobot_learns_only_when_its_cost_reads_the_links_world_angles():
 def _furuta_balance_returns(*overrides):
     """The Furuta balance experiment's training at 50 epochs, seeds 0 and 1: their returns on
     16 states of the task's distribution."""
-    from hds.algo.pods import make_train
+    from hds.algo.pods import make_train_from_config
     from hds.envs import make_env
     from hds.evaluation import Evaluator
 
@@ -443,7 +443,7 @@ def _furuta_balance_returns(*overrides):
         "+experiment=furuta_balance", "algo.epochs=50", "anneal.horizon_full_at=0.8", *overrides
     )
     env = make_env(cfg.env)
-    trainer = make_train(cfg, env)
+    trainer = make_train_from_config(cfg, env)
     keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(2))
     state, _ = jax.jit(jax.vmap(trainer.train, in_axes=(0, None)))(keys, trainer.default_hparams)
     return Evaluator(env, trainer.policy, plant=None, episodes=16).sim_returns(state.policy)

@@ -2,9 +2,9 @@
 the effects of `dr.effects` drawn uniformly from their ranges (one draw per rollout, inside the
 jitted epoch, from the epoch's key). The simulator's own effects (env.effects) keep their values.
 
-As brax's `randomization_fn`, randomization is a function handed to the trainer
-(`make_train(cfg, env, randomization=randomization(cfg, env))`), not a flag it reads: the
-registry of simulator kinds (hds.simulators) builds it for `simulator=randomized`.
+As brax's `randomization_fn`, randomization is an object handed to the trainer
+(`make_train_from_config(cfg, env, randomization=randomization(cfg, env))`), not a flag it
+reads: the registry of simulator kinds (hds.simulators) builds it for `simulator=randomized`.
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ class Randomization:
     def hparams(self) -> dict:
         return {"effect_ranges": (self.low, self.high)}
 
-    def __call__(self, key, hparams, count: int):
+    def draw(self, key, hparams, count: int):
         """`count` draws of the effect parameters (stacked on axis 0), from hparams' ranges."""
         return sample_effects(key, *hparams["effect_ranges"], count)
 
