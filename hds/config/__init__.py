@@ -22,6 +22,7 @@ from hds.config.composition import (
 )
 from hds.config.schemas import (
     SEED_MAX,
+    SIMULATORS,
     SWEEP_KEYS,
     AlgoConfig,
     AnnealConfig,
@@ -71,6 +72,7 @@ __all__ = [
     "RangedEffectConfig",
     "RealConfig",
     "SEED_MAX",
+    "SIMULATORS",
     "SWEEP_KEYS",
     "SweepConfig",
     "TaskConfig",
