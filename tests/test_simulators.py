@@ -41,7 +41,7 @@ def test_each_kind_restores_what_its_method_trains_on():
     (middle,) = jax.tree.leaves(built.env.params)
     assert float(np.asarray(middle)) == pytest.approx(22.5)
     hparams = built.randomization.hparams()
-    (draws,) = jax.tree.leaves(built.randomization(jax.random.PRNGKey(0), hparams, 500))
+    (draws,) = jax.tree.leaves(built.randomization.draw(jax.random.PRNGKey(0), hparams, 500))
     assert draws.shape == (500,) and 5.0 <= draws.min() and draws.max() <= 40.0
 
 
