@@ -306,7 +306,10 @@ def test_friction_gain_and_delay_are_named_exactly(plants, task, env_cfg):
     assert_intervals_hold(result, hidden)
 
 
-@pytest.mark.parametrize("seed, noise", [(0, 0.0), (1, 0.003)])
+@pytest.mark.parametrize(
+    "seed, noise",
+    [(0, 0.0), pytest.param(1, 0.003, marks=pytest.mark.slow)],  # noisy: slow
+)
 def test_a_heavier_pole_and_a_damper_on_its_hinge_hiding_each_other_are_both_named(
     plants, task, env_cfg, seed, noise
 ):

@@ -94,6 +94,8 @@ def test_a_vmapped_sweep_gives_the_numbers_of_separate_runs(tmp_path, swept, set
     assert not np.allclose(history[metric][0], history[metric][1])
 
 
+# a swept value's numbers equal a separate run's, in make test: the step-size sweep above
+@pytest.mark.slow
 def test_a_vmapped_friction_gap_sweep_gives_the_numbers_of_separate_runs(tmp_path, capsys):
     """The oracle trains on each gap's dynamics and every run meets its own plant, in one
     program; the same numbers as one run per gap."""

@@ -391,6 +391,8 @@ def _ramped_training(*overrides):
     return trainer, state, states, metrics
 
 
+# the continuation's waiting on its own, without training: tests/test_continuation.py
+@pytest.mark.slow
 def test_the_ramp_waits_for_the_policy_to_solve_the_task():
     """anneal.ramp_when_solved: a policy that solves the task from the first epoch meets the
     effects on the configured ramp (epochs 2-4) when one solved epoch is enough, one epoch
@@ -404,6 +406,8 @@ def test_the_ramp_waits_for_the_policy_to_solve_the_task():
     np.testing.assert_allclose(never["ramp"], [0, 0, 0, 0, 0, 0, 0, 0, 0.5, 1])
 
 
+# the continuation's pausing on its own, without training: tests/test_continuation.py
+@pytest.mark.slow
 def test_a_pausing_ramp_stands_still_in_the_epochs_the_policy_fails():
     """anneal.ramp_pauses: once under way, the ramp advances after an epoch whose training
     return reaches env.task.solved_at and stands still after one that misses it, and still
