@@ -94,7 +94,8 @@ def improve(
     With `act` (the policy, o -> u), `actions` are perturbations of the closed loop,
     u_t = clip(act(o_t) + actions_t), and the return is differentiated through the policy's
     feedback (first order only); otherwise they are the open-loop controls (PODS). `counted`
-    ([T] weights, may be traced; anneal.counted_steps): weigh each step's reward; None: all."""
+    ([T] weights, may be traced; hds.algo.continuation.counted_steps): weigh each step's
+    reward; None: all."""
     if act is None:
         rewards = lambda a: trajectory(engine, params, task, state, a)[1]  # noqa: E731
     else:
