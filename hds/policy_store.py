@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hds.algo.continuation import kept_or_last
 from hds.checkpoint import Checkpoints
 from hds.networks import Policy
 from hds.utils.io import atomic_write_bytes, atomic_write_json, read_json
@@ -97,11 +98,6 @@ def from_checkpoint(directory: Path) -> tuple[dict, np.ndarray]:
     state, _ = Checkpoints(directory).restore_stored()
     params, progress = state["policy"], state.get("progress") or {}
     if "best" in progress:
-        found = np.asarray(progress["best_return"]) > -np.inf  # one per run
-
-        def pick(kept, last):
-            where = found.reshape(found.shape + (1,) * (np.ndim(kept) - found.ndim))
-            return np.where(where, kept, last)
-
-        params = jax.tree.map(pick, progress["best"], params)
+        kept = kept_or_last(progress["best"], progress["best_return"], params)
+        params = jax.tree.map(np.asarray, kept)
     return params, np.asarray(state["epoch"])

@@ -129,13 +129,19 @@ class Continuation:
         last; `progress` and `policy` may hold a batch of runs on axis 0."""
         if not self.keep_best:
             return policy
-        found = progress.best_return > -jnp.inf  # [] or one per run of a batch
+        return kept_or_last(progress.best, progress.best_return, policy)
 
-        def pick(kept, last):
-            where = found.reshape(found.shape + (1,) * (kept.ndim - found.ndim))
-            return jnp.where(where, kept, last)
 
-        return jax.tree.map(pick, progress.best, policy)
+def kept_or_last(best, best_return, policy):
+    """Each run's kept policy `best` where one was kept (`best_return` above -inf), else its
+    last `policy`; one run, or a batch of runs on axis 0."""
+    found = jnp.asarray(best_return) > -jnp.inf  # [] or one per run of a batch
+
+    def pick(kept, last):
+        where = found.reshape(found.shape + (1,) * (jnp.ndim(kept) - found.ndim))
+        return jnp.where(where, kept, last)
+
+    return jax.tree.map(pick, best, policy)
 
 
 def counted_steps(epoch, start: int, full_at: float, whole: int):
