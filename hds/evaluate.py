@@ -74,7 +74,7 @@ def through_model(policy, model_dir: Path, real_eval) -> dict:
     episodes on the plant (`real_eval`), and the model's k-step errors along those episodes
     (hds.dynamics.evaluate: model, constant velocity, simulator); printed and returned."""
     from hds import dynamics
-    from hds.evaluation import mean_ci
+    from hds.gap import mean_ci
 
     env = policy.simulator
     model = dynamics.load(model_dir, env)
@@ -110,7 +110,7 @@ def write_evaluation(
     from hds import plots
     from hds.animate import animate
     from hds.config import run_label
-    from hds.evaluation import mean_ci
+    from hds.gap import mean_ci
     from hds.policy import evaluate
     from hds.utils.io import atomic_write_json
 

@@ -37,7 +37,7 @@ from hds.checkpoint import Checkpoints
 from hds.config import Config, env_config
 from hds.effects.apply import applied
 from hds.envs import Env, make_env
-from hds.evaluation import Evaluator, diverged, gap_rows
+from hds.gap import Evaluator, diverged, gap_rows
 from hds.logger import RunLogger, print_table
 from hds.real import make_plant
 from hds.real.brax_plant import BraxPlant

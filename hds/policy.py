@@ -26,7 +26,7 @@ from hds.data import initial_states
 from hds.effects.apply import applied
 from hds.envs import Env, make_env
 from hds.envs.system import load_spec, resolve_xml
-from hds.evaluation import MeanCI, mean_ci
+from hds.gap import MeanCI, mean_ci
 from hds.networks import make_policy
 from hds.real import Episodes, make_plant, rollout
 from hds.utils.io import atomic_write_bytes, atomic_write_json

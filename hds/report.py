@@ -28,7 +28,7 @@ from hds import plots, story
 from hds.animate import animate_episodes
 from hds.config import load_config
 from hds.effects.apply import applied
-from hds.evaluation import mean_ci
+from hds.gap import mean_ci
 from hds.results import Row, Summary, rows_from_json
 from hds.utils import cli
 from hds.utils.io import atomic_write_bytes, read_json

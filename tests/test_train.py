@@ -26,7 +26,7 @@ from hds.algo.pods import (
     make_train_from_config,
 )
 from hds.envs import make_env
-from hds.evaluation import Evaluator
+from hds.gap import Evaluator
 from hds.networks import make_policy
 from tests.conftest import ROOT, make_config, trained
 
