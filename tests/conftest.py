@@ -76,10 +76,10 @@ def command_main(module: str):
 
 
 def trained(*args, **kwargs):
-    """(params, history) of hds.experiment.train(*args, **kwargs)."""
-    from hds.experiment import train
+    """(params, history) of hds.experiment.train_batch(*args, **kwargs)."""
+    from hds.experiment import train_batch
 
-    training = train(*args, **kwargs)
+    training = train_batch(*args, **kwargs)
     return training.params, training.history
 
 
