@@ -6,8 +6,8 @@ stays light for the command-line entry points:
     cfg = hds.compose(["method=pods_cl", "seeds=3"])      # a validated Config, no CLI needed
     result = hds.train(cfg)                                # a Result: rows, histories, run_dir
     policy = hds.load_policy(result.run_dir, seed=0)       # u = policy(obs)
-    hds.evaluate(policy, real=hds.compose(["real.friction_gap=2"]).real).mean_ci()
-    hds.export(policy, "exported/")                        # runs without JAX
+    hds.evaluate_policy(policy, real=hds.compose(["real.friction_gap=2"]).real).mean_ci()
+    hds.export_policy(policy, "exported/")                 # runs without JAX
 """
 
 import importlib
@@ -37,8 +37,8 @@ _API = {  # public name: (module, attribute)
     "Result": ("hds.experiment", "Result"),
     "load_policy": ("hds.policy", "load_policy"),
     "Policy": ("hds.policy", "Policy"),
-    "evaluate": ("hds.policy", "evaluate"),
-    "export": ("hds.policy", "export"),
+    "evaluate_policy": ("hds.policy", "evaluate_policy"),
+    "export_policy": ("hds.policy", "export_policy"),
 }
 __all__ = list(_API)
 

@@ -77,7 +77,7 @@ class Policy:
 
     def training_plant(self):
         """The simulator this policy trained on (nominal, corrected or the oracle's), as a
-        plant to evaluate on: `hds.evaluate(policy, plant=policy.training_plant())`."""
+        plant to evaluate on: `hds.evaluate_policy(policy, plant=policy.training_plant())`."""
         from hds.real.brax_plant import BraxPlant
 
         kind = simulators.of(self.config, self.method)
@@ -207,7 +207,7 @@ class Evaluation:
         }
 
 
-def evaluate(
+def evaluate_policy(
     policy: Policy,
     real: RealConfig | None = None,
     episodes: int | None = None,
@@ -250,7 +250,7 @@ def trained_on(policy: Policy) -> tuple[dict, EnvConfig, list[dict]]:
 # --- export --------------------------------------------------------------------------------------
 
 
-def export(policy: Policy, out_dir: str | Path, format: str = "json") -> Path:
+def export_policy(policy: Policy, out_dir: str | Path, format: str = "json") -> Path:
     """Write `policy` as a self-contained directory that runs without JAX: policy.npz (the
     weights), policy.json (the contract: observations, actions, control range, dt, how
     observations enter the network, what the policy trained on), the MJCF of the system it
