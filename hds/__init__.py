@@ -12,6 +12,7 @@ stays light for the command-line entry points:
 
 import importlib
 import os
+import warnings
 
 from omegaconf import OmegaConf
 
@@ -41,6 +42,10 @@ _API = {  # public name: (module, attribute)
     "export_policy": ("hds.policy", "export_policy"),
 }
 __all__ = list(_API)
+# the API's names until 2026-11-27, kept working with a DeprecationWarning: `hds.evaluate` and
+# `hds.export` are the commands' modules (`python -m hds.evaluate`), and importing one of them
+# makes it the attribute of that name, so the functions took names of their own
+_DEPRECATED = {"evaluate": "evaluate_policy", "export": "export_policy"}
 
 
 def __dir__() -> list[str]:
@@ -49,6 +54,11 @@ def __dir__() -> list[str]:
 
 
 def __getattr__(name: str):
+    if name in _DEPRECATED:
+        warnings.warn(
+            f"hds.{name} is deprecated: use hds.{_DEPRECATED[name]}", DeprecationWarning, 2
+        )
+        name = _DEPRECATED[name]
     if name not in _API:
         raise AttributeError(f"module 'hds' has no attribute '{name}'")
     module, attribute = _API[name]

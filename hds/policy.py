@@ -12,6 +12,7 @@ import functools
 import json
 import logging
 import shutil
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -339,3 +340,12 @@ def _npz(arrays: dict) -> bytes:
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     return buf.getvalue()
+
+
+def __getattr__(name: str):
+    """`evaluate` and `export`, the functions' names until 2026-11-27 (a DeprecationWarning)."""
+    renamed = {"evaluate": "evaluate_policy", "export": "export_policy"}
+    if name not in renamed:
+        raise AttributeError(f"module 'hds.policy' has no attribute '{name}'")
+    warnings.warn(f"hds.policy.{name} is deprecated: use {renamed[name]}", DeprecationWarning, 2)
+    return globals()[renamed[name]]

@@ -71,7 +71,7 @@ def make_config(*overrides: str, config_name: str = "config"):
 def command_main(module: str):
     """A command's main(argv), without importing its module under its name: `import
     hds.evaluate` would make the package's attribute `hds.evaluate` that module, hiding the
-    API function of the same name for the rest of the session (as `import hds.export`)."""
+    deprecated alias of hds.evaluate_policy for the rest of the session (as `import hds.export`)."""
     return runpy.run_module(module)["main"]
 
 

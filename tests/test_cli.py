@@ -547,6 +547,19 @@ def test_every_command_is_installed_as_a_script_whose_entry_imports():
     assert callable(hds.evaluate_policy) and callable(hds.export_policy)
 
 
+def test_the_api_s_old_names_of_evaluate_and_export_still_work_with_a_warning():
+    import hds
+    from hds import policy
+
+    for old, new in (("evaluate", "evaluate_policy"), ("export", "export_policy")):
+        with pytest.warns(DeprecationWarning, match=f"use hds.{new}"):
+            assert getattr(hds, old) is getattr(hds, new)
+        with pytest.warns(DeprecationWarning, match=f"use {new}"):
+            assert getattr(policy, old) is getattr(policy, new)
+    with pytest.raises(AttributeError):
+        policy.evaluation  # noqa: B018
+
+
 def test_a_script_runs_its_command_and_answers_in_one_line(tmp_path):
     """hds-export as installed (its entry function), in a process of its own."""
     code = "import sys; from hds.commands import export; sys.argv[0] = 'hds-export'; export()"
