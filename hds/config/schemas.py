@@ -35,8 +35,20 @@ def _backends() -> tuple[str, ...]:
     return BACKENDS
 
 
-def _default_candidates() -> list[str]:
-    return _effects_library().default_candidates()
+# discover.effects' default: the effect library's candidates not marked opt-in
+# (hds.effects.library.default_candidates), written out as plain data so that registering the
+# schemas (on `import hds.config`) imports no JAX; tests/test_config.py keeps the two the same
+DISCOVER_EFFECTS = (
+    "coulomb_friction",
+    "viscous_damping",
+    "actuator_gain",
+    "actuator_offset",
+    "actuator_deadzone",
+    "action_delay",
+    "actuator_lag",
+    "mass_scale",
+    "sensor_bias",
+)
 
 
 def _one_of(key: str, value: Any, allowed) -> None:
@@ -339,7 +351,7 @@ class DiscoverConfig:
     stride: int = 1  # a k-step window starts every `stride` steps
     warmup: int = 25  # past actions replayed into stateful effects (delay, lag) before a window
     max_delay: int = 5  # action delays of 1 .. max_delay steps are enumerated; 0: none
-    effects: list[str] = field(default_factory=_default_candidates)  # candidate effect types
+    effects: list[str] = field(default_factory=lambda: list(DISCOVER_EFFECTS))  # candidates
     max_effects: int = 4  # most effects named
     # Fits of up to b effects at once (the selected ones and a candidate) compile for b slots
     # for each b listed, and for max_effects: fewer sizes, fewer compiles; a slot more costs a
