@@ -16,6 +16,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCE = ROOT / "hds" / "config" / "schemas.py"
+KINDS_SOURCE = ROOT / "hds" / "config" / "kinds.py"  # the simulator kinds, declared by name
 CONF = ROOT / "hds" / "conf"
 MARKER = "<!-- config-reference -->"
 
@@ -34,7 +35,41 @@ def comments_by_line(text: str) -> dict[int, str]:
     return found
 
 
-def default_of(node: ast.expr | None) -> str:
+def constants_of(source: str) -> dict[str, list]:
+    """The schemas' module-level constants of literal value (DISCOVER_EFFECTS, ...), and
+    `kinds.KINDS`: the names hds/config/kinds.py declares, so the reference shows values."""
+    found = {}
+    for node in ast.parse(source).body:
+        if isinstance(node, ast.Assign) and len(node.targets) == 1:
+            try:
+                found[ast.unparse(node.targets[0])] = list(ast.literal_eval(node.value))
+            except (ValueError, TypeError):
+                pass
+    declared = [
+        call.args[0].value
+        for call in ast.walk(ast.parse(KINDS_SOURCE.read_text()))
+        if isinstance(call, ast.Call)
+        and ast.unparse(call.func) == "declare"
+        and call.args
+        and isinstance(call.args[0], ast.Constant)
+    ]
+    return found | {"kinds.KINDS": declared}
+
+
+def literal(node: ast.expr, constants: dict[str, list]) -> str | None:
+    """A literal, a constant or list(...)/tuple(...) of one, as the reference writes it."""
+    if isinstance(node, ast.Call) and ast.unparse(node.func) in ("list", "tuple"):
+        node = node.args[0] if len(node.args) == 1 else node
+    if ast.unparse(node) in constants:
+        return str(constants[ast.unparse(node)])
+    try:
+        value = ast.literal_eval(node)
+    except ValueError:
+        return None
+    return str(list(value)) if isinstance(value, (list, tuple)) else None
+
+
+def default_of(node: ast.expr | None, constants: dict[str, list] | None = None) -> str:
     if node is None:
         return "required"
     text = ast.unparse(node)
@@ -45,6 +80,8 @@ def default_of(node: ast.expr | None) -> str:
         for kw in call.keywords:
             if kw.arg == "default_factory":
                 value = kw.value.body if isinstance(kw.value, ast.Lambda) else kw.value
+                if (shown := literal(value, constants or {})) is not None:
+                    return shown
                 name = ast.unparse(value)
                 return {"list": "[]", "dict": "{}"}.get(name, f"{name.removesuffix('()')}()")
             if kw.arg == "default":
@@ -59,7 +96,7 @@ def default_of(node: ast.expr | None) -> str:
     return value if isinstance(value, str) else text
 
 
-def checks(cls: ast.ClassDef) -> dict[str, str]:
+def checks(cls: ast.ClassDef, constants: dict[str, list] | None = None) -> dict[str, str]:
     """What each key's check allows, from the `_one_of` / `_in_range` calls of `check()`."""
     allowed = {}
     for fn in cls.body:
@@ -71,7 +108,7 @@ def checks(cls: ast.ClassDef) -> dict[str, str]:
             if not call.args or not isinstance(call.args[0], ast.Constant):
                 continue
             key = str(call.args[0].value).split(".")[-1]
-            args = [ast.unparse(a) for a in call.args[2:]]
+            args = [literal(a, constants or {}) or ast.unparse(a) for a in call.args[2:]]
             if call.func.id == "_one_of" and args:
                 allowed[key] = f"one of {args[0]}"
             elif call.func.id == "_in_range" and args:
@@ -80,7 +117,7 @@ def checks(cls: ast.ClassDef) -> dict[str, str]:
     return allowed
 
 
-def fields(cls: ast.ClassDef, comments: dict[int, str]):
+def fields(cls: ast.ClassDef, comments: dict[int, str], constants: dict[str, list]):
     for stmt in cls.body:
         if not (isinstance(stmt, ast.AnnAssign) and isinstance(stmt.target, ast.Name)):
             continue
@@ -89,7 +126,8 @@ def fields(cls: ast.ClassDef, comments: dict[int, str]):
             above.insert(0, comments[line])
             line -= 1
         text = " ".join([*above, comments.get(stmt.end_lineno, "")]).strip()
-        yield stmt.target.id, ast.unparse(stmt.annotation), default_of(stmt.value), text
+        default = default_of(stmt.value, constants)
+        yield stmt.target.id, ast.unparse(stmt.annotation), default, text
 
 
 def schema_of(annotation: str, classes) -> tuple[str, str] | None:
@@ -111,6 +149,7 @@ def cell(text: str) -> str:
 def render(source: str) -> str:
     tree = ast.parse(source)
     comments = comments_by_line(source)
+    constants = constants_of(source)
     classes = {
         node.name: node
         for node in tree.body
@@ -134,9 +173,9 @@ def render(source: str) -> str:
         options = sorted(p.stem for p in (CONF / group).glob("*.yaml")) if group else []
         if options and path == group:
             out.append("Presets (`" + group + "=`): " + ", ".join(f"`{o}`" for o in options) + "\n")
-        allowed = checks(cls)
+        allowed = checks(cls, constants)
         rows, nested = [], []
-        for key, annotation, default, text in fields(cls, comments):
+        for key, annotation, default, text in fields(cls, comments, constants):
             inner = schema_of(annotation, classes)
             dotted = f"{path}.{key}" if path else key
             if inner:
@@ -164,7 +203,7 @@ def render(source: str) -> str:
         out.append("Every key above, and:\n")
         out.append("| key | type | default | allowed | what |")
         out.append("| --- | --- | --- | --- | --- |")
-        for key, annotation, default, text in fields(app, comments):
+        for key, annotation, default, text in fields(app, comments, constants):
             out.append(f"| `{key}` | `{cell(annotation)}` | `{cell(default)}` | | {cell(text)} |")
         out.append("")
         visit("EmpsConfig", "emps")

@@ -6,12 +6,13 @@ stays light for the command-line entry points:
     cfg = hds.compose(["method=pods_cl", "seeds=3"])      # a validated Config, no CLI needed
     result = hds.train(cfg)                                # a Result: rows, histories, run_dir
     policy = hds.load_policy(result.run_dir, seed=0)       # u = policy(obs)
-    hds.evaluate(policy, real=hds.compose(["real.friction_gap=2"]).real).mean_ci()
-    hds.export(policy, "exported/")                        # runs without JAX
+    hds.evaluate_policy(policy, real=hds.compose(["real.friction_gap=2"]).real).mean_ci()
+    hds.export_policy(policy, "exported/")                 # runs without JAX
 """
 
 import importlib
 import os
+import warnings
 
 from omegaconf import OmegaConf
 
@@ -37,10 +38,14 @@ _API = {  # public name: (module, attribute)
     "Result": ("hds.experiment", "Result"),
     "load_policy": ("hds.policy", "load_policy"),
     "Policy": ("hds.policy", "Policy"),
-    "evaluate": ("hds.policy", "evaluate"),
-    "export": ("hds.policy", "export"),
+    "evaluate_policy": ("hds.policy", "evaluate_policy"),
+    "export_policy": ("hds.policy", "export_policy"),
 }
 __all__ = list(_API)
+# the API's names until 2026-11-27, kept working with a DeprecationWarning: `hds.evaluate` and
+# `hds.export` are the commands' modules (`python -m hds.evaluate`), and importing one of them
+# makes it the attribute of that name, so the functions took names of their own
+_DEPRECATED = {"evaluate": "evaluate_policy", "export": "export_policy"}
 
 
 def __dir__() -> list[str]:
@@ -49,6 +54,11 @@ def __dir__() -> list[str]:
 
 
 def __getattr__(name: str):
+    if name in _DEPRECATED:
+        warnings.warn(
+            f"hds.{name} is deprecated: use hds.{_DEPRECATED[name]}", DeprecationWarning, 2
+        )
+        name = _DEPRECATED[name]
     if name not in _API:
         raise AttributeError(f"module 'hds' has no attribute '{name}'")
     module, attribute = _API[name]

@@ -5,7 +5,8 @@ hds.loop, hds.discover) check before Hydra composes anything (docs/cli.md).
 The Hydra commands (hds-run, hds-loop, hds-discover) call their module's checks and `main` in
 this process, so that Hydra's tab completion knows the script's name. The others run their
 module as `python -m` does (runpy, as `__main__`): no such module imported under its package
-name, where it would hide the API function of the same name (`hds.evaluate`, `hds.export`).
+name, where it would hide the deprecated API alias of the same name (`hds.evaluate`, now
+`hds.evaluate_policy`; `hds.export`, now `hds.export_policy`).
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ and sim_vs_real.gif into out= (default: <run dir>/evaluations/<plant>).
         'real.effects=[{name: actuator_gain, target: slide, params: {gain: 0.8}}]'
 
 The `real` overrides compose as they do for `python -m hds.run`; without them the run's own
-plant is used. (In Python: `hds.evaluate(policy, real=...)`, hds/policy.py.)
+plant is used. (In Python: `hds.evaluate_policy(policy, real=...)`, hds/policy.py.)
 
 `model=<dir>`, a learned dynamics model (an HDS run's <run dir>/dynamics), adds what HDS's
 rollouts through it meet: the policy's return run through the model from the same initial
@@ -51,7 +51,7 @@ def main(argv: list[str]) -> Path:
         raise ValueError(f"eval_seed = {args['eval_seed']} must lie in [0, {SEED_MAX}]")
     setting = {k: args.pop(k) for k in SWEEP_KEYS if k in args}
     from hds.config import compose
-    from hds.policy import evaluate, load_policy
+    from hds.policy import evaluate_policy, load_policy
     from hds.utils.runtime import enable_compilation_cache
 
     real = compose(real_overrides).real if real_overrides else None  # validated, before loading
@@ -60,7 +60,7 @@ def main(argv: list[str]) -> Path:
     name = re.sub(r"[^\w.=,-]+", "_", ",".join(real_overrides)) or "default"
     out = args.get("out") or args["run"] / "evaluations" / name
     episodes, seed = args.get("eval_episodes"), args.get("eval_seed")
-    real_eval = evaluate(policy, real, episodes, seed)
+    real_eval = evaluate_policy(policy, real, episodes, seed)
     extra = {}
     if args.get("model"):
         extra["model"] = through_model(policy, args["model"], real_eval)
@@ -74,7 +74,7 @@ def through_model(policy, model_dir: Path, real_eval) -> dict:
     episodes on the plant (`real_eval`), and the model's k-step errors along those episodes
     (hds.dynamics.evaluate: model, constant velocity, simulator); printed and returned."""
     from hds import dynamics
-    from hds.evaluation import mean_ci
+    from hds.gap import mean_ci
 
     env = policy.simulator
     model = dynamics.load(model_dir, env)
@@ -110,11 +110,11 @@ def write_evaluation(
     from hds import plots
     from hds.animate import animate
     from hds.config import run_label
-    from hds.evaluation import mean_ci
-    from hds.policy import evaluate
+    from hds.gap import mean_ci
+    from hds.policy import evaluate_policy
     from hds.utils.io import atomic_write_json
 
-    sim_eval = evaluate(policy, episodes=episodes, seed=seed, plant=policy.training_plant())
+    sim_eval = evaluate_policy(policy, episodes=episodes, seed=seed, plant=policy.training_plant())
     names, dt = policy.obs_names, policy.dt
     sim_obs, real_obs = sim_eval.episodes.obs[0], real_eval.episodes.obs[0]
     titles = (

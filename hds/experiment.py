@@ -37,7 +37,7 @@ from hds.checkpoint import Checkpoints
 from hds.config import Config, env_config
 from hds.effects.apply import applied
 from hds.envs import Env, make_env
-from hds.evaluation import Evaluator, diverged, gap_rows
+from hds.gap import Evaluator, diverged, gap_rows
 from hds.logger import RunLogger, print_table
 from hds.real import make_plant
 from hds.real.brax_plant import BraxPlant
@@ -59,7 +59,7 @@ __all__ = [
     "run_plants",
     "sim_vs_real_gif",
     "simulator_of",
-    "train",
+    "train_batch",
     "train_and_evaluate",
 ]
 
@@ -234,7 +234,7 @@ def abstract_state(cfg: Config, trainer: Trainer):
     return jax.eval_shape(jax.vmap(trainer.init), keys, hparams)
 
 
-def train(
+def train_batch(
     cfg: Config,
     env: Env,
     out_dir: Path,
@@ -379,7 +379,7 @@ def train_and_evaluate(
     loop's rounds and the discovery's retrain all train through this."""
     hooks = hooks or Hooks()
     with method_logger(cfg, out_dir, method, hooks) as logger:
-        training = train(
+        training = train_batch(
             cfg,
             simulator.env,
             out_dir,

@@ -9,7 +9,7 @@ of the system it trained on and numpy_policy.py:
 format=onnx also writes policy.onnx (input `obs`, output `action`), for onnxruntime and the
 robot stacks that load ONNX (docs/export.md).
 
-(In Python: `hds.export(policy, out_dir)`, hds/policy.py.)
+(In Python: `hds.export_policy(policy, out_dir)`, hds/policy.py.)
 """
 
 from __future__ import annotations
@@ -27,12 +27,12 @@ def main(argv: list[str]) -> Path:
     args, _ = cli.parse(argv, KEYS, "hds.export")
     setting = {k: args.pop(k) for k in SWEEP_KEYS if k in args}
     from hds.config import run_label
-    from hds.policy import check_format, export, load_policy
+    from hds.policy import check_format, export_policy, load_policy
 
     check_format(args.get("format", "json"))  # before a checkpoint is read
     policy = load_policy(args["run"], args.get("method"), args.get("seed"), **setting)
     out = args.get("out") or args["run"] / "export" / f"{policy.method}_{run_label(policy.run)}"
-    return export(policy, out, args.get("format", "json"))
+    return export_policy(policy, out, args.get("format", "json"))
 
 
 if __name__ == "__main__":

@@ -35,7 +35,7 @@ from hds.data.acquire import deployed_and_excited  # noqa: E402
 from hds.data.budget import check_planned  # noqa: E402
 from hds.data.format import Dataset, concatenate, load, save  # noqa: E402
 from hds.envs import make_env  # noqa: E402
-from hds.evaluation import mean_ci  # noqa: E402
+from hds.gap import mean_ci  # noqa: E402
 from hds.logger import print_table  # noqa: E402
 from hds.networks import make_policy  # noqa: E402
 from hds.simulators import Simulator  # noqa: E402

@@ -12,6 +12,7 @@ import functools
 import json
 import logging
 import shutil
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,7 +27,7 @@ from hds.data import initial_states
 from hds.effects.apply import applied
 from hds.envs import Env, make_env
 from hds.envs.system import load_spec, resolve_xml
-from hds.evaluation import MeanCI, mean_ci
+from hds.gap import MeanCI, mean_ci
 from hds.networks import make_policy
 from hds.real import Episodes, make_plant, rollout
 from hds.utils.io import atomic_write_bytes, atomic_write_json
@@ -77,7 +78,7 @@ class Policy:
 
     def training_plant(self):
         """The simulator this policy trained on (nominal, corrected or the oracle's), as a
-        plant to evaluate on: `hds.evaluate(policy, plant=policy.training_plant())`."""
+        plant to evaluate on: `hds.evaluate_policy(policy, plant=policy.training_plant())`."""
         from hds.real.brax_plant import BraxPlant
 
         kind = simulators.of(self.config, self.method)
@@ -207,7 +208,7 @@ class Evaluation:
         }
 
 
-def evaluate(
+def evaluate_policy(
     policy: Policy,
     real: RealConfig | None = None,
     episodes: int | None = None,
@@ -250,7 +251,7 @@ def trained_on(policy: Policy) -> tuple[dict, EnvConfig, list[dict]]:
 # --- export --------------------------------------------------------------------------------------
 
 
-def export(policy: Policy, out_dir: str | Path, format: str = "json") -> Path:
+def export_policy(policy: Policy, out_dir: str | Path, format: str = "json") -> Path:
     """Write `policy` as a self-contained directory that runs without JAX: policy.npz (the
     weights), policy.json (the contract: observations, actions, control range, dt, how
     observations enter the network, what the policy trained on), the MJCF of the system it
@@ -339,3 +340,12 @@ def _npz(arrays: dict) -> bytes:
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     return buf.getvalue()
+
+
+def __getattr__(name: str):
+    """`evaluate` and `export`, the functions' names until 2026-11-27 (a DeprecationWarning)."""
+    renamed = {"evaluate": "evaluate_policy", "export": "export_policy"}
+    if name not in renamed:
+        raise AttributeError(f"module 'hds.policy' has no attribute '{name}'")
+    warnings.warn(f"hds.policy.{name} is deprecated: use {renamed[name]}", DeprecationWarning, 2)
+    return globals()[renamed[name]]

@@ -28,7 +28,7 @@ from hds import plots, story
 from hds.animate import animate_episodes
 from hds.config import load_config
 from hds.effects.apply import applied
-from hds.evaluation import mean_ci
+from hds.gap import mean_ci
 from hds.results import Row, Summary, rows_from_json
 from hds.utils import cli
 from hds.utils.io import atomic_write_bytes, read_json
@@ -643,14 +643,14 @@ def animate_run(
     seed_index-th run of its batch) on the simulator it trained on beside the run's plant (or
     its eval_plants entry `eval_plant`), animated into out_dir (default: the run's plots/), its
     trajectories plotted beside."""
-    from hds.policy import evaluate, load_policy, run_config
+    from hds.policy import evaluate_policy, load_policy, run_config
 
     run_dir = Path(run_dir)
     cfg = run_config(run_dir)
     real_cfg = animated_plant(cfg, run_dir, eval_plant)
     policy = load_policy(run_dir, method, **cfg.runs()[seed_index])
-    sim = evaluate(policy, episodes=1, plant=policy.training_plant())
-    real = evaluate(policy, real_cfg, episodes=1)
+    sim = evaluate_policy(policy, episodes=1, plant=policy.training_plant())
+    real = evaluate_policy(policy, real_cfg, episodes=1)
     out = Path(out_dir or run_dir / "plots") / f"{policy.method}_sim_vs_real.gif"
     figure = plots.trajectories(
         sim.episodes.obs[0], real.episodes.obs[0], policy.obs_names, policy.dt

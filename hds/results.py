@@ -1,6 +1,6 @@
 """The typed results of an experiment: a `Row` per method and run of the batch, and the
 `Summary` of a run (what summary.json holds). Every writer builds them
-(`hds.evaluation.gap_rows`, `hds.experiment.run`) and every reader parses them (`hds.report`,
+(`hds.gap.gap_rows`, `hds.experiment.run`) and every reader parses them (`hds.report`,
 `hds.callbacks`, `hds.loop`, `hds.run`, `hds.logger`, `hds.story`) through `from_json`, so a
 result file's keys are spelled in one place.
 

@@ -26,8 +26,8 @@ from hds import rundir  # noqa: E402
 from hds.commands import before_hydra  # noqa: E402
 from hds.config import validate  # noqa: E402
 from hds.data.budget import check_planned  # noqa: E402
-from hds.evaluation import no_finite_result  # noqa: E402
 from hds.experiment import Hooks, run  # noqa: E402
+from hds.gap import no_finite_result  # noqa: E402
 from hds.simulators import method_name  # noqa: E402
 from hds.utils import cli  # noqa: E402
 from hds.utils.io import atomic_write_bytes  # noqa: E402

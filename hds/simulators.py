@@ -11,14 +11,16 @@ policy.json records. Domain randomization is a function the kind hands to the tr
     kind.label(cfg)                             # pods, hds+mlp, pods_cl+corrected, oracle, ...
     kind.restore(cfg, run_dir).env              # what the finished run trained on
 
-A new kind is one subclass of `SimulatorKind` (its `name`, `about`, `build` and `restore`)
-decorated with `@register`; its name must also be among config.SIMULATORS, which validates
-configs before anything here is imported (docs/simulators.md).
+The names of the kinds are declared in hds.config.kinds, the one list a config is validated
+against before anything here is imported; `load(name)` builds the class declared there. A new
+kind is one subclass of `SimulatorKind` (its `name`, `about`, `build` and `restore`) decorated
+with `@register`, which declares its name too (docs/simulators.md).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,7 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from hds.algo.randomize import Randomization, randomization, randomized_env
-from hds.config import Config, env_config
+from hds.config import Config, env_config, kinds
 from hds.effects.apply import applied, place
 from hds.envs import Env, make_env
 
@@ -48,10 +50,13 @@ class Simulator:
 
 
 class SimulatorKind:
-    """One kind of training simulator. `name`: the config's simulator= value; `about`: one
-    line, as policy.json records it; `tags`: what the rows' label adds to the method's."""
+    """One kind of training simulator. `name`: the config's simulator= value (the name it is
+    declared under in hds.config.kinds); `about`: one line, as policy.json records it; `tags`:
+    what the rows' label adds to the method's; `discovers`: built by gap discovery on data
+    measured on the plant (declared with the name: the checks read it before this is built)."""
 
     name: str = ""
+    discovers: bool = False
     about: str = ""
     tags: tuple[str, ...] = ()
 
@@ -87,23 +92,27 @@ class SimulatorKind:
         return {"simulator": self.recorded_as(), "effects": effects, "about": self.about}
 
 
-KINDS: dict[str, SimulatorKind] = {}
+KINDS: dict[str, SimulatorKind] = {}  # the kinds built so far, by name
 
 
 def register(cls: type[SimulatorKind]) -> type[SimulatorKind]:
-    """Add a kind to the registry under its name (a class decorator)."""
+    """Add a kind under its `name` (a class decorator): declared in hds.config.kinds, so that
+    configs accept it from then on, and built."""
     if cls.name in KINDS:
         raise ValueError(f"simulator kind {cls.name!r} is registered twice")
+    kinds.declare(cls.name, f"{cls.__module__}:{cls.__qualname__}", cls.discovers)
     KINDS[cls.name] = cls()
     return cls
 
 
 def load(name: str) -> SimulatorKind:
-    """The registered kind of this name."""
+    """The kind of this name, its class (declared in hds.config.kinds) built on first use."""
     if name not in KINDS:
-        raise ValueError(
-            f"simulator = {name!r} is not a registered kind; choose one of {sorted(KINDS)}"
-        )
+        declared = kinds.kind(name)
+        module, _, attribute = declared.where.partition(":")
+        kind = getattr(importlib.import_module(module), attribute)()
+        kind.name, kind.discovers = declared.name, declared.discovers
+        KINDS[name] = kind
     return KINDS[name]
 
 
@@ -123,11 +132,10 @@ def friction_gap_of(cfg: Config, run: dict) -> float:
 
 
 # --- the kinds -----------------------------------------------------------------------------------
+# each declared by name in hds.config.kinds (the names a config accepts), built by `load`
 
 
-@register
 class Nominal(SimulatorKind):
-    name = "nominal"
     about = "the env's MJCF with its own effects (env.effects)"
 
     def build(self, cfg, env, plant, out_dir):
@@ -137,12 +145,10 @@ class Nominal(SimulatorKind):
         return Simulator(make_env(cfg.env))
 
 
-@register
 class Randomized(SimulatorKind):
     """Domain randomization: the env with dr.effects placed at the middle of their ranges (its
     sim return is taken there), each rollout's drawn from the ranges."""
 
-    name = "randomized"
     about = "the env's MJCF with each rollout's effects drawn from ranges"
     tags = ("dr",)
 
@@ -158,12 +164,10 @@ class Randomized(SimulatorKind):
         return description, env_cfg, effects
 
 
-@register
 class Real(SimulatorKind):
     """The oracle: the simulator with the plant's own effects (friction smoothed so it
     differentiates), each run at its own friction gap."""
 
-    name = "real"
     about = "the plant's own effects (real.effects at the run's friction gap)"
 
     def label(self, cfg):
@@ -183,11 +187,9 @@ class Real(SimulatorKind):
         return self.description(effects), cfg.env, effects
 
 
-@register
 class Corrected(SimulatorKind):
     """The simulator plus the effects gap discovery names on data measured on the plant."""
 
-    name = "corrected"
     about = "the env's MJCF with the effects gap discovery named on plant data"
     tags = ("corrected",)
 

@@ -71,15 +71,15 @@ def make_config(*overrides: str, config_name: str = "config"):
 def command_main(module: str):
     """A command's main(argv), without importing its module under its name: `import
     hds.evaluate` would make the package's attribute `hds.evaluate` that module, hiding the
-    API function of the same name for the rest of the session (as `import hds.export`)."""
+    deprecated alias of hds.evaluate_policy for the rest of the session (as `import hds.export`)."""
     return runpy.run_module(module)["main"]
 
 
 def trained(*args, **kwargs):
-    """(params, history) of hds.experiment.train(*args, **kwargs)."""
-    from hds.experiment import train
+    """(params, history) of hds.experiment.train_batch(*args, **kwargs)."""
+    from hds.experiment import train_batch
 
-    training = train(*args, **kwargs)
+    training = train_batch(*args, **kwargs)
     return training.params, training.history
 
 

@@ -88,7 +88,7 @@ def test_a_saved_policy_loads_and_gives_the_run_s_numbers(sweep_run):
     assert policy.method == "pods" and policy.run == {"seed": 1, "step_size": 0.04}
     assert policy.epoch == 3
     # its return on the run's plant, from the run's evaluation states, is the row's
-    assert hds.evaluate(policy).mean_ci()[0] == pytest.approx(row["real_return"], rel=1e-5)
+    assert hds.evaluate_policy(policy).mean_ci()[0] == pytest.approx(row["real_return"], rel=1e-5)
     # numpy in, numpy out; jax in, jax out (differentiable)
     obs = np.zeros((3, len(policy.obs_names)), np.float32)
     u = policy(obs)
@@ -172,7 +172,7 @@ def test_the_exported_policy_gives_the_in_process_return_on_c_mujoco(sweep_run, 
     finally:
         sys.path.remove(str(tmp_path))
         sys.modules.pop("numpy_policy", None)
-    in_process = hds.evaluate(policy, episodes=8)
+    in_process = hds.evaluate_policy(policy, episodes=8)
     from hds.data import initial_states
     from hds.real import make_plant, rollout
 
@@ -232,7 +232,7 @@ def test_format_onnx_runs_in_onnxruntime_as_the_policy_does_on_c_mujoco(sweep_ru
     from hds.data import initial_states
     from hds.real import make_plant, rollout
 
-    in_process = hds.evaluate(policy, episodes=8)
+    in_process = hds.evaluate_policy(policy, episodes=8)
     task = policy.simulator.task
     q0, qd0 = initial_states(task, policy.config.eval_seed, 8)
     plant = make_plant(policy.config.real, policy.env)
@@ -247,12 +247,12 @@ def test_format_onnx_runs_in_onnxruntime_as_the_policy_does_on_c_mujoco(sweep_ru
 
 def test_the_api_lists_its_names_and_a_policy_prints_short(sweep_run):
     out, _ = sweep_run
-    assert {"load_policy", "train", "evaluate", "export", "compose"} <= set(dir(hds))
+    assert {"load_policy", "train", "evaluate_policy", "export_policy", "compose"} <= set(dir(hds))
     policy = hds.load_policy(out, seed=1, step_size=0.04)
     text = repr(policy)
     assert len(text) < 300 and "Array" not in text and "kernel" not in text, text
     assert "method='pods'" in text and "'step_size': 0.04" in text and "hidden=" in text
-    ci = hds.evaluate(policy, episodes=4).mean_ci()
+    ci = hds.evaluate_policy(policy, episodes=4).mean_ci()
     assert ci.low <= ci.mean <= ci.high and tuple(ci) == (ci.mean, ci.low, ci.high)
 
 
@@ -286,7 +286,7 @@ def test_hds_evaluate_runs_a_saved_policy_on_another_plant(sweep_run, tmp_path):
     assert (tmp_path / "plots" / "trajectories.png").is_file()
     assert (tmp_path / "sim_vs_real.gif").stat().st_size > 0
     # more friction, a worse return than on the run's own plant
-    own = hds.evaluate(hds.load_policy(out, seed=0, step_size=0.04), episodes=4)
+    own = hds.evaluate_policy(hds.load_policy(out, seed=0, step_size=0.04), episodes=4)
     assert result["real"]["mean"] < own.mean_ci()[0]
     # what the user can fix is one line
     bad = cli("hds.evaluate", f"run={out}", "seed=7", "step_size=0.04")

@@ -544,7 +544,20 @@ def test_every_command_is_installed_as_a_script_whose_entry_imports():
         assert importlib.util.find_spec(commands.SCRIPTS[script]) is not None, script
     import hds
 
-    assert callable(hds.evaluate) and callable(hds.export)  # no command module hides them
+    assert callable(hds.evaluate_policy) and callable(hds.export_policy)
+
+
+def test_the_api_s_old_names_of_evaluate_and_export_still_work_with_a_warning():
+    import hds
+    from hds import policy
+
+    for old, new in (("evaluate", "evaluate_policy"), ("export", "export_policy")):
+        with pytest.warns(DeprecationWarning, match=f"use hds.{new}"):
+            assert getattr(hds, old) is getattr(hds, new)
+        with pytest.warns(DeprecationWarning, match=f"use {new}"):
+            assert getattr(policy, old) is getattr(policy, new)
+    with pytest.raises(AttributeError):
+        policy.evaluation  # noqa: B018
 
 
 def test_a_script_runs_its_command_and_answers_in_one_line(tmp_path):

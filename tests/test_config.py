@@ -338,3 +338,21 @@ def test_importing_the_config_leaves_the_simulator_and_the_memory_estimate_unimp
     names += ["check_override_keys", "config_groups", "schema_of", "plant_has_effects"]
     assert all(hasattr(hds.config, n) for n in names)
     assert (hds.config.CONF_DIR / "config.yaml").is_file()
+
+
+def test_importing_the_config_imports_no_jax():
+    """The schemas' defaults are plain data: registering them with Hydra (on import) asks
+    neither the effect library nor the simulator kinds, which import JAX and brax."""
+    import subprocess
+    import sys
+
+    code = "import hds.config, sys; assert 'jax' not in sys.modules, 'jax imported'"
+    subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True, timeout=120)
+
+
+def test_discover_effects_default_is_the_effect_library_s_default_candidates():
+    from hds.config.schemas import DISCOVER_EFFECTS, DiscoverConfig
+    from hds.effects.library import default_candidates
+
+    assert list(DISCOVER_EFFECTS) == default_candidates() == DiscoverConfig().effects
+    assert make_config().discover.effects == default_candidates()

@@ -638,7 +638,7 @@ def test_the_spring_term_joins_the_corrected_simulator_and_the_gap_shrinks(
     plant episodes (measured states and actions, 0.4 s open loop) at under half the raw
     simulator's error."""
     from hds.config import env_config
-    from hds.discover.report import corrected_env
+    from hds.discover.write import corrected_env
 
     result = spring_result
     corrected = corrected_env(env_cfg, result)
@@ -1014,7 +1014,7 @@ def test_write_report_from_the_api(plants, task, env_cfg, tmp_path):
 def test_retrain_shrinks_the_policys_sim2real_gap(plants, task, env_cfg, tmp_path):
     """retrain=true: PODS on the original and on the corrected simulator (a tiny budget),
     both evaluated on the plant that produced the data. The correction closes the gap."""
-    from hds.discover.report import corrected_env
+    from hds.discover.write import corrected_env
     from hds.experiment import retrain
 
     hidden = HIDDEN["coulomb_slider"]

@@ -23,7 +23,7 @@ from hds.effects import LIBRARY, Effect, Param, place, register
 from hds.effects.base import JOINT, SUBSTEP
 from hds.envs import make_env
 from hds.envs.system import load_spec
-from hds.evaluation import Evaluator
+from hds.gap import Evaluator
 from hds.real import make_plant
 from hds.real.mujoco_plant import MujocoPlant
 from tests.test_train import TINY  # the analytic backend, a tiny budget

@@ -46,7 +46,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "hds.algo",
             "hds.dynamics",
             "hds.discover",
-            "hds.evaluation",
+            "hds.gap",
             "hds.results",  # the typed rows and summaries every writer and reader shares
             "hds.checkpoint",
             "hds.logger",

@@ -25,7 +25,7 @@ from hds.callbacks import StartChecks
 from hds.checkpoint import Checkpoints
 from hds.data import Dataset, validate
 from hds.envs import make_env
-from hds.evaluation import diverged, no_finite_result
+from hds.gap import diverged, no_finite_result
 from hds.utils.io import atomic_write_json, file_mode
 from tests.conftest import CONF, ROOT, make_config, trained
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hds import simulators
-from hds.config import SIMULATORS
+from hds.config import kinds
 from hds.envs import make_env
 from tests.conftest import make_config
 
@@ -17,7 +17,14 @@ FRICTION = "{name: coulomb_friction, target: slider, ranges: {force: [5, 40]}}"
 
 
 def test_every_simulator_a_config_accepts_is_a_registered_kind():
-    assert set(simulators.KINDS) == set(SIMULATORS)
+    """The names are declared once (hds.config.kinds): each builds its class, which carries
+    the declared name and light facts."""
+    assert set(kinds.KINDS) >= {"nominal", "corrected", "real", "randomized"}
+    for name, declared in kinds.KINDS.items():
+        kind = simulators.load(name)
+        assert isinstance(kind, simulators.SimulatorKind)
+        assert (kind.name, kind.discovers) == (name, declared.discovers)
+    assert [k.name for k in kinds.KINDS.values() if k.discovers] == ["corrected"]
     with pytest.raises(ValueError, match="simulator = 'exact' is not a registered kind"):
         simulators.load("exact")
 
@@ -66,5 +73,7 @@ def test_a_new_kind_is_one_class_and_one_registration():
         assert description["simulator"] == "doubled_test_kind" and env_cfg is cfg.env
         with pytest.raises(ValueError, match="registered twice"):
             simulators.register(Doubled)
+        # declared by its registration: a config names it with no other change
+        assert make_config("simulator=doubled_test_kind").simulator == "doubled_test_kind"
     finally:
-        del simulators.KINDS["doubled_test_kind"]
+        del simulators.KINDS["doubled_test_kind"], kinds.KINDS["doubled_test_kind"]

@@ -26,7 +26,7 @@ from hds.algo.pods import (
     make_train_from_config,
 )
 from hds.envs import make_env
-from hds.evaluation import Evaluator
+from hds.gap import Evaluator
 from hds.networks import make_policy
 from tests.conftest import ROOT, make_config, trained
 
@@ -287,12 +287,12 @@ def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
     import mujoco
 
     from hds.envs.system import resolve_xml
-    from hds.policy import export, load_policy
+    from hds.policy import export_policy, load_policy
 
     contracts = {}
     for simulator in ("nominal", "corrected", "real"):
         policy = load_policy(tmp_path / simulator, seed=0)
-        directory = export(policy, tmp_path / "export" / simulator)
+        directory = export_policy(policy, tmp_path / "export" / simulator)
         contracts[simulator] = json.loads((directory / "policy.json").read_text())
         contracts[simulator]["xml"] = (directory / contracts[simulator]["mjcf"]).read_bytes()
     nominal, corrected, oracle = contracts.values()

@@ -381,7 +381,7 @@ def test_a_short_training_improves_the_return():
     task = "double_cartpole_balance"
     from hds.algo.pods import make_train_from_config
     from hds.envs import make_env
-    from hds.evaluation import Evaluator
+    from hds.gap import Evaluator
 
     cfg = make_config(f"env={task}", *TINY)
     env = make_env(cfg.env)
@@ -414,7 +414,7 @@ def test_the_acrobot_learns_only_when_its_cost_reads_the_links_world_angles():
     2 seeds: -4,198 to -3,647; with joint angles -2,999 stays -2,999)."""
     from hds.algo.pods import make_train_from_config
     from hds.envs import make_env
-    from hds.evaluation import Evaluator
+    from hds.gap import Evaluator
 
     gains = {}
     for angles in ("world", "joint"):
@@ -437,7 +437,7 @@ def _furuta_balance_returns(*overrides):
     16 states of the task's distribution."""
     from hds.algo.pods import make_train_from_config
     from hds.envs import make_env
-    from hds.evaluation import Evaluator
+    from hds.gap import Evaluator
 
     cfg = make_config(
         "+experiment=furuta_balance", "algo.epochs=50", "anneal.horizon_full_at=0.8", *overrides

@@ -95,7 +95,7 @@ def main(n_draws: int = 5) -> None:
     start = time.time()
     cfg0 = compose([*BASE, "real.draw=0"])
     env = make_env(cfg0.env)
-    training = experiment.train(cfg0, env, WORK / "round0", "pods_cl")
+    training = experiment.train_batch(cfg0, env, WORK / "round0", "pods_cl")
     params = training.params
     path = HERE / "results.json"
     rows = read_json(path)["draws"] if path.is_file() else []

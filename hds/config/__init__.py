@@ -9,6 +9,8 @@ composing and loading configs. Every name is importable from `hds.config`:
                 compiles the MJCF and asks JAX: imported only when a config is validated)
   composition   compose(overrides) as the commands compose; load_config(config.yaml);
                 env_config(dict); the overrides of a command line
+  kinds         the simulator kinds `simulator=` may name, declared by name with the light
+                facts the checks read (their classes: hds.simulators, imported when built)
 """
 
 from hds.config.composition import (
@@ -22,7 +24,6 @@ from hds.config.composition import (
 )
 from hds.config.schemas import (
     SEED_MAX,
-    SIMULATORS,
     SWEEP_KEYS,
     AlgoConfig,
     AnnealConfig,
@@ -72,7 +73,6 @@ __all__ = [
     "RangedEffectConfig",
     "RealConfig",
     "SEED_MAX",
-    "SIMULATORS",
     "SWEEP_KEYS",
     "SweepConfig",
     "TaskConfig",
@@ -90,6 +90,6 @@ __all__ = [
 ]
 
 # Registered on import, as Hydra compositions (the commands', and anyone's with Hydra's own
-# compose) expect. Storing a schema builds its defaults, and discover.effects' default asks the
-# effect library, which imports JAX: the one JAX import left on this path.
+# compose) expect. Storing a schema builds its defaults, all plain data: importing hds.config
+# imports no JAX (the checks import what they need when a config is validated).
 register()

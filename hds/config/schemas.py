@@ -18,6 +18,8 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
+from hds.config import kinds
+
 SEED_MAX = 2**31 - 1  # seeds go into int32 arrays (JAX's PRNG keys, the batch's seed vector)
 
 
@@ -35,8 +37,20 @@ def _backends() -> tuple[str, ...]:
     return BACKENDS
 
 
-def _default_candidates() -> list[str]:
-    return _effects_library().default_candidates()
+# discover.effects' default: the effect library's candidates not marked opt-in
+# (hds.effects.library.default_candidates), written out as plain data so that registering the
+# schemas (on `import hds.config`) imports no JAX; tests/test_config.py keeps the two the same
+DISCOVER_EFFECTS = (
+    "coulomb_friction",
+    "viscous_damping",
+    "actuator_gain",
+    "actuator_offset",
+    "actuator_deadzone",
+    "action_delay",
+    "actuator_lag",
+    "mass_scale",
+    "sensor_bias",
+)
 
 
 def _one_of(key: str, value: Any, allowed) -> None:
@@ -339,7 +353,7 @@ class DiscoverConfig:
     stride: int = 1  # a k-step window starts every `stride` steps
     warmup: int = 25  # past actions replayed into stateful effects (delay, lag) before a window
     max_delay: int = 5  # action delays of 1 .. max_delay steps are enumerated; 0: none
-    effects: list[str] = field(default_factory=_default_candidates)  # candidate effect types
+    effects: list[str] = field(default_factory=lambda: list(DISCOVER_EFFECTS))  # candidates
     max_effects: int = 4  # most effects named
     # Fits of up to b effects at once (the selected ones and a candidate) compile for b slots
     # for each b listed, and for max_effects: fewer sizes, fewer compiles; a slot more costs a
@@ -466,9 +480,6 @@ class LoggerConfig:
         _one_of("logger.mode", self.mode, ("offline", "disabled"))
 
 
-# the kinds of simulator a method trains on (`simulator=`); each is a class registered in
-# hds.simulators (tests/test_simulators.py checks the two lists agree)
-SIMULATORS = ("nominal", "corrected", "real", "randomized")
 SWEEP_KEYS = ("step_size", "noise_scale", "noise_decay", "friction_gap", "beta")
 
 
@@ -583,7 +594,7 @@ class Config:
         return self.dynamics.model != "none" and max([self.dynamics.beta, *self.sweep.beta]) > 0
 
     def check(self):
-        _one_of("simulator", self.simulator, SIMULATORS)
+        _one_of("simulator", self.simulator, tuple(kinds.KINDS))
         _one_of("objective", self.objective, ("real_return", "sim_return"))
         if self.simulator == "randomized" and not self.dr.effects:
             raise ValueError(
@@ -591,11 +602,13 @@ class Config:
                 "which is empty; give one, e.g. dr.effects=[{name: coulomb_friction, target: "
                 "slider, ranges: {force: [0, 80]}}]"
             )
-        if self.sweep.friction_gap and (self.simulator == "corrected" or self.uses_model()):
+        discovers = kinds.kind(self.simulator).discovers
+        if self.sweep.friction_gap and (discovers or self.uses_model()):
+            built_from_data = "/".join(k.name for k in kinds.KINDS.values() if k.discovers)
             raise ValueError(
                 "sweep.friction_gap trains every gap in one program, but a learned model "
-                f"(dynamics.model = {self.dynamics.model}) or simulator = corrected needs data "
-                "measured at each gap: sweep the gap as a multirun instead "
+                f"(dynamics.model = {self.dynamics.model}) or simulator = {built_from_data} "
+                "needs data measured at each gap: sweep the gap as a multirun instead "
                 "(python -m hds.run -m real.friction_gap=0,1,2)"
             )
         if self.sweep.beta and self.dynamics.model == "none":

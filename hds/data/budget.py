@@ -20,6 +20,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
+from hds.config import kinds
 from hds.data.format import Dataset
 
 
@@ -117,13 +118,13 @@ def check_planned(cfg, loop: bool = False, fit: bool | None = None) -> None:
     dataset `dynamics.data` (read for its size), or on the data the command records on its
     plant (dynamics.episodes x dynamics.horizon; hds.loop: every round's deployed and
     excitation episodes, at least), for each work it does with them: a learned model's fit
-    (`fit`, default: whether a run uses a model) and gap discovery (simulator=corrected, the
-    loop)."""
+    (`fit`, default: whether a run uses a model) and gap discovery (a simulator kind that
+    `discovers`: simulator=corrected; the loop)."""
     dyn = cfg.dynamics
     works = []
     if (cfg.uses_model() and not dyn.path) if fit is None else fit:  # a saved model: no fit
         works.append((DYNAMICS_FIT, dyn.max_steps, dyn.epochs))
-    if cfg.simulator == "corrected" or loop:
+    if kinds.kind(cfg.simulator).discovers or loop:
         works.append((DISCOVERY, cfg.discover.max_steps, 1))
     if not works:
         return

@@ -22,8 +22,8 @@ Command line: python -m hds.discover data=PATH [env=...] [retrain=true] (conf/di
 from hds.discover.config import DiscoverAppConfig, DiscoverConfig
 from hds.discover.identify import Identifiability, identifiability, record_until_identifiable
 from hds.discover.io import load_dataset
-from hds.discover.report import corrected_env, write_report
 from hds.discover.workflow import Discovery, NamedEffect, Result, discover
+from hds.discover.write import corrected_env, write_report
 
 __all__ = [
     "DiscoverAppConfig",

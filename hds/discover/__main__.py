@@ -23,8 +23,8 @@ from hds.data.budget import DISCOVERY, check_dataset  # noqa: E402
 from hds.discover import config as _schema  # noqa: E402,F401  (registers discover_schema)
 from hds.discover.data import check_size  # noqa: E402
 from hds.discover.io import load_dataset  # noqa: E402
-from hds.discover.report import corrected_env, write_report  # noqa: E402
 from hds.discover.workflow import discover  # noqa: E402
+from hds.discover.write import corrected_env, write_report  # noqa: E402
 from hds.utils import cli  # noqa: E402
 from hds.utils.runtime import enable_compilation_cache  # noqa: E402
 
