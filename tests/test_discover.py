@@ -821,6 +821,7 @@ def test_one_percent_measurement_noise(plants, task, env_cfg, hidden):
         assert shrink(before, after) >= 3.0
 
 
+@pytest.mark.slow  # a noisy record: initial states estimated, discovery's slow path
 def test_on_a_lab_draw_the_rail_friction_is_named_and_a_remainder_reported(task, env_cfg):
     """A lab cart-pole (draw 0 of real=lab_cartpole: every parameter a few per cent off,
     Stribeck friction, backlash, a rough patch of the rail, noise and 2,048-count encoders):

@@ -48,6 +48,9 @@ class State:
     misfit: float = 0.0
     # H [V, M, M] and G [V, E, M] of each view of the residuals (`Engine.views`)
     views: tuple[np.ndarray, np.ndarray] | None = None
+    # the identification windows' estimated initial states [W, n_obs] (estimated initial
+    # states only): where the fits of effects added to this model start theirs
+    z: np.ndarray | None = None
 
     @property
     def keys(self) -> set[str]:
@@ -592,6 +595,7 @@ class Batch(NamedTuple):
     iterations: np.ndarray
     view_h: np.ndarray
     view_g: np.ndarray
+    z: np.ndarray  # [C, W, n_obs] the windows' estimated initial states
 
 
 class _Fitter:
@@ -615,18 +619,18 @@ class _Fitter:
     def width(self, n_slots: int) -> int:
         return next(w for w in self.sizes if w >= n_slots)
 
-    def run(self, theta0, slots, delay, rows=None) -> Batch:
+    def run(self, theta0, slots, delay, rows=None, z0=None) -> Batch:
         engine = self.engine
-        theta, loss, h, g, its, view_h, view_g = engine.fit(
-            theta0, slots, delay, self.ident, self.cfg.iterations, self.estimate, rows
+        theta, loss, h, g, its, view_h, view_g, z = engine.fit(
+            theta0, slots, delay, self.ident, self.cfg.iterations, self.estimate, rows, z0, True
         )
         held = engine.errors(theta, delay, self.heldout)
-        return Batch(theta, delay, held, loss, h, g, slots, its, view_h, view_g)
+        return Batch(theta, delay, held, loss, h, g, slots, its, view_h, view_g, z)
 
     def __call__(self, state: State) -> Batch:
         model = self.engine.model
         width = self.width(len(state.slots) + self.sw)
-        return self.run(*_batch(model, state, width))
+        return self.run(*_batch(model, state, width), z0=state.z)
 
     def state(self, selected, batch: Batch, i: int) -> State:
         slots = [int(s) for s in batch.slots[i] if s >= 0]
@@ -642,6 +646,7 @@ class _Fitter:
             slots,
             self.misfit(float(batch.loss[i])),
             (batch.view_h[i][:, :m, :m], batch.view_g[i][:, :, :m]),
+            batch.z[i] if self.estimate else None,
         )
 
     def sets(self, state: State, sets: list[list[Candidate]]) -> list[State]:
@@ -661,7 +666,7 @@ class _Fitter:
             for c in chosen:
                 if c.shifts_actions:
                     delay[i, c.actuator] = state.delay[c.actuator]
-        batch = self.run(theta0, slots, delay, rows=len(sets))
+        batch = self.run(theta0, slots, delay, rows=len(sets), z0=state.z)
         return [self.state(chosen, batch, i) for i, chosen in enumerate(sets)]
 
 

@@ -613,11 +613,12 @@ def warnings(result: Discovery, cfg: DiscoverConfig) -> list[str]:
         ]
         if reach and len(reach) == len(e.ci95):
             out.append(
-                f"{e.name}@{e.target} is named because the held-out episodes show it (it "
-                f"removes {e.explained_fraction:.0%} of their error, more than the model "
-                f"leaves), although its interval reaches no effect ({'; '.join(reach)}): the "
-                "named laws' mismatch with the plant's widens it; its value is uncertain, "
-                "its presence is not"
+                f"{e.name}@{e.target} is named because the held-out episodes show it "
+                "(without it, the others refitted, they are predicted worse by more than "
+                "the named laws' mismatch), although its interval reaches no effect "
+                f"({'; '.join(reach)}): that mismatch widens it; its value is uncertain, "
+                f"its presence is not ({e.explained_fraction:.1%} of the held-out error, "
+                "in the order of selection)"
             )
         for p, (lo, hi) in e.ci95.items():
             if not (np.isfinite(lo) and np.isfinite(hi)):
