@@ -6,9 +6,9 @@ data layout and reused for every candidate, every round and every call:
 
   predict(theta, delay, data)                    -> [W, k, n_obs] k-step predictions
   losses(theta [C, N], delay [C, n_act], data)   -> [C] mean squared normalized error
-  fit(theta0 [C, N], slots [C, M], delay [C, n_act], data)
+  fit(theta0 [C, N], slots [C, M], delay [C, n_act], data, z0 [W, n_obs])
       -> theta [C, N], loss [C], H [C, M, M], G [C, E, M], iterations [C],
-         view H [C, V, M, M], view G [C, V, E, M]
+         view H [C, V, M, M], view G [C, V, E, M], (estimated initial states) z [C, W, n_obs]
 
 `fit` runs C independent fits in one call, one after another: candidate c moves only the
 entries `slots[c]` of theta (-1 pads), from theta0[c], with its own action delays. Each
@@ -50,11 +50,12 @@ class Engine:
         # program; `estimate` changes the residuals' shapes and stays static
         self._fit = jax.jit(self._fit_each, static_argnums=(6,))
 
-    def _fit_each(self, theta0, slots, delay, active, data, iterations, estimate: bool):
+    def _fit_each(self, theta0, slots, delay, active, data, iterations, estimate: bool, z0):
         """The candidates' fits one after another (lax.map, not vmap): a vmapped while loop
         runs every row until the slowest converges, here each row stops at its own
         convergence (a fifth of the iterations in a typical round). Rows not `active` (the
-        padding of a batch that fills fewer rows) skip their fit: theta0, NaN loss, zeros."""
+        padding of a batch that fills fewer rows) skip their fit: theta0, NaN loss, zeros.
+        Every row starts its windows' initial states (`estimate`) from z0."""
 
         m, episodes = slots.shape[1], data[0].shape[0]
         dtype = theta0.dtype
@@ -66,13 +67,14 @@ class Engine:
                 jnp.zeros((1 + len(self.views), m, m), dtype),
                 jnp.zeros((1 + len(self.views), episodes, m), dtype),
                 jnp.asarray(0, jnp.int32),
+                z0,
             )
 
         def row(args):
             theta0, slots, delay, active = args
             return jax.lax.cond(
                 active,
-                lambda: self._fit_one(theta0, slots, delay, data, iterations, estimate),
+                lambda: self._fit_one(theta0, slots, delay, data, iterations, estimate, z0),
                 lambda: skipped(theta0),
             )
 
@@ -92,12 +94,15 @@ class Engine:
         count = jnp.maximum(data[4].sum() * r.shape[1] * r.shape[2], 1.0)
         return jnp.sum(r * r) / count
 
-    def _fit_one(self, theta0, slots, delay, data, iterations: int, estimate: bool):
+    def _fit_one(self, theta0, slots, delay, data, iterations: int, estimate: bool, z0):
         """One candidate's fit. With `estimate`, each window's initial state is estimated
         along (multiple shooting): z [W, n_obs], its offset from the measurement in units of
-        scale, with the measurement itself as one more residual (z). Noisy initial states
-        would otherwise bias the effects that damp their consequences (friction, damping).
-        The per-window unknowns are eliminated by a Schur complement, window by window."""
+        scale, with the measurement itself as one more residual (z), starting from z0.
+        Noisy initial states would otherwise bias the effects that damp their consequences
+        (friction, damping). The per-window unknowns are eliminated by a Schur complement,
+        window by window. Started from the states of the model a candidate is added to,
+        rather than from the measurements, a fit spends its iterations on the effects: the
+        states move little when one effect is added."""
         model = self.model
         n_theta, n_obs, windows = model.n_theta, model.sim.n_obs, data[2].shape[0]
         m = slots.shape[0]
@@ -181,7 +186,7 @@ class Engine:
         n_res = self.horizon * n_obs
         start = (
             theta0,
-            jnp.zeros((windows, n_obs)),
+            z0 if estimate else jnp.zeros((windows, n_obs)),
             jnp.zeros((windows, n_res)),
             jnp.zeros((m, windows, n_res)),
             jnp.zeros((n_z, windows, n_res)),
@@ -200,7 +205,7 @@ class Engine:
 
         h, per_episode = jax.vmap(normal)(views)
         count = jnp.maximum(data[4].sum() * n_res, 1.0)
-        return theta, jnp.sum(r * r) / count, h, per_episode, its - 1
+        return theta, jnp.sum(r * r) / count, h, per_episode, its - 1, z
 
     def _views(self) -> np.ndarray:
         """[V, k * n_obs] masks over a window's residuals (step-major): its first and
@@ -216,11 +221,26 @@ class Engine:
 
     # -- host-side entry points ------------------------------------------------------------
 
-    def fit(self, theta0, slots, delay, data, iterations: int, estimate: bool = False, rows=None):
-        """The fits of `_fit_each`; only the first `rows` rows are fitted (default: all).
-        Returns theta, loss, H, G, iterations, then H and G of each view."""
+    def fit(
+        self,
+        theta0,
+        slots,
+        delay,
+        data,
+        iterations: int,
+        estimate: bool = False,
+        rows=None,
+        z0=None,
+        states: bool = False,
+    ):
+        """The fits of `_fit_each`; only the first `rows` rows are fitted (default: all),
+        each from the windows' initial states z0 [W, n_obs] (`estimate`; default: the
+        measurements). Returns theta, loss, H, G, iterations, then H and G of each view, and
+        with `states` the estimated initial states z [C, W, n_obs]."""
         active = np.arange(len(theta0)) < (len(theta0) if rows is None else rows)
-        theta, loss, h, g, its = self._fit(
+        if z0 is None:
+            z0 = np.zeros((np.shape(data[2])[0], self.model.sim.n_obs))
+        theta, loss, h, g, its, z = self._fit(
             jnp.asarray(theta0, jnp.float32),
             jnp.asarray(slots, jnp.int32),
             jnp.asarray(delay, jnp.int32),
@@ -228,10 +248,11 @@ class Engine:
             data,
             jnp.asarray(iterations, jnp.int32),
             bool(estimate),
+            jnp.asarray(z0, jnp.float32),
         )
         h, g = np.asarray(h), np.asarray(g)
         out = (theta, loss, h[:, 0], g[:, 0], its, h[:, 1:], g[:, 1:])
-        return tuple(np.asarray(x) for x in out)
+        return tuple(np.asarray(x) for x in out) + ((np.asarray(z),) if states else ())
 
     def errors(self, theta, delay, data) -> np.ndarray:
         """[C] normalized RMSE of each row of theta [C, N] with its delays [C, n_act]. Fewer

@@ -64,7 +64,9 @@ def print_summary(result, out_dir: Path) -> None:
     )
     console.print(
         f"held-out k-step error (normalized RMSE): {b.normalized:.4g} -> "
-        f"{a.normalized:.4g}{with_terms}; unexplained {result.unexplained_fraction:.1%}"
+        f"{a.normalized:.4g}{with_terms}; unexplained by the named effects "
+        f"{result.unexplained_fraction:.1%}; left by the corrected model "
+        f"{result.remainder_fraction:.1%} (measurement noise {result.noise_fraction:.1%})"
     )
     for w in result.warnings:
         console.print(f"[yellow]warning:[/yellow] {w}")

@@ -134,6 +134,33 @@ class Discovery:
     def error(self, which: str, set_name: str = "heldout") -> Errors:
         return (self.before if which == "before" else self.after)[set_name][1]
 
+    @property
+    def remainder_fraction(self) -> float:
+        """The share of the simulator's held-out k-step error (MSE) that the corrected model
+        (`corrected_effects`: the named effects and the force terms beyond the library)
+        still leaves; 0 where there was no gap. `unexplained_fraction` is what the named
+        effects alone leave, before any term."""
+        if self.no_gap:
+            return 0.0
+        before = self.error("before").normalized ** 2
+        after = (self.after_terms or self.after)["heldout"][1].normalized ** 2
+        return float(after / before) if before > 0 else 0.0
+
+    @property
+    def noise_fraction(self) -> float:
+        """The share of the simulator's held-out k-step error (MSE) that the measurement
+        noise alone accounts for (the estimated noise floor), at most the remainder: the
+        rest of `remainder_fraction` is what no model of hds's explains."""
+        before = self.error("before").normalized ** 2
+        floor = self.noise_floor**2
+        return float(min(floor / before, self.remainder_fraction)) if before > 0 else 0.0
+
+    @property
+    def noise_floor(self) -> float:
+        """The normalized RMSE measurement noise alone leaves (estimated from the data)."""
+        relative = self.data.noise / np.asarray(self.data.scale, dtype=np.float64)
+        return float(np.sqrt(np.mean(relative**2)))
+
     def to_json(self) -> dict:
         names = list(self.data.obs_names)
         out = {
@@ -142,6 +169,8 @@ class Discovery:
             "error_after": self.error("after").to_json(names),
             "candidates": self.candidates,
             "unexplained_fraction": self.unexplained_fraction,
+            "remainder_fraction": self.remainder_fraction,
+            "noise_fraction": self.noise_fraction,
             "gap_found": not self.no_gap,
             "structured_unexplained_fraction": self.structured_unexplained,
             "tentative_effects": [e.to_json() for e in self.tentative],
@@ -155,11 +184,7 @@ class Discovery:
             },
             "identifiability": [r.to_json() for r in self.identifiability],
             "noise_std": [float(x) for x in self.data.noise],
-            "noise_floor_nrmse": float(
-                np.sqrt(
-                    np.mean((self.data.noise / np.asarray(self.data.scale, dtype=np.float64)) ** 2)
-                )
-            ),
+            "noise_floor_nrmse": self.noise_floor,
             "initial_state": self.initial_state,
             "backend": self.backend,
             "stopped": self.stopped,
@@ -580,6 +605,21 @@ def warnings(result: Discovery, cfg: DiscoverConfig) -> list[str]:
     for reason, keys in by_reason.items():
         out.append(f"not identifiable from these data, so not fitted: {', '.join(keys)}: {reason}")
     for e in result.missing_effects:
+        params = {p.name: p for p in effect_type(e.name).params}
+        reach = [
+            f"{p} [{lo:.4g}, {hi:.4g}]"
+            for p, (lo, hi) in e.ci95.items()
+            if not params[p].discrete and lo <= params[p].nominal <= hi
+        ]
+        if reach and len(reach) == len(e.ci95):
+            out.append(
+                f"{e.name}@{e.target} is named because the held-out episodes show it "
+                "(without it, the others refitted, they are predicted worse by more than "
+                "the named laws' mismatch), although its interval reaches no effect "
+                f"({'; '.join(reach)}): that mismatch widens it; its value is uncertain, "
+                f"its presence is not ({e.explained_fraction:.1%} of the held-out error, "
+                "in the order of selection)"
+            )
         for p, (lo, hi) in e.ci95.items():
             if not (np.isfinite(lo) and np.isfinite(hi)):
                 out.append(

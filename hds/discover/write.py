@@ -240,12 +240,18 @@ def markdown(
                 f"({e.explained_fraction:.1%})"
             )
     lines += _selection_notes(result, files)
-    noise = np.sqrt(np.mean((data.noise / np.asarray(data.scale, dtype=float)) ** 2))
+    noise = result.noise_floor
+    terms = " and the force terms" if result.terms else ""
+    unknown = result.remainder_fraction - result.noise_fraction
     lines += [
         "",
         f"Unexplained: {result.unexplained_fraction:.1%} of the held-out k-step "
-        f"prediction error (MSE) remains; features explain "
+        f"prediction error (MSE) remains after the named effects; features explain "
         f"{result.structured_unexplained:.1%} of the original error in that remainder. "
+        f"The corrected model (the named effects{terms}) leaves "
+        f"{result.remainder_fraction:.1%}, of which measurement noise accounts for "
+        f"{result.noise_fraction:.1%}: the other {unknown:.1%} "
+        "is what no effect of the library and no force term explains. "
         f"Estimated measurement noise: {noise:.3g} signal stds (normalized RMSE floor); "
         f"initial states of the fits: {result.initial_state}; physics backend of the "
         f"fits: {result.backend}.",

@@ -1,6 +1,7 @@
 """Effects of a lab's robot that discovery's library does not search: friction with a static
-(Stribeck) peak, a motor's cogging torque, backlash in a belt drive, the amplifier's
-saturation, sensor noise and encoder quantisation.
+(Stribeck) peak, friction that varies along the travel (a rough patch), a motor's cogging
+torque, backlash in a belt drive, the amplifier's saturation, sensor noise and encoder
+quantisation.
 
 The lab plants (`hds.real.lab`, `real=lab_cartpole`, `real=lab_furuta`) hide them. Each has
 its exact law on the C MuJoCo plant (MuJoCo's own frictionloss set at every physics step, a
@@ -87,6 +88,51 @@ class StribeckFriction(Effect):
 
     def plant_substep(self, site, p, state, loads, q, qd, h):
         loads.frictionloss[:, site.index] += stribeck_magnitude(np, p, qd[:, site.index])
+        return state
+
+
+def patch_magnitude(xp, p, q):
+    """Dry friction's extra magnitude at position q of a rough patch: the peak `force` at
+    `center`, falling off as a Gaussian of half-width `width` (a worn or dirty stretch of a
+    rail, a tight spot of a bearing)."""
+    return p["force"] * xp.exp(-(((q - p["center"]) / p["width"]) ** 2))
+
+
+class PatchFriction(Effect):
+    name = "patch_friction"
+    target_kind = JOINT
+    description = (
+        "dry friction that varies along the joint's travel, a rough patch: F(q) = force x "
+        "exp(-((q - center) / width)^2) against the motion, on top of the joint's own friction "
+        "(smoothed as F(q) tanh(k v) in the simulator, k no sharper than a substep carries "
+        "at the peak; in the C MuJoCo plant added to MuJoCo's frictionloss at every physics "
+        "step, which holds a joint at rest in the patch up to F(q))"
+    )
+    physical_name = "friction that varies along the travel (a rough patch)"
+    params = (
+        Param("force", "N or N m", 0.0, lower=0.0),
+        Param("center", "m or rad", 0.0),
+        Param("width", "m or rad", 1.0, lower=1e-6),
+    )
+    stage, order = SUBSTEP, 1
+    candidate = False
+    plant_stepwise = True
+
+    def check_site(self, target, values, names, where):
+        _check_position_index(target, names, where)
+
+    def substep(self, site, p, state, u, force, q, qd, h, sharpness, gradient_sharpness):
+        j = site.index
+        if sharpness is not None and site.mobility > 0:
+            # the cap at the peak: beside another dry friction on the joint the two caps add,
+            # and a joint at rest in the patch chatters at under h w F / 2 (mm/s on the cart)
+            sharpness = jnp.minimum(sharpness, stick_sharpness(p["force"], site.mobility, h))
+        direction = friction_direction(qd[j], sharpness, gradient_sharpness)
+        return u, force.at[j].add(-patch_magnitude(jnp, p, q[j]) * direction), state
+
+    def plant_substep(self, site, p, state, loads, q, qd, h):
+        j = site.index
+        loads.frictionloss[:, j] += patch_magnitude(np, p, q[:, j])
         return state
 
 
@@ -260,6 +306,7 @@ class EncoderQuantization(Effect):
 
 LAB_EFFECTS = (
     StribeckFriction,
+    PatchFriction,
     CoggingTorque,
     Backlash,
     ActuatorSaturation,

@@ -11,8 +11,8 @@ Every draw has: each mass, the centre of mass and the inertia of each link that 
 the motor's gear or torque constant off by up to 10%; friction on every joint (Coulomb with a static
 Stribeck peak, plus viscous); 0 or 1 step of delay, an amplifier dead band and its
 saturation; noise on the measured velocities and 2,048-count encoders on the positions; and
-effects outside discovery's library: backlash in the cart-pole's belt drive, cogging of the
-Furuta's motor (`hds.effects.lab`).
+effects outside discovery's library: backlash in the cart-pole's belt drive and a rough patch
+of its rail, cogging of the Furuta's motor (`hds.effects.lab`).
 """
 
 from __future__ import annotations
@@ -92,6 +92,10 @@ CARTPOLE = (
     # a 2,048-count encoder on a 10 mm belt pulley, and on the hinge
     Draw("encoder_quantization", "q_slider", "step", value=0.01 * TURN),
     Draw("encoder_quantization", "q_hinge", "step", value=TURN),
+    # a rough patch of the rail where the cart runs (last: the draws above keep their values)
+    Draw("patch_friction", "slider", "force", 2.0, 8.0),
+    Draw("patch_friction", "slider", "center", -0.3, 0.3),
+    Draw("patch_friction", "slider", "width", 0.05, 0.15),
 )
 
 # The Furuta pendulum (furuta.xml: the QUBE-Servo 2, motor torque 0.005 N m/V, +-5 V): a
