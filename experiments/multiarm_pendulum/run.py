@@ -6,7 +6,7 @@ For the single and the double pendulum:
       names the joint friction (viscous damping, Coulomb friction, quadratic drag on every
       hinge) and any inertial mismatch the authors' parameters leave in this simulator;
   (b) start from a nominal model with every mass, centre of mass and inertia 10% off (each
-      factor 0.9 or 1.1, the sign drawn by numpy's default_rng(draw)): discovery names the
+      factor 0.9 or 1.1, a sign pattern no other draw has: `sign_pattern`): discovery names the
       inertial mismatch as well as the friction.
 Both starts offer the same candidates: the friction laws on every hinge and mass_scale,
 com_scale, inertia_scale on every body (a user's nominal model is never exact, and a free
@@ -64,14 +64,26 @@ KSTRIDE = 50  # a k-step window starts every 50 samples of a held-out segment
 HOLD = 0.1  # rad: a prediction "holds" while its RMS world-angle error stays below this
 
 
+def sign_pattern(n: int, draw: int) -> np.ndarray:
+    """[n] signs +-1 of draw `draw`: the draw-th of the 2^n sign patterns in the order
+    default_rng(0).permutation gives them, so no two draws repeat a pattern (independent
+    draws of 3 signs repeat one within 5 draws more often than not)."""
+    if not 0 <= draw < 2**n:
+        raise ValueError(f"draw {draw} is out of range: {n} factors have 2^{n} sign patterns")
+    code = int(np.random.default_rng(0).permutation(2**n)[draw])
+    return np.array([1.0 if code >> i & 1 else -1.0 for i in range(n)])
+
+
 def perturbed_xml(system: str, draw: int) -> tuple[Path, dict]:
     """The nominal model of start (b): every body's mass, COM distance from its joint and
-    inertia about its COM times 0.9 or 1.1 (sign from default_rng(draw)); written as an MJCF."""
+    inertia about its COM times 0.9 or 1.1 (signs: `sign_pattern`, distinct for every draw);
+    written as an MJCF."""
     spec = load_spec(f"multiarm_{system}.xml")
-    rng = np.random.default_rng(draw)
+    arms = [b for b in spec.bodies if b.name.startswith("arm")]
+    signs = sign_pattern(3 * len(arms), draw).reshape(len(arms), 3)
     factors = {}
-    for body in [b for b in spec.bodies if b.name.startswith("arm")]:
-        f = 1.0 + 0.1 * rng.choice([-1.0, 1.0], size=3)
+    for body, sign in zip(arms, signs, strict=True):
+        f = 1.0 + 0.1 * sign
         body.mass *= f[0]
         body.ipos = np.asarray(body.ipos) * f[1]  # joints sit at the bodies' origins
         body.inertia = np.asarray(body.inertia) * f[2]
