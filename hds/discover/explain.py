@@ -428,12 +428,12 @@ def scale_margin(model, state: State, min_scale_change: float = 0.0) -> float:
     MuJoCo's RK4; a backend with an explicit damping force): up to h b_j / M_jj on joint j,
     b_j its damping as the model has it (the MJCF's, the env's effects' and the selected
     viscous damping's), M_jj its inertia at the reference pose (MuJoCo's dof_invweight0).
-    The largest over the joints, since a scale of one body moves the coupled inertia of all
-    of them: 1.7% for 10 N s/m on the cart-pole's cart at 20 ms, 6e-5 for the real single
-    pendulum's 2e-4 N m s/rad at 1 ms. A fixed margin instead (3%, sized for the cart-pole
-    when its damping was an explicit force) refused a real pendulum's 0.28% period
-    correction, an inertia about the COM of 1.08 [1.01, 1.15]
-    (experiments/multiarm_pendulum)."""
+    The largest over the joints (a bound: a scale of one body moves the coupled inertia of
+    all of them): on the cart-pole at 20 ms 4.0%, its pole's hinge with the MJCF's 1 N m
+    s/rad (the cart's 10 N s/m alone: 1.7%); 7e-5 on the real single pendulum, 2.2e-4 N m
+    s/rad at 1 ms. A fixed margin instead (3%, sized for the cart-pole when its damping was
+    an explicit force) refused the real pendulum's 0.28% period correction, an inertia
+    about the COM of 1.08 [1.01, 1.15] (experiments/multiarm_pendulum)."""
     sim = model.sim
     damping = np.array(sim.sys.dof.damping, dtype=np.float64)
     joints = sim.targets["joint"]
