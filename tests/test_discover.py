@@ -374,11 +374,22 @@ def test_a_lag_standing_in_for_mujocos_soft_friction_is_law_mismatch(plants, tas
     assert any("actuator_lag@slide" in w and "law mismatch" in w for w in result.warnings)
 
 
+def _cartpole_model(nominal):
+    """A stand-in for discovery's model: theta's nominal values on the cart-pole's joints
+    (20 ms step, 1 N s/m or N m s/rad of damping on each, inverse inertias 0.084 and 2.02 at
+    the reference pose), for `scale_margin`."""
+    sys = SimpleNamespace(
+        dof=SimpleNamespace(damping=np.array([1.0, 1.0])), dof_invweight0=np.array([0.084, 2.02])
+    )
+    sim = SimpleNamespace(sys=sys, timestep=0.02, targets={"joint": {"slider": 0, "hinge": 1}})
+    return SimpleNamespace(nominal=nominal, sim=sim, env_effects=())
+
+
 class _Refits:
     """A stand-in for selection's fitter in `_refuse_law_mismatch`: each set of the cart's
     mass scale (slot 0) and the rail's friction (slot 1), refitted, leaves the given misfit."""
 
-    engine = SimpleNamespace(model=SimpleNamespace(nominal=np.array([1.0, 0.0])))
+    engine = SimpleNamespace(model=_cartpole_model(np.array([1.0, 0.0])))
     cfg = DiscoverConfig()
     count = 1.0  # residuals: the misfits are sums over one
 
@@ -429,7 +440,8 @@ def test_an_effect_selected_first_is_refused_when_it_only_compensates_the_next()
 def test_an_effect_whose_interval_holds_no_effect_is_refused():
     """The 80 N swing-up loop's data: beside the friction, a cart 1.05 [1.00, 1.11] times
     heavier earns more than the misfit left (without it the misfit more than doubles), but its
-    interval, law mismatch included, does not rule out a change below min_scale_change: the
+    interval, law mismatch included, does not rule out no change (nor one below what the
+    step's implicit damping makes look like inertia, `scale_margin`): the
     data do not show it, and the friction is named alone. A cart 1.5 times heavier, with the
     same interval's width, is kept."""
     from hds.discover.explain import _refuse_law_mismatch

@@ -361,7 +361,9 @@ class DiscoverConfig:
     slot_buckets: list[int] = field(default_factory=lambda: [3])
     stop_margin: float = 0.05  # an effect must lower held-out error by this share to be added
     min_improvement: float = 1e-3  # ... and by this much (normalized RMSE, signal stds)
-    min_scale_change: float = 0.03  # ... and a gain or mass scale change its quantity this much
+    # ... and a gain or mass scale change its quantity by more than the step's implicit damping
+    # could (h b / M, hds.discover.explain.scale_margin) and by at least this much
+    min_scale_change: float = 0.0
     iterations: int = 30  # most Levenberg-Marquardt iterations per fit
     # initial state of each fitted window: measured (as recorded), estimated along with the
     # effects (multiple shooting: unbiased under measurement noise, slower), or auto:

@@ -250,7 +250,7 @@ def forward_selection(
     if split:
         # the pair is judged as any final model is; it stands only if both of it survive,
         # else the effect it replaced stays (a pair cut to one is no better than it)
-        pair = split_states[-1].selected[-2:]
+        pair = [c for c in split_states[-1].selected if c.key not in states[-1].keys]
         kept = [m for m in mismatch if m[0].selected[-1].key not in split_states[-1].keys]
         trial = _finish(fit, split_states, kept)
         if all(c.key in trial[-1].keys for c in pair):
@@ -362,8 +362,11 @@ def _split_proxy(fit, states: list[State], banned) -> tuple[list[State], list[Ca
             and c.key not in state.keys
             and c.key not in banned
         ]
-        others = [c for c in state.selected if c is not out]
-        trials += [(j, others + [a, b]) for a, b in combinations(free, 2)]
+        # the pair in the replaced law's place of the order: the chain's prefixes, whose
+        # increments are the effects' shares, then grow as selection found them (an inertia
+        # selected after the law, alone first in the chain, predicts worse than no effect)
+        before, after = state.selected[:j], state.selected[j + 1 :]
+        trials += [(j, before + [a, b] + after) for a, b in combinations(free, 2)]
     trials = trials[: len(model.candidates)]  # one batched fit: as many rows as candidates
     if not trials:
         return states, []
@@ -373,14 +376,15 @@ def _split_proxy(fit, states: list[State], banned) -> tuple[list[State], list[Ca
     fitted = fit.sets(start, [chosen for _, chosen in trials])
     best = int(np.argmin([f.heldout_error for f in fitted]))
     (j, chosen), pair = trials[best], fitted[best]
+    laws = chosen[j : j + 2]
     better = pair.heldout_error < (1.0 - cfg.stop_margin) * state.heldout_error
-    shown = not any(_within_mismatch(model, pair, c, cfg.min_scale_change) for c in chosen[-2:])
+    shown = not any(_within_mismatch(model, pair, c, cfg.min_scale_change) for c in laws)
     if not (better and shown and np.isfinite(pair.heldout_error)):
         return states, []
     log.info(
         "%s stood for %s together: held-out error %.4g -> %.4g",
         state.selected[j].key,
-        " and ".join(c.key for c in chosen[-2:]),
+        " and ".join(c.key for c in laws),
         state.heldout_error,
         pair.heldout_error,
     )
@@ -405,18 +409,54 @@ def _unidentifiable_explains_more(model, keys: set[str], held, best: int) -> str
 def _within_mismatch(model, state: State, cand: Candidate, min_scale_change: float) -> bool:
     """Whether the newly added continuous candidate is no effect the data show: its noise
     interval holds its no-op value, or, multiplicative (gain, mass scale: no-op 1), it
-    changes its quantity by less than min_scale_change. MuJoCo integrates damping
-    implicitly, which acts exactly as h b / M more mass (1.9% for 10 N s/m on the cart-pole):
-    a law, not a heavier body. (The law-mismatch part of the intervals is left out here:
-    while an effect is still missing, the misfit holds it, and would refuse real effects.)"""
+    changes its quantity by less than `scale_margin`: what the step's own treatment of the
+    joint damping could make look like more inertia. (The law-mismatch part of the intervals
+    is left out here: while an effect is still missing, the misfit holds it, and would refuse
+    real effects.)"""
     if not cand.slots or not state.slots:
         return False
-    if all(
-        model.nominal[s] == 1.0 and abs(state.theta[s] - 1.0) < min_scale_change for s in cand.slots
-    ):
-        return True
+    if all(model.nominal[s] == 1.0 for s in cand.slots):
+        margin = scale_margin(model, state, min_scale_change)
+        if all(abs(state.theta[s] - 1.0) < margin for s in cand.slots):
+            return True
     half = state.half_widths(mismatch=False)
     return all(abs(float(state.theta[s]) - float(model.nominal[s])) <= half[s] for s in cand.slots)
+
+
+def scale_margin(model, state: State, min_scale_change: float = 0.0) -> float:
+    """The least relative change a gain, mass or inertia scale (no-op 1) must make to be
+    named: the relative inertia that the step's treatment of joint damping adds, or
+    `min_scale_change` where that is larger. MuJoCo's Euler, and every backend of hds after
+    it, integrates damping implicitly, qdd = (M + h D)^-1 (...), which acts as h D more
+    inertia against a plant that integrates it otherwise (a real one, continuous in time;
+    MuJoCo's RK4; a backend with an explicit damping force): up to h b_j / M_jj on joint j,
+    b_j its damping as the model has it (the MJCF's, the env's effects' and the selected
+    viscous damping's), M_jj its inertia at the reference pose (MuJoCo's dof_invweight0).
+    The largest over the joints (a bound: a scale of one body moves the coupled inertia of
+    all of them): on the cart-pole at 20 ms 4.0%, its pole's hinge with the MJCF's 1 N m
+    s/rad (the cart's 10 N s/m alone: 1.7%); 7e-5 on the real single pendulum, 2.2e-4 N m
+    s/rad at 1 ms. A fixed margin instead (3%, sized for the cart-pole when its damping was
+    an explicit force) refused the real pendulum's 0.28% period correction, an inertia
+    about the COM of 1.08 [1.01, 1.15] (experiments/multiarm_pendulum)."""
+    sim = model.sim
+    damping = np.array(sim.sys.dof.damping, dtype=np.float64)
+    joints = sim.targets["joint"]
+    fitted = [
+        (e.target, float(e.params.get("coefficient", 0.0)))
+        for e in model.env_effects
+        if e.name == _DAMPING
+    ]
+    fitted += [
+        (c.target, float(state.theta[c.slots[0]])) for c in state.selected if c.name == _DAMPING
+    ]
+    for target, coefficient in fitted:
+        damping[joints[target]] += coefficient
+    inverse_inertia = np.array(sim.sys.dof_invweight0, dtype=np.float64)
+    artifact = sim.timestep * float(np.max(damping * inverse_inertia, initial=0.0))
+    return max(artifact, min_scale_change)
+
+
+_DAMPING = "viscous_damping"  # the library's effect that adds to a joint's damping
 
 
 def _drop_proxies(fit, states: list[State]):
@@ -562,16 +602,18 @@ def _held_out_shares(fit, state: State, reduced: list[State]) -> tuple[np.ndarra
 def _indistinct(model, state: State, min_scale_change: float) -> np.ndarray:
     """[selected] whether each continuous effect's 95% intervals (noise and law mismatch, as
     reported) reach its no-op value in every parameter: the nominal value, or for a scale
-    (no-op 1) a change below min_scale_change, the least `_within_mismatch` calls an effect.
+    (no-op 1) a change below `scale_margin`, the least `_within_mismatch` calls an effect.
     Once selection has ended the misfit is the laws' mismatch alone, so, unlike during
     selection, it belongs in the interval."""
     if state.h is None:  # no fit's curvature, no interval
         return np.zeros(len(state.selected), bool)
     half = state.half_widths()
+    scales = any(model.nominal[s] == 1.0 for s in state.slots)
+    scale = scale_margin(model, state, min_scale_change) if scales else 0.0
 
     def reaches_no_op(s: int) -> bool:
         nominal = float(model.nominal[s])
-        margin = min_scale_change if nominal == 1.0 else 0.0
+        margin = scale if nominal == 1.0 else 0.0
         # inf: the data do not determine it, judged elsewhere
         return np.isfinite(half[s]) and abs(float(state.theta[s]) - nominal) <= half[s] + margin
 
