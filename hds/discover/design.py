@@ -723,6 +723,26 @@ class WindowFit:
         }
 
 
+def split_estimate(env_cfg, names) -> tuple[object, dict]:
+    """(env_cfg without its effects of the kinds `names`, those effects' parameters as an
+    estimate {"<effect>@<target>": {param: value}}): a corrected simulator's found effects
+    become the traced estimate of a design on the uncorrected one. Action delays (shifts,
+    nothing to design for) stay on the simulator."""
+    from hds.discover.workflow import _replace
+    from hds.effects.apply import as_spec
+    from hds.effects.library import effect_type
+
+    specs = [as_spec(e) for e in env_cfg.effects]
+    found = [
+        i for i, e in enumerate(specs) if e.name in names and not effect_type(e.name).shifts_actions
+    ]
+    if not found:
+        return env_cfg, {}
+    estimate = {f"{specs[i].name}@{specs[i].target}": dict(specs[i].params) for i in found}
+    kept = [e for i, e in enumerate(env_cfg.effects) if i not in found]
+    return _replace(env_cfg, effects=kept), estimate
+
+
 def designed_controls(
     env_cfg, discover_cfg, dt: float, steps: int, episodes: int, scale, x0s, data=None
 ):
@@ -737,21 +757,11 @@ def designed_controls(
     designs on one simulator, and one Designer (`get_designer`) serves them all, refining the
     effects found so far as well as looking for the others."""
     from hds.discover.data import noise_level
-    from hds.discover.workflow import _replace, fit_backend, with_backend
-    from hds.effects.apply import as_spec
-    from hds.effects.library import effect_type
+    from hds.discover.workflow import fit_backend, with_backend
 
     env_cfg = with_backend(env_cfg, fit_backend(env_cfg, discover_cfg.backend))
     names = list(discover_cfg.design_effects)
-    specs = [as_spec(e) for e in env_cfg.effects]
-    # an action delay stays on the simulator: it is a shift, not a parameter designed for
-    found = [
-        i for i, e in enumerate(specs) if e.name in names and not effect_type(e.name).shifts_actions
-    ]
-    estimate = {f"{specs[i].name}@{specs[i].target}": dict(specs[i].params) for i in found}
-    if found:
-        kept = [e for i, e in enumerate(env_cfg.effects) if i not in found]
-        env_cfg = _replace(env_cfg, effects=kept)
+    env_cfg, estimate = split_estimate(env_cfg, names)
     probe = get_engine(env_cfg, dt, names, 0, 0, discover_cfg.horizon).model
     keys = [c.key for c in probe.candidates if not c.shifts_actions]
     if not keys:
