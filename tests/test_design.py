@@ -181,6 +181,13 @@ def test_design_keeps_every_limit(small, analytic_cfg):
         )
     assert compiles.n == 0
     assert closed.limits.violation(closed.trajectory, closed.planned_controls)["speed"] == 0.0
+    # rivals: a signal beyond the bound is no fair rival; no control carries no information
+    zero = np.zeros((small.steps, 1))
+    over = np.full((small.steps, 1), 2 * limits.u_high[0])
+    kept = small.design(
+        estimate, DOWN, None, limits, iterations=2, rivals={"over": over, "zero": zero}
+    )
+    assert kept.signal == "designed"
     policy = closed.controller()
     u0 = policy(DOWN[None] + 0.1)
     assert u0.shape == (1, 1) and limits.u_low[0] <= u0[0, 0] <= limits.u_high[0]

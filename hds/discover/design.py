@@ -140,6 +140,9 @@ class Design:
     planned_controls: np.ndarray  # [T, n_act] the controls along it
     criterion: str = "D"  # as given (a dict of asked widths as its str)
     history: list[float] = field(default_factory=list)  # the criterion per iteration
+    # "designed", or the name of the rival signal the model predicted better (`design`'s
+    # rivals): then planned_controls are that signal's, applied open loop
+    signal: str = "designed"
 
     def feedforward(self) -> np.ndarray:
         """[T, n_act] the feedforward u_ff."""
@@ -157,6 +160,8 @@ class Design:
         """A policy obs [B, n_obs] -> u [B, n_act] for `hds.data.collect`, stepping through the
         design: u = clip(u_ff(t) - K (obs - x_ref)); t counts calls and restarts after T."""
         ff, t = self.feedforward(), [0]
+        if self.signal != "designed":  # a rival signal won: its controls, open loop
+            ff = self.planned_controls
 
         def act(obs):
             dx = np.asarray(obs, dtype=np.float64) - self.x_ref
@@ -392,9 +397,7 @@ class Designer:
         """[M] one episode's standard errors of discovery's fit (measured initial states) of a
         record of this design from the initial states x0s [S, n_obs] (averaged over them)."""
         h, meat = self._predict(*_f32(*_rollout_args(theta, design, x0s), noise))
-        inv = np.linalg.pinv(np.asarray(h, np.float64))
-        cov = inv @ np.asarray(meat, np.float64) @ inv
-        return np.sqrt(np.maximum(np.diag(cov), 0.0))
+        return np.sqrt(np.maximum(np.diag(_covariance(h, meat)), 0.0))
 
     def _parts_open(self, theta, u, x0, noise):
         """H and B B^T of one episode of the open-loop controls u [T, n_act] from x0."""
@@ -409,7 +412,7 @@ class Designer:
         std = obs.std(axis=0)
         scale = jnp.maximum(std, 1e-6 * std.max() + 1e-12)
         h, b = self._sandwich_fn(theta, obs, u, noise, scale)
-        return h, b @ b.T
+        return h, b @ b.T, obs
 
     def predicted_se_of(self, estimate: dict | None, controls, x0, noise) -> np.ndarray:
         """[M] one episode's standard errors of the fit on each of the open-loop records
@@ -425,7 +428,7 @@ class Designer:
         x0, noise = _f32(x0, np.maximum(np.asarray(noise, np.float64), 1e-9))
         h = meat = 0.0
         for ue in u:
-            he, me = self._predict_open(theta, jnp.asarray(ue, jnp.float32), x0, noise)
+            he, me, _ = self._predict_open(theta, jnp.asarray(ue, jnp.float32), x0, noise)
             h, meat = h + np.asarray(he, np.float64), meat + np.asarray(me, np.float64)
         inv = np.linalg.pinv(h / len(u))
         return np.sqrt(np.maximum(np.diag(inv @ (meat / len(u)) @ inv), 0.0))
@@ -478,13 +481,18 @@ class Designer:
         x_ref=None,
         seed: int = 0,
         start: Design | None = None,
+        rivals: dict | None = None,
     ) -> Design:
         """Optimise the excitation at `estimate` ({key: {param: value}}; missing: the
         simulator's own value) for episodes from the initial state x0 [n_obs] (or the
         expectation over initial states [S, n_obs], e.g. draws of the task's); `noise` [n_obs]
         the measurement noise std (None: 1% of each signal's std along a first trajectory);
         `gain` [n_act, n_obs] a stabilising feedback about x_ref (default the first x0);
-        `start` a previous design to continue from (a sequential design's last round)."""
+        `start` a previous design to continue from (a sequential design's last round);
+        `rivals` {name: controls [T, n_act]} open-loop signals of the same bound (random
+        steps, a PRBS): where the model predicts one of them better by the criterion (and it
+        keeps the limits), the Design carries its controls and its name in `signal`, so a
+        design is never worse, on the model, than the standard signals it was offered."""
         sim = self.sim
         x0s = np.atleast_2d(np.asarray(x0, np.float64))
         if x0s.ndim != 2 or x0s.shape[1] != sim.n_obs:
@@ -548,7 +556,37 @@ class Designer:
             criterion=str(criterion),
             history=history,
         )
-        return self.finish(design, theta, x0s, noise)
+        design = self.finish(design, theta, x0s, noise)
+        if rivals:
+            design = self._against(design, rivals, theta, x0s[0], noise, ref, pick)
+        return design
+
+    def _against(self, design: Design, rivals: dict, theta, x0, noise, ref, pick) -> Design:
+        """The design, or the rival signal of least criterion on the model (open loop, from
+        x0, keeping the limits)."""
+        if np.any(design.gain != 0):
+            raise ValueError("rivals are open-loop signals: give them to an open-loop design")
+        h, meat = self._predict(*_f32(*_rollout_args(theta, design, x0[None]), noise))
+        best = _criterion_value(_covariance(h, meat), ref, pick)
+        for name, u in rivals.items():
+            u = np.asarray(u, np.float64)
+            if u.shape != (self.steps, self.sim.n_act):
+                raise ValueError(
+                    f"rival {name!r} has shape {u.shape}; give [{self.steps}, {self.sim.n_act}]"
+                )
+            if (u > design.limits.u_high + 1e-9).any() or (u < design.limits.u_low - 1e-9).any():
+                continue  # beyond the amplitude bound: no fair rival
+            h, meat, obs = self._predict_open(*_f32(theta, u, x0, noise))
+            if max(design.limits.violation(np.asarray(obs), u).values()) > 0:
+                continue
+            cov = _covariance(h, meat)
+            value = _criterion_value(cov, ref, pick)
+            if value < best:
+                best = value
+                design.signal, design.planned_controls = name, u
+                design.trajectory = np.asarray(obs, np.float64)
+                design.predicted_se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        return design
 
     def _optimiser(self, learning_rate: float):
         """Adam and its compiled step at this learning rate: every estimate, noise, limit and
@@ -599,6 +637,20 @@ def _rollout_args(theta, design: Design, x0s) -> tuple:
         design.limits.u_low,
         design.limits.u_high,
     )
+
+
+def _covariance(h, meat) -> np.ndarray:
+    """[M, M] the fit's per-episode covariance H^-1 B B^T H^-1."""
+    inv = np.linalg.pinv(np.asarray(h, np.float64))
+    return inv @ np.asarray(meat, np.float64) @ inv
+
+
+def _criterion_value(cov, ref, pick) -> float:
+    """The design's criterion on a covariance (parameters in units of their size, `ref`)."""
+    rel = cov / np.outer(ref, ref)
+    if pick is None:
+        return float(np.linalg.slogdet(rel + RIDGE * np.trace(rel) * np.eye(len(rel)))[1])
+    return float(np.log(np.sum(np.diag(rel) * pick) + EIVAL_FLOOR))
 
 
 def _f32(*xs):
@@ -720,6 +772,9 @@ class WindowFit:
             "half": full.half,  # noise and law mismatch: what discovery reports
             "noise_half": full.half - full.bias,  # the noise part alone
             "theta": np.asarray(theta[0], np.float64),
+            # the residuals' level over the sensor noise's (1: the model fits to the noise;
+            # above: law mismatch the noise part of the next prediction does not hold)
+            "residual_over_noise": math.sqrt(max(float(loss[0]), 0.0) / max(floor2, 1e-30)),
         }
 
 
