@@ -60,7 +60,16 @@ def small(analytic_cfg):
     )
 
 
-def test_information_matches_finite_differences(small):
+@pytest.fixture(scope="module")
+def residuals(small):
+    """The windows' residuals, compiled once for the module's tests (eager, each call traces
+    the windows' scans again)."""
+    import jax
+
+    return jax.jit(small.residuals)
+
+
+def test_information_matches_finite_differences(small, residuals):
     """J^T Sigma^-1 J of the windows, J forward mode through the simulator, against central
     differences of the same residuals (float32: a step of 1% of each parameter)."""
     theta = small.theta({FRICTION: {"force": 30.0}, "actuator_gain@slide": {"gain": 0.9}})
@@ -78,7 +87,7 @@ def test_information_matches_finite_differences(small):
     info = small.information(theta, obs, u, noise)
 
     def res(th):
-        r = small.residuals(
+        r = residuals(
             jnp.asarray(th, jnp.float32),
             jnp.asarray(obs, jnp.float32),
             jnp.asarray(u, jnp.float32),
@@ -99,7 +108,7 @@ def test_information_matches_finite_differences(small):
     np.testing.assert_allclose(info, expected, rtol=0.03, atol=1e-3 * np.abs(expected).max())
 
 
-def test_noise_pull_matches_central_differences(small, analytic_cfg):
+def test_noise_pull_matches_central_differences(small, analytic_cfg, residuals):
     """The estimator's noise pull B (closed form: J^T dr/dn through the windows' initial states
     and targets) against central differences of the fit's gradient J^T r in the noise, on the
     model's own trajectory (where the fit's linearisation is taken)."""
@@ -117,7 +126,6 @@ def test_noise_pull_matches_central_differences(small, analytic_cfg):
     h, b = jax.jit(small._sandwich_fn)(theta, obs, u, noise, scale)
     b = np.asarray(b, np.float64)
 
-    residuals = jax.jit(small.residuals)
     weight = 1.0 / scale
 
     def pull(n):  # the fit's gradient on the record with noise n (in units of its std)
