@@ -51,7 +51,7 @@ import optax
 import scipy.linalg
 from scipy import stats
 
-from hds.discover.fit import _config_key, get_engine
+from hds.discover.fit import config_key, get_engine
 from hds.envs.system import load_spec
 
 log = logging.getLogger("hds")
@@ -197,7 +197,7 @@ def get_designer(env_cfg, keys, dt, steps, horizon=10, stride=1, harmonics=8, ma
     noise, limits and initial states as traced inputs, so a sequential design's rounds and the
     loop's records trace nothing twice."""
     key = (
-        _config_key(env_cfg),
+        config_key(env_cfg),
         tuple(keys),
         round(float(dt), 12),
         int(steps),
@@ -783,7 +783,7 @@ def split_estimate(env_cfg, names) -> tuple[object, dict]:
     estimate {"<effect>@<target>": {param: value}}): a corrected simulator's found effects
     become the traced estimate of a design on the uncorrected one. Action delays (shifts,
     nothing to design for) stay on the simulator."""
-    from hds.discover.workflow import _replace
+    from hds.discover.workflow import replace_env
     from hds.effects.apply import as_spec
     from hds.effects.library import effect_type
 
@@ -795,7 +795,7 @@ def split_estimate(env_cfg, names) -> tuple[object, dict]:
         return env_cfg, {}
     estimate = {f"{specs[i].name}@{specs[i].target}": dict(specs[i].params) for i in found}
     kept = [e for i, e in enumerate(env_cfg.effects) if i not in found]
-    return _replace(env_cfg, effects=kept), estimate
+    return replace_env(env_cfg, effects=kept), estimate
 
 
 def designed_controls(
