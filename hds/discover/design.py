@@ -354,8 +354,8 @@ class Designer:
         the term dJ/dn r is zero on the model's own trajectory (r = 0). One forward-mode
         Jacobian per window, over the parameters and the initial state together, so the
         design's gradient is a second derivative of the simulator, not a third (a reverse
-        derivative of J^T r through the windows was one order more: the Furuta's ten
-        substeps a step made XLA's compiler overflow its stack)."""
+        derivative of J^T r through the windows was one order more and twice the program;
+        on the Furuta it overflowed the stack of XLA's compiler)."""
         model, k, m = self.model, self.horizon, len(self.slots)
         weight = 1.0 / scale
         slots = jnp.asarray(self.slots)
