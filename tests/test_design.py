@@ -11,9 +11,39 @@ import pytest
 
 from hds.data import collect
 from hds.data.excitation import random_steps
-from hds.discover.design import Designer, WindowFit, limits_of, lqr_gain
+from hds.discover.design import (
+    Designer,
+    WindowFit,
+    get_designer,
+    limits_of,
+    lqr_gain,
+    split_estimate,
+)
 
 FRICTION = "coulomb_friction@slider"
+
+
+class CompileCount:
+    """XLA compiles (or persistent-cache loads) of programs while open (jax.monitoring)."""
+
+    EVENT = "/jax/core/compile/backend_compile_duration"
+
+    def __enter__(self):
+        import jax
+
+        self.n = 0
+        jax.monitoring.register_event_duration_secs_listener(self._record)
+        return self
+
+    def _record(self, event, secs, **_):
+        self.n += event == self.EVENT
+
+    def __exit__(self, *exc):
+        import jax
+
+        jax.monitoring.unregister_event_duration_listener(self._record)
+
+
 DOWN = np.array([0.0, np.pi, 0.0, 0.0])  # cart centred, pole hanging, at rest
 
 
@@ -30,7 +60,16 @@ def small(analytic_cfg):
     )
 
 
-def test_information_matches_finite_differences(small):
+@pytest.fixture(scope="module")
+def residuals(small):
+    """The windows' residuals, compiled once for the module's tests (eager, each call traces
+    the windows' scans again)."""
+    import jax
+
+    return jax.jit(small.residuals)
+
+
+def test_information_matches_finite_differences(small, residuals):
     """J^T Sigma^-1 J of the windows, J forward mode through the simulator, against central
     differences of the same residuals (float32: a step of 1% of each parameter)."""
     theta = small.theta({FRICTION: {"force": 30.0}, "actuator_gain@slide": {"gain": 0.9}})
@@ -48,7 +87,7 @@ def test_information_matches_finite_differences(small):
     info = small.information(theta, obs, u, noise)
 
     def res(th):
-        r = small.residuals(
+        r = residuals(
             jnp.asarray(th, jnp.float32),
             jnp.asarray(obs, jnp.float32),
             jnp.asarray(u, jnp.float32),
@@ -67,6 +106,61 @@ def test_information_matches_finite_differences(small):
     expected = j.T @ j
     assert np.all(np.diag(info) > 0)
     np.testing.assert_allclose(info, expected, rtol=0.03, atol=1e-3 * np.abs(expected).max())
+
+
+def test_noise_pull_matches_central_differences(small, analytic_cfg, residuals):
+    """The estimator's noise pull B (closed form: J^T dr/dn through the windows' initial states
+    and targets) against central differences of the fit's gradient J^T r in the noise, on the
+    model's own trajectory (where the fit's linearisation is taken)."""
+    import jax
+
+    theta = jnp.asarray(
+        small.theta({FRICTION: {"force": 30.0}, "actuator_gain@slide": {"gain": 0.9}}), jnp.float32
+    )
+    limits = limits_of(analytic_cfg, 0.5)
+    coef = np.random.default_rng(1).normal(0.0, 0.6, (1, 6))
+    args = (theta, coef, [1.5], [0.0], np.zeros((1, 4)), DOWN, DOWN, limits.u_low, limits.u_high)
+    obs, u = small._rollout(*(jnp.asarray(a, jnp.float32) for a in args))
+    noise = jnp.asarray([1e-3, 2e-3, 1e-2, 2e-2], jnp.float32)
+    scale = jnp.asarray(np.asarray(obs).std(axis=0), jnp.float32)
+    h, b = jax.jit(small._sandwich_fn)(theta, obs, u, noise, scale)
+    b = np.asarray(b, np.float64)
+
+    weight = 1.0 / scale
+
+    def pull(n):  # the fit's gradient on the record with noise n (in units of its std)
+        noisy = obs + jnp.asarray(n, jnp.float32) * noise
+        j = np.asarray(small._jac(theta, noisy, u, weight), np.float64)
+        return j.T @ np.asarray(residuals(theta, noisy, u, weight), np.float64)
+
+    # small steps along random directions: the friction's tanh at rest is resolved within
+    # the noise (1 cm/s against 1 / sharpness = 2 cm/s), so a step of one std is not linear
+    eps = 0.05
+    for n in np.random.default_rng(2).normal(size=(3, *obs.shape)):
+        expected = (pull(eps * n) - pull(-eps * n)) / (2 * eps)
+        np.testing.assert_allclose(b @ n.reshape(-1), expected, rtol=0.02, atol=1e-6)
+    j = np.asarray(small._jac(theta, obs, u, weight), np.float64)
+    np.testing.assert_allclose(np.asarray(h), j.T @ j, rtol=1e-4)
+
+
+def test_one_designer_per_simulator_and_the_estimate_taken_off_it(analytic_cfg):
+    """get_designer builds a Designer once per simulator, keys and record length; a corrected
+    simulator's found friction becomes the design's estimate, its action delay stays on it."""
+    first = get_designer(analytic_cfg, [FRICTION], 0.04, 16, horizon=3)
+    assert get_designer(analytic_cfg, [FRICTION], 0.04, 16, horizon=3) is first
+    assert get_designer(analytic_cfg, [FRICTION], 0.04, 20, horizon=3) is not first
+    corrected = dataclasses.replace(
+        analytic_cfg,
+        effects=[
+            {"name": "coulomb_friction", "target": "slider", "params": {"force": 42.0}},
+            {"name": "action_delay", "target": "slide", "params": {"steps": 1}},
+        ],
+    )
+    base, estimate = split_estimate(corrected, ["coulomb_friction", "action_delay"])
+    assert estimate == {FRICTION: {"force": 42.0}}
+    assert [e["name"] for e in base.effects] == ["action_delay"]
+    assert get_designer(dataclasses.replace(base, effects=[]), [FRICTION], 0.04, 16, 3) is first
+    assert first.theta(estimate)[first.slots[0]] == 42.0
 
 
 @pytest.mark.slow  # compiles the design's nested derivatives: about a minute of CPU
@@ -88,8 +182,20 @@ def test_design_keeps_every_limit(small, analytic_cfg):
 
     gain = lqr_gain(small, estimate, DOWN)
     assert gain.shape == (1, 4) and np.all(np.isfinite(gain))
-    closed = small.design(estimate, DOWN, None, limits, iterations=2, gain=gain)
+    # another estimate, feedback, noise and limits: traced inputs, nothing compiles again
+    with CompileCount() as compiles:
+        closed = small.design(
+            {FRICTION: {"force": 35.0}}, DOWN, None, limits, iterations=2, gain=gain
+        )
+    assert compiles.n == 0
     assert closed.limits.violation(closed.trajectory, closed.planned_controls)["speed"] == 0.0
+    # rivals: a signal beyond the bound is no fair rival; no control carries no information
+    zero = np.zeros((small.steps, 1))
+    over = np.full((small.steps, 1), 2 * limits.u_high[0])
+    kept = small.design(
+        estimate, DOWN, None, limits, iterations=2, rivals={"over": over, "zero": zero}
+    )
+    assert kept.signal == "designed"
     policy = closed.controller()
     u0 = policy(DOWN[None] + 0.1)
     assert u0.shape == (1, 1) and limits.u_low[0] <= u0[0, 0] <= limits.u_high[0]
@@ -98,6 +204,8 @@ def test_design_keeps_every_limit(small, analytic_cfg):
 def test_bad_input_fails_clearly(small, analytic_cfg):
     with pytest.raises(ValueError, match="criterion"):
         small.design(None, DOWN, None, limits_of(analytic_cfg), criterion="E")
+    with pytest.raises(ValueError, match="relative half-width"):
+        small.design(None, DOWN, None, limits_of(analytic_cfg), criterion={"gain": 0.03})
     with pytest.raises(ValueError, match="no candidate"):
         Designer(analytic_cfg, ["coulomb_friction@nowhere"], 0.04, 16, horizon=3)
     with pytest.raises(ValueError, match="amplitude"):

@@ -51,7 +51,7 @@ import optax
 import scipy.linalg
 from scipy import stats
 
-from hds.discover.fit import get_engine
+from hds.discover.fit import config_key, get_engine
 from hds.envs.system import load_spec
 
 log = logging.getLogger("hds")
@@ -138,8 +138,11 @@ class Design:
     predicted_se: np.ndarray  # [M] per episode (divide by sqrt(E) for E episodes)
     trajectory: np.ndarray  # [T+1, n_obs] predicted at the estimate
     planned_controls: np.ndarray  # [T, n_act] the controls along it
-    criterion: str = "D"
+    criterion: str = "D"  # as given (a dict of asked widths as its str)
     history: list[float] = field(default_factory=list)  # the criterion per iteration
+    # "designed", or the name of the rival signal the model predicted better (`design`'s
+    # rivals): then planned_controls are that signal's, applied open loop
+    signal: str = "designed"
 
     def feedforward(self) -> np.ndarray:
         """[T, n_act] the feedforward u_ff."""
@@ -157,6 +160,8 @@ class Design:
         """A policy obs [B, n_obs] -> u [B, n_act] for `hds.data.collect`, stepping through the
         design: u = clip(u_ff(t) - K (obs - x_ref)); t counts calls and restarts after T."""
         ff, t = self.feedforward(), [0]
+        if self.signal != "designed":  # a rival signal won: its controls, open loop
+            ff = self.planned_controls
 
         def act(obs):
             dx = np.asarray(obs, dtype=np.float64) - self.x_ref
@@ -181,6 +186,31 @@ def _feedforward(coefficients, frequencies, dt, steps):
     phase = 2 * jnp.pi * t[:, None] * jnp.asarray(frequencies)[None, :]  # [T, H]
     basis = jnp.concatenate([jnp.sin(phase), jnp.cos(phase)], axis=1)  # [T, 2H]
     return jnp.tanh(basis @ jnp.asarray(coefficients).T)
+
+
+_DESIGNERS: dict[tuple, Designer] = {}
+
+
+def get_designer(env_cfg, keys, dt, steps, horizon=10, stride=1, harmonics=8, max_frequency=None):
+    """The Designer for this simulator, parameters and record length, built once per process
+    and then reused (as `get_engine` reuses the fit's engine): its programs take the estimate,
+    noise, limits and initial states as traced inputs, so a sequential design's rounds and the
+    loop's records trace nothing twice."""
+    key = (
+        config_key(env_cfg),
+        tuple(keys),
+        round(float(dt), 12),
+        int(steps),
+        int(horizon),
+        int(stride),
+        int(harmonics),
+        max_frequency,
+    )
+    if key not in _DESIGNERS:
+        _DESIGNERS[key] = Designer(
+            env_cfg, list(keys), dt, steps, horizon, stride, harmonics, max_frequency
+        )
+    return _DESIGNERS[key]
 
 
 class Designer:
@@ -238,7 +268,8 @@ class Designer:
         self._rollout = jax.jit(self._rollout_fn)
         self._jac = jax.jit(self._jacobian)
         self._predict = jax.jit(lambda *a: self._parts(*a)[:2])
-        self._step = None  # the optimiser's step, compiled on first use
+        self._predict_open = jax.jit(self._parts_open)
+        self._steps = {}  # the optimiser's step per learning rate, compiled on first use
 
     # -- parameters -----------------------------------------------------------------------
 
@@ -315,16 +346,39 @@ class Designer:
     def _sandwich_fn(self, theta, obs, u, noise, scale):
         """H [M, M] and B [M, (T+1) n_obs] of the fit's linearised estimator on one episode
         (windows weighted by 1 / scale, as the fit's normalized residuals are) under white
-        measurement noise of std `noise`: the estimate moves by H^-1 B n for noise n."""
+        measurement noise of std `noise`: the estimate moves by H^-1 B n for noise n.
+
+        B = J^T dr/dn in closed form: noise n enters a window's residual
+        r_i = w (pred_i(obs_s) - obs_(s+1+i)) through its measured initial state (the window's
+        sensitivity P_i = d pred_i / d obs_s) and through its targets (minus the identity);
+        the term dJ/dn r is zero on the model's own trajectory (r = 0). One forward-mode
+        Jacobian per window, over the parameters and the initial state together, so the
+        design's gradient is a second derivative of the simulator, not a third (a reverse
+        derivative of J^T r through the windows was one order more and twice the program;
+        on the Furuta it overflowed the stack of XLA's compiler)."""
+        model, k, m = self.model, self.horizon, len(self.slots)
         weight = 1.0 / scale
-        j = self._jacobian(theta, obs, u, weight)
-        h = j.T @ j
+        slots = jnp.asarray(self.slots)
+        starts = jnp.asarray(self.starts)
+        empty = jnp.zeros((0, u.shape[-1]), u.dtype)
 
-        def pulled(n):
-            return j.T @ self.residuals(theta, obs + n * noise, u, weight)
+        def one(s):
+            u_w = jax.lax.dynamic_slice_in_dim(u, s, k)
 
-        b = jax.jacrev(pulled)(jnp.zeros_like(obs))
-        return h, b.reshape(len(self.slots), -1)
+            def pred(values, x):
+                return model.window(model.params(theta.at[slots].set(values)), x, empty, u_w)
+
+            jt, jx = jax.jacfwd(pred, argnums=(0, 1))(theta[slots], obs[s])
+            return jt * weight[None, :, None], jx * weight[None, :, None]  # [k, n_obs, M|n_obs]
+
+        jt, jx = jax.vmap(one)(starts)  # [W, k, n_obs, M], [W, k, n_obs, n_obs]
+        h = jnp.einsum("wkom,wkon->mn", jt, jt)
+        into_start = jnp.einsum("wkom,wkop->wmp", jt, jx) * noise  # [W, M, n_obs]
+        into_target = -jt * (weight * noise)[None, None, :, None]  # [W, k, n_obs, M]
+        b = jnp.zeros((obs.shape[0], obs.shape[1], m), jt.dtype)
+        b = b.at[starts].add(jnp.swapaxes(into_start, 1, 2))
+        b = b.at[starts[:, None] + 1 + jnp.arange(k)[None, :]].add(into_target)
+        return h, jnp.moveaxis(b, -1, 0).reshape(m, -1)
 
     def _parts(self, theta, c, amplitude, middle, gain, x_ref, x0s, low, high, noise):
         """Per episode on average over the initial states x0s [S, n_obs]: H [M, M] and
@@ -343,9 +397,41 @@ class Designer:
         """[M] one episode's standard errors of discovery's fit (measured initial states) of a
         record of this design from the initial states x0s [S, n_obs] (averaged over them)."""
         h, meat = self._predict(*_f32(*_rollout_args(theta, design, x0s), noise))
-        inv = np.linalg.pinv(np.asarray(h, np.float64))
-        cov = inv @ np.asarray(meat, np.float64) @ inv
-        return np.sqrt(np.maximum(np.diag(cov), 0.0))
+        return np.sqrt(np.maximum(np.diag(_covariance(h, meat)), 0.0))
+
+    def _parts_open(self, theta, u, x0, noise):
+        """H and B B^T of one episode of the open-loop controls u [T, n_act] from x0."""
+        sim, params = self.sim, self.model.params(theta)
+        state = sim.init(x0[: sim.nq], x0[sim.nq :], params)
+
+        def step(state, ut):
+            state = sim.step(params, state, ut)
+            return state, sim.observe(params, state)
+
+        obs = jnp.concatenate([x0[None], jax.lax.scan(step, state, u)[1]])
+        std = obs.std(axis=0)
+        scale = jnp.maximum(std, 1e-6 * std.max() + 1e-12)
+        h, b = self._sandwich_fn(theta, obs, u, noise, scale)
+        return h, b @ b.T, obs
+
+    def predicted_se_of(self, estimate: dict | None, controls, x0, noise) -> np.ndarray:
+        """[M] one episode's standard errors of the fit on each of the open-loop records
+        controls [E, T, n_act] from x0 [n_obs] (any signal: random steps, a PRBS, a design's
+        controls), pooled over them as the fit's sandwich pools episodes; what a standard
+        signal is predicted to give, on the same model and noise as a design's prediction."""
+        u = np.asarray(controls, np.float64)
+        if u.ndim != 3 or u.shape[1:] != (self.steps, self.sim.n_act):
+            raise ValueError(
+                f"controls have shape {u.shape}; give [E, {self.steps}, {self.sim.n_act}]"
+            )
+        theta = jnp.asarray(self.theta(estimate), jnp.float32)
+        x0, noise = _f32(x0, np.maximum(np.asarray(noise, np.float64), 1e-9))
+        h = meat = 0.0
+        for ue in u:
+            he, me, _ = self._predict_open(theta, jnp.asarray(ue, jnp.float32), x0, noise)
+            h, meat = h + np.asarray(he, np.float64), meat + np.asarray(me, np.float64)
+        inv = np.linalg.pinv(h / len(u))
+        return np.sqrt(np.maximum(np.diag(inv @ (meat / len(u)) @ inv), 0.0))
 
     def trajectory(self, theta, design: Design, x0s) -> tuple[np.ndarray, np.ndarray]:
         """The predicted trajectories [S, T+1, n_obs] and controls [S, T, n_act] from x0s."""
@@ -395,13 +481,18 @@ class Designer:
         x_ref=None,
         seed: int = 0,
         start: Design | None = None,
+        rivals: dict | None = None,
     ) -> Design:
         """Optimise the excitation at `estimate` ({key: {param: value}}; missing: the
         simulator's own value) for episodes from the initial state x0 [n_obs] (or the
         expectation over initial states [S, n_obs], e.g. draws of the task's); `noise` [n_obs]
         the measurement noise std (None: 1% of each signal's std along a first trajectory);
         `gain` [n_act, n_obs] a stabilising feedback about x_ref (default the first x0);
-        `start` a previous design to continue from (a sequential design's last round)."""
+        `start` a previous design to continue from (a sequential design's last round);
+        `rivals` {name: controls [T, n_act]} open-loop signals of the same bound (random
+        steps, a PRBS): where the model predicts one of them better by the criterion (and it
+        keeps the limits), the Design carries its controls and its name in `signal`, so a
+        design is never worse, on the model, than the standard signals it was offered."""
         sim = self.sim
         x0s = np.atleast_2d(np.asarray(x0, np.float64))
         if x0s.ndim != 2 or x0s.shape[1] != sim.n_obs:
@@ -436,22 +527,12 @@ class Designer:
         statics = _f32(theta, noise, ref, amplitude, middle, gain, x_ref, x0s)
         lim32 = _f32(*lim)
         pick32 = None if pick is None else jnp.asarray(pick, jnp.float32)
-        optimiser = optax.adam(learning_rate)
-        if self._step is None:
-
-            def step(c, opt_state, *args):
-                value, grad = jax.value_and_grad(self._objective)(c, *args)
-                updates, opt_state = optimiser.update(jnp.nan_to_num(grad), opt_state)
-                return optax.apply_updates(c, updates), opt_state, value
-
-            self._step = jax.jit(step)
+        optimiser, step = self._optimiser(float(learning_rate))
         c = jnp.asarray(c0, jnp.float32)
         opt_state = optimiser.init(c)
         history, best, best_value = [], c, np.inf
         for _ in range(int(iterations)):
-            c_new, opt_state, value = self._step(
-                c, opt_state, *statics[:3], pick32, *statics[3:], lim32
-            )
+            c_new, opt_state, value = step(c, opt_state, *statics[:3], pick32, *statics[3:], lim32)
             value = float(value)
             history.append(value)
             if np.isfinite(value) and value < best_value:  # the value is c's, before the step
@@ -472,10 +553,54 @@ class Designer:
             predicted_se=np.full(len(self.slots), np.inf),
             trajectory=np.zeros((self.steps + 1, sim.n_obs)),
             planned_controls=np.zeros((self.steps, sim.n_act)),
-            criterion=criterion,
+            criterion=str(criterion),
             history=history,
         )
-        return self.finish(design, theta, x0s, noise)
+        design = self.finish(design, theta, x0s, noise)
+        if rivals:
+            design = self._against(design, rivals, theta, x0s[0], noise, ref, pick)
+        return design
+
+    def _against(self, design: Design, rivals: dict, theta, x0, noise, ref, pick) -> Design:
+        """The design, or the rival signal of least criterion on the model (open loop, from
+        x0, keeping the limits)."""
+        if np.any(design.gain != 0):
+            raise ValueError("rivals are open-loop signals: give them to an open-loop design")
+        h, meat = self._predict(*_f32(*_rollout_args(theta, design, x0[None]), noise))
+        best = _criterion_value(_covariance(h, meat), ref, pick)
+        for name, u in rivals.items():
+            u = np.asarray(u, np.float64)
+            if u.shape != (self.steps, self.sim.n_act):
+                raise ValueError(
+                    f"rival {name!r} has shape {u.shape}; give [{self.steps}, {self.sim.n_act}]"
+                )
+            if (u > design.limits.u_high + 1e-9).any() or (u < design.limits.u_low - 1e-9).any():
+                continue  # beyond the amplitude bound: no fair rival
+            h, meat, obs = self._predict_open(*_f32(theta, u, x0, noise))
+            if max(design.limits.violation(np.asarray(obs), u).values()) > 0:
+                continue
+            cov = _covariance(h, meat)
+            value = _criterion_value(cov, ref, pick)
+            if value < best:
+                best = value
+                design.signal, design.planned_controls = name, u
+                design.trajectory = np.asarray(obs, np.float64)
+                design.predicted_se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        return design
+
+    def _optimiser(self, learning_rate: float):
+        """Adam and its compiled step at this learning rate: every estimate, noise, limit and
+        initial state is a traced argument, so each later design reuses the program."""
+        if learning_rate not in self._steps:
+            optimiser = optax.adam(learning_rate)
+
+            def step(c, opt_state, *args):
+                value, grad = jax.value_and_grad(self._objective)(c, *args)
+                updates, opt_state = optimiser.update(jnp.nan_to_num(grad), opt_state)
+                return optax.apply_updates(c, updates), opt_state, value
+
+            self._steps[learning_rate] = (optimiser, jax.jit(step))
+        return self._steps[learning_rate]
 
     def finish(self, design: Design, theta, x0s, noise, shrink: float = 0.8, tries: int = 30):
         """Shrink the feedforward's swing until the predicted trajectories keep every limit,
@@ -514,12 +639,39 @@ def _rollout_args(theta, design: Design, x0s) -> tuple:
     )
 
 
+def _covariance(h, meat) -> np.ndarray:
+    """[M, M] the fit's per-episode covariance H^-1 B B^T H^-1."""
+    inv = np.linalg.pinv(np.asarray(h, np.float64))
+    return inv @ np.asarray(meat, np.float64) @ inv
+
+
+def _criterion_value(cov, ref, pick) -> float:
+    """The design's criterion on a covariance (parameters in units of their size, `ref`)."""
+    rel = cov / np.outer(ref, ref)
+    if pick is None:
+        return float(np.linalg.slogdet(rel + RIDGE * np.trace(rel) * np.eye(len(rel)))[1])
+    return float(np.log(np.sum(np.diag(rel) * pick) + EIVAL_FLOOR))
+
+
 def _f32(*xs):
     return tuple(jnp.asarray(x, jnp.float32) for x in xs)
 
 
-def _pick(criterion: str, labels: list[str]):
-    """None for D; the weights over the parameters' variances otherwise."""
+def _pick(criterion, labels: list[str]):
+    """None for D; the weights over the parameters' relative variances otherwise. A dict
+    {parameter: relative half-width asked} weighs each by 1 / asked^2: the sum of
+    (relative variance / asked^2) is dominated by the parameter furthest from its width, so
+    the design spends the record on what is asked (a weighted A-, for one parameter a
+    c-optimal design), not on the determinant over every candidate's parameters."""
+    if isinstance(criterion, dict):
+        unknown = sorted(set(criterion) - set(labels))
+        bad = {k: v for k, v in criterion.items() if not float(v) > 0}
+        if unknown or bad or not criterion:
+            raise ValueError(
+                f"criterion {criterion!r}: give {{parameter: relative half-width > 0}} over "
+                f"fitted parameters of {labels}"
+            )
+        return np.array([1.0 / float(criterion[k]) ** 2 if k in criterion else 0.0 for k in labels])
     if criterion == "D":
         return None
     if criterion == "A":
@@ -527,8 +679,8 @@ def _pick(criterion: str, labels: list[str]):
     if criterion in labels:
         return (np.array(labels) == criterion).astype(np.float64)
     raise ValueError(
-        f"criterion {criterion!r} is unknown: choose 'D' (determinant), 'A' (trace) or one "
-        f"fitted parameter of {labels}"
+        f"criterion {criterion!r} is unknown: choose 'D' (determinant), 'A' (trace), one "
+        f"fitted parameter of {labels} or {{parameter: relative half-width asked}}"
     )
 
 
@@ -620,22 +772,51 @@ class WindowFit:
             "half": full.half,  # noise and law mismatch: what discovery reports
             "noise_half": full.half - full.bias,  # the noise part alone
             "theta": np.asarray(theta[0], np.float64),
+            # the residuals' level over the sensor noise's (1: the model fits to the noise;
+            # above: law mismatch the noise part of the next prediction does not hold)
+            "residual_over_noise": math.sqrt(max(float(loss[0]), 0.0) / max(floor2, 1e-30)),
         }
+
+
+def split_estimate(env_cfg, names) -> tuple[object, dict]:
+    """(env_cfg without its effects of the kinds `names`, those effects' parameters as an
+    estimate {"<effect>@<target>": {param: value}}): a corrected simulator's found effects
+    become the traced estimate of a design on the uncorrected one. Action delays (shifts,
+    nothing to design for) stay on the simulator."""
+    from hds.discover.workflow import replace_env
+    from hds.effects.apply import as_spec
+    from hds.effects.library import effect_type
+
+    specs = [as_spec(e) for e in env_cfg.effects]
+    found = [
+        i for i, e in enumerate(specs) if e.name in names and not effect_type(e.name).shifts_actions
+    ]
+    if not found:
+        return env_cfg, {}
+    estimate = {f"{specs[i].name}@{specs[i].target}": dict(specs[i].params) for i in found}
+    kept = [e for i, e in enumerate(env_cfg.effects) if i not in found]
+    return replace_env(env_cfg, effects=kept), estimate
 
 
 def designed_controls(
     env_cfg, discover_cfg, dt: float, steps: int, episodes: int, scale, x0s, data=None
 ):
     """[E, T, n_act] open-loop excitation for a round of the loop (discover.excitation =
-    designed): designed on `env_cfg`, the simulator corrected so far (its effects hold the
-    current estimates), for every candidate of discover.design_effects on its places, from the
-    initial states x0s [S, n_obs] the episodes start from, within `scale` of the actuators'
-    half range; the noise measured on `data` (a Dataset recorded on the plant), else assumed."""
+    designed): designed on `env_cfg`, the simulator corrected so far, for every candidate of
+    discover.design_effects on its places, from the initial states x0s [S, n_obs] the episodes
+    start from, within `scale` of the actuators' half range; the noise measured on `data` (a
+    Dataset recorded on the plant), else assumed.
+
+    The corrected simulator's own effects of those kinds are its current estimates: they are
+    taken off the simulator and given to the design as the estimate (traced), so every round
+    designs on one simulator, and one Designer (`get_designer`) serves them all, refining the
+    effects found so far as well as looking for the others."""
     from hds.discover.data import noise_level
     from hds.discover.workflow import fit_backend, with_backend
 
     env_cfg = with_backend(env_cfg, fit_backend(env_cfg, discover_cfg.backend))
     names = list(discover_cfg.design_effects)
+    env_cfg, estimate = split_estimate(env_cfg, names)
     probe = get_engine(env_cfg, dt, names, 0, 0, discover_cfg.horizon).model
     keys = [c.key for c in probe.candidates if not c.shifts_actions]
     if not keys:
@@ -644,10 +825,10 @@ def designed_controls(
             "on this system (an action delay is an integer shift, not a parameter the "
             "information is taken of): add e.g. coulomb_friction or actuator_gain"
         )
-    designer = Designer(env_cfg, keys, dt, steps, discover_cfg.horizon, discover_cfg.stride)
+    designer = get_designer(env_cfg, keys, dt, steps, discover_cfg.horizon, discover_cfg.stride)
     noise = None if data is None else noise_level(np.asarray(data.obs, np.float64))
     limits = limits_of(env_cfg, float(scale))
-    design = designer.design(None, x0s, noise, limits, seed=discover_cfg.seed)
+    design = designer.design(estimate, x0s, noise, limits, seed=discover_cfg.seed)
     return np.repeat(design.controls()[None], episodes, axis=0)
 
 

@@ -373,7 +373,7 @@ def _view_disagreement(inv, g, view_h, view_g) -> np.ndarray:
 _ENGINES: dict = {}
 
 
-def _config_key(env_cfg) -> str:
+def config_key(env_cfg) -> str:
     if is_dataclass(env_cfg):
         return json.dumps(asdict(env_cfg), sort_keys=True, default=str)
     from omegaconf import OmegaConf
@@ -385,7 +385,7 @@ def get_engine(env_cfg, dt: float, effects, max_delay: int, warmup: int, horizon
     """The engine for this simulator and layout, built once per process and then reused, so
     repeated discoveries (tests, sweeps) compile nothing twice."""
     key = (
-        _config_key(env_cfg),
+        config_key(env_cfg),
         round(float(dt), 12),
         tuple(effects),
         int(max_delay),

@@ -411,10 +411,11 @@ def with_backend(env_cfg, backend: str):
     """The env config with another physics backend (a dataclass or a DictConfig)."""
     if env_cfg.backend == backend:
         return env_cfg
-    return _replace(env_cfg, backend=backend)
+    return replace_env(env_cfg, backend=backend)
 
 
-def _replace(env_cfg, **changes):
+def replace_env(env_cfg, **changes):
+    """The env config with `changes` (a dataclass or a DictConfig)."""
     if dataclasses.is_dataclass(env_cfg):
         return dataclasses.replace(env_cfg, **changes)
     from omegaconf import OmegaConf
@@ -425,7 +426,7 @@ def _replace(env_cfg, **changes):
 def corrected_errors(env_cfg, effects: list[dict], data: Data, cfg: DiscoverConfig):
     """Residuals and errors, per set, of the env's simulator with `effects` (no candidates)."""
     engine = get_engine(
-        _replace(env_cfg, effects=effects), data.dt, [], cfg.max_delay, cfg.warmup, cfg.horizon
+        replace_env(env_cfg, effects=effects), data.dt, [], cfg.max_delay, cfg.warmup, cfg.horizon
     )
     no_delay = np.zeros(len(engine.model.sim.action_names), np.int32)
     return compare(engine, data, engine.model.nominal, no_delay)
