@@ -133,7 +133,8 @@ study: $(STAMP)
 # families (docs/lab-plants.md), per task: the methods trained once for the family (the raw
 # simulator, domain randomization over the family's distribution) evaluated on every draw, the
 # one-shot corrected simulator and the oracle per draw, then per draw the sim2real loop (3
-# rounds) without and with HDS's hybrid model, then the study's table. Resumable: finished jobs
+# rounds) without and with HDS's hybrid model (the two side by side, as the sweeps run two
+# jobs at a time on 2 cores), then the study's table. Resumable: finished jobs
 # and loop rounds are skipped (delete $(LAB_RUN) to start over). 5 draws for the balance tasks,
 # 3 for the swing-ups; 3 seeds each. LAB_TASKS=cartpole_balance runs one task.
 LAB_RUN := outputs/study/lab
@@ -150,9 +151,10 @@ study-lab: $(STAMP)
 			hydra.sweep.dir=$$out/shared || exit 1; \
 		for k in $$draws; do \
 			$(BIN)/python -m hds.loop "$$@" "+experiment=[lab_study_loop$$fam,$$t]" \
-				real.draw=$$k hydra.run.dir=$$out/loop/d$$k || exit 1; \
+				real.draw=$$k hydra.run.dir=$$out/loop/d$$k & plain=$$!; \
 			$(BIN)/python -m hds.loop "$$@" "+experiment=[lab_study_loop$$fam,$$t]" \
-				real.draw=$$k dynamics=residual hydra.run.dir=$$out/hybrid/d$$k || exit 1; done; done
+				real.draw=$$k dynamics=residual hydra.run.dir=$$out/hybrid/d$$k & hybrid=$$!; \
+			wait $$plain && wait $$hybrid || exit 1; done; done
 	$(BIN)/python experiments/lab_study/report.py $(LAB_RUN)
 
 # Gap discovery on the real multi-arm pendulum against its authors' fit
