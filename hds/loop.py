@@ -171,6 +171,7 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
         report["data_episodes"] = int(sum(d.n_episodes for d in data))
         report["plant_time"] = recorded.to_json()
         report["plant_time_so_far"] = spent.to_json()
+        atomic_write_json(rdir / "round.json", report)  # the round's whole report, data used too
         rounds.append(report)
         if r > 0 and not improved(rounds[-2], rounds[-1]):
             log.info("round %d: the real return no longer improves; the loop stops", r)

@@ -29,13 +29,15 @@ from hds.results import PlantTime, Row, Summary
 from hds.utils.io import atomic_write_json, read_json
 
 HERE = Path(__file__).resolve().parent
-METHODS = ("raw", "dr", "corrected", "loop", "hybrid", "oracle")
+METHODS = ("raw", "dr", "corrected", "loop", "hybrid", "loop_1", "hybrid_1", "oracle")
 ABOUT = {
     "raw": "closed-loop PODS on the raw simulator",
     "dr": "domain randomization over the family's distribution",
     "corrected": "one-shot corrected simulator",
     "loop": "the loop (3 rounds)",
     "hybrid": "the loop with HDS's hybrid model",
+    "loop_1": "the loop stopped after 1 round (a shorter run)",
+    "hybrid_1": "the loop with the hybrid, stopped after 1 round",
     "oracle": "the oracle on the plant's replica",
 }
 WITHIN = 1.05  # the issue's target: within 1.05 of the oracle's cost
@@ -126,14 +128,16 @@ def gather(task_dir: Path) -> dict:
                     costs = [-r.real_return for r in rows]
                     put(draw, kind_of(method), costs=costs, plant_s=0.0, solved_sim=_solved(rows))
     for kind in ("loop", "hybrid"):
-        for path in sorted((task_dir / kind).glob("d*/loop.json")):
-            rounds, loop_dir = read_json(path)["rounds"], path.parent
-            draw = int(loop_dir.name[1:])
+        for loop_dir in sorted((task_dir / kind).glob("d*")):
+            rounds, draw = loop_rounds(loop_dir), int(loop_dir.name[1:])
+            if not rounds:
+                continue
             per_round = [
                 {
                     "cost": float(np.mean([-Row.from_json(r).real_return for r in x["rows"]])),
                     "plant_s": PlantTime.from_json(x.get("plant_time_so_far")).total_s,
                     "model_used": (x.get("model") or {}).get("used"),
+                    "multistep": (x.get("model") or {}).get("multistep"),
                 }
                 for x in rounds
             ]
@@ -152,9 +156,44 @@ def gather(task_dir: Path) -> dict:
     return out
 
 
+def loop_rounds(loop_dir: Path) -> list[dict]:
+    """A loop's rounds: loop.json's when it ended; else each finished round's round.json, its
+    named effects from its discovery report and its plant time from its recorded data (what
+    the loop reports; rounds written before round.json held them)."""
+    if (loop_dir / "loop.json").is_file():
+        return read_json(loop_dir / "loop.json")["rounds"]
+    from hds.data import load
+
+    cfg, rounds, spent = config_of(loop_dir), [], PlantTime()
+    for r in range(cfg.loop.rounds + 1):
+        rdir = loop_dir / "rounds" / str(r)
+        if not (rdir / "round.json").is_file():
+            break
+        report = read_json(rdir / "round.json")
+        if "plant_time_so_far" not in report:
+            effects = []
+            if r > 0:
+                data = load(rdir / "data.npz")
+                spent += PlantTime.of_round(
+                    data.n_episodes,
+                    data.horizon,
+                    data.dt,
+                    cfg.loop.deploy_episodes,
+                    cfg.loop.excitation_episodes,
+                )
+                effects = read_json(rdir / "discovery" / "report.json")["missing_effects"]
+            report |= {"round": r, "effects": effects, "plant_time_so_far": spent.to_json()}
+        rounds.append(report)
+    return rounds
+
+
 def _solved(rows) -> float | None:
     flags = [r.solved_sim for r in rows if r.solved_sim is not None]
     return float(np.mean(flags)) if flags else None
+
+
+def _num(x) -> str:
+    return "-" if x is None else f"{x:.3g}"
 
 
 def first_within(entry: dict, oracle_cost: float) -> float | None:
@@ -221,15 +260,47 @@ def tables(task: str, family: str, data: dict) -> tuple[str, dict]:
             f"{sum(within[m])} of {len(within[m])} | {times} |"
         )
         summary[m] = {"ratio": list(ci), "within": within[m], "plant_s_to_reach": reach[m]}
+    hybrid = [
+        (draw, i, r)
+        for draw in sorted(data)
+        for m in ("hybrid", "hybrid_1")
+        for i, r in enumerate(data[draw].get(m, {}).get("rounds", []))
+        if r.get("multistep")
+    ]
+    if hybrid:
+        lines += [
+            "",
+            "HDS's hybrid per round: its open-loop NRMSE on the held-out episodes against the "
+            "corrected simulator's (model / corrected simulator) at each k, and whether the "
+            "round used it.",
+            "",
+            "| draw | round | "
+            + " | ".join(f"k={k}" for k in hybrid[0][2]["multistep"])
+            + " | used |",
+            "| --- | --- | " + " | ".join("---" for _ in hybrid[0][2]["multistep"]) + " | --- |",
+        ]
+        for draw, i, r in hybrid:
+            errors = " | ".join(
+                f"{_num(row.get('model'))} / {_num(row.get('simulator'))}"
+                for row in r["multistep"].values()
+            )
+            lines.append(f"| {draw} | {i} | {errors} | {'yes' if r['model_used'] else 'no'} |")
     return "\n".join(lines), {"draws": data, "summary": summary}
 
 
-def main(study_dir: str = "outputs/study/lab") -> None:
+def main(study_dir: str = "outputs/study/lab", *one_round: str) -> None:
+    """`one_round`: study directories of loops stopped after 1 round (loop.rounds=1), whose
+    loops are reported beside the study's as loop_1 and hybrid_1."""
     study_dir = Path(study_dir)
     parts, everything = [], {}
     for task_dir in sorted(p for p in study_dir.iterdir() if p.is_dir()):
         family = "lab_furuta" if task_dir.name.startswith("furuta") else "lab_cartpole"
         data = gather(task_dir)
+        for other in one_round:
+            for draw, methods in gather(Path(other) / task_dir.name).items():
+                for m in ("loop", "hybrid"):
+                    if m in methods:
+                        data.setdefault(draw, {})[f"{m}_1"] = methods[m]
         if not data:
             continue
         text, everything[task_dir.name] = tables(task_dir.name, family, data)
