@@ -107,6 +107,10 @@ def test_active_excitation_pushes_harder_within_the_actuator_range():
     actions = np.concatenate([d.actions for d in data])
     low, high = env.sim.ctrl_range[0]
     assert actions.min() >= low and actions.max() <= high
+    # the plant time the round reports is the recorded data's: every record, steps x dt
+    spent = loop.plant_time(cfg, concatenate(data))
+    assert spent.total_s == pytest.approx(actions.shape[0] * actions.shape[1] * env.sim.dt)
+    assert spent.deployment_s == pytest.approx(len(data) * 2 * cfg.env.task.horizon * env.sim.dt)
 
 
 def test_the_loop_figure_shows_each_round_s_return_and_gap():
