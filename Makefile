@@ -8,7 +8,7 @@ export WANDB_SILENT ?= true
 export XLA_PYTHON_CLIENT_PREALLOCATE ?= false
 export NO_MKDOCS_2_WARNING ?= 1
 
-.PHONY: install run test test-install test-slow test-slurm docs bench lint sweep study pendulum clean
+.PHONY: install run test test-install test-slow test-slurm docs bench lint sweep study study-lab pendulum clean
 
 $(STAMP): pyproject.toml
 	@test -d $(VENV) || $(PY) -m venv $(VENV)
@@ -128,6 +128,34 @@ study: $(STAMP)
 		$(STUDY_SWINGUP_LOOP) real.friction_gap=$$gap hydra.run.dir=$(STUDY_SWINGUP)/loop/x$$gap \
 		|| exit 1; done
 	$(BIN)/python -m hds.report dir=$(STUDY_SWINGUP) out=experiments/sim2real_friction/results/swingup gif=plant_free/0
+
+# The lab study (experiments/lab_study/README.md, issue 38.4): on draws of the lab plant
+# families (docs/lab-plants.md), per task: the methods trained once for the family (the raw
+# simulator, domain randomization over the family's distribution) evaluated on every draw, the
+# one-shot corrected simulator and the oracle per draw, then per draw the sim2real loop (3
+# rounds) without and with HDS's hybrid model (the two side by side, as the sweeps run two
+# jobs at a time on 2 cores), then the study's table. Resumable: finished jobs
+# and loop rounds are skipped (delete $(LAB_RUN) to start over). 5 draws for the balance tasks,
+# 3 for the swing-ups; 3 seeds each. LAB_TASKS=cartpole_balance runs one task.
+LAB_RUN := outputs/study/lab
+LAB_CONF := --config-dir experiments/lab_study/conf
+LAB_TASKS ?= cartpole_balance cartpole_swingup furuta_balance furuta_swingup
+study-lab: $(STAMP)
+	for task in $(LAB_TASKS); do \
+		case $$task in furuta*) fam=_furuta;; *) fam=;; esac; \
+		case $$task in *swingup) draws="0 1 2";; *) draws="0 1 2 3 4";; esac; \
+		set -- $(LAB_CONF) env=$$task; out=$(LAB_RUN)/$$task; t=lab_task_$$task; \
+		$(BIN)/python -m hds.run -m "$$@" "+experiment=[lab_study$$fam,$$t]" \
+			real.draw=$$(echo $$draws | tr ' ' ,) hydra.sweep.dir=$$out/per_draw || exit 1; \
+		$(BIN)/python -m hds.run -m "$$@" "+experiment=[lab_study$${fam}_shared,$$t]" \
+			hydra.sweep.dir=$$out/shared || exit 1; \
+		for k in $$draws; do \
+			$(BIN)/python -m hds.loop "$$@" "+experiment=[lab_study_loop$$fam,$$t]" \
+				real.draw=$$k hydra.run.dir=$$out/loop/d$$k & plain=$$!; \
+			$(BIN)/python -m hds.loop "$$@" "+experiment=[lab_study_loop$$fam,$$t]" \
+				real.draw=$$k dynamics=residual hydra.run.dir=$$out/hybrid/d$$k & hybrid=$$!; \
+			wait $$plain && wait $$hybrid || exit 1; done; done
+	$(BIN)/python experiments/lab_study/report.py $(LAB_RUN)
 
 # Gap discovery on the real multi-arm pendulum against its authors' fit
 # (experiments/multiarm_pendulum/README.md; needs ../shared/data/multiarm_pendulum)

@@ -175,9 +175,12 @@ def methods_of(cfg: Config, out_dir: Path, plant):
     """(method, Simulator, model) of each policy the run trains (its simulator kind's build,
     and an oracle beside it: `oracle`), and the JSON report of the learned model."""
     env = make_env(cfg.env)
-    model, model_report = dynamics_model(cfg, env, plant, out_dir)
     kind = simulators.of(cfg)
-    methods = [(kind.label(cfg), kind.build(cfg, env, plant, out_dir), model)]
+    built = kind.build(cfg, env, plant, out_dir)
+    # the model corrects (a residual's base) and is judged against the simulator the method
+    # trains on: with simulator=corrected, the corrected one, not the raw cfg.env
+    model, model_report = dynamics_model(cfg, built.env, plant, out_dir)
+    methods = [(kind.label(cfg), built, model)]
     if cfg.oracle and cfg.real.plant == "brax" and kind.name != "real":
         methods.append(
             ("oracle", simulators.of(cfg, "oracle").build(cfg, env, plant, out_dir), None)

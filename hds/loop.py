@@ -6,8 +6,9 @@
             what they could: active excitation, hds.discover.identifiability); gap
             discovery on all data so far; a learned model (HDS) refitted on it; train
             warm-started on the corrected simulator (`loop.epochs`); evaluate on the plant.
-Each round reports the named effects with intervals, the real return (mean and 95% interval
-over the runs), the sim2real gap and the data used, in <out>/rounds/<r>/round.json and a
+Each round reports the named effects with intervals, the real return (mean and 95% interval over
+the runs), the sim2real gap and the data used (episodes, and the plant time they cost: seconds
+of deployment and of excitation, hds.results.PlantTime), in <out>/rounds/<r>/round.json and a
 final table; the loop stops when the real return no longer rises beyond the rounds' intervals
 (`improved`). Every round is checkpointed: a killed loop started again on its directory resumes
 and ends with the numbers of an uninterrupted one.
@@ -38,6 +39,7 @@ from hds.envs import make_env  # noqa: E402
 from hds.gap import mean_ci  # noqa: E402
 from hds.logger import print_table  # noqa: E402
 from hds.networks import make_policy  # noqa: E402
+from hds.results import PlantTime  # noqa: E402
 from hds.simulators import Simulator  # noqa: E402
 from hds.utils import cli  # noqa: E402
 from hds.utils.io import atomic_write_json, read_json  # noqa: E402
@@ -140,11 +142,12 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
     plants = experiment.run_plants(cfg)
     plant = plants[0]
     env_cfg, params, data, rounds = cfg.env, None, [], []
+    spent = PlantTime()
     key = jax.random.PRNGKey(cfg.seed + 7919)  # the loop's data, apart from training's keys
     for r in range(cfg.loop.rounds + 1):
         key, round_key = jax.random.split(key)
         rdir = out_dir / "rounds" / str(r)
-        found, notes, scale = [], [], None
+        found, notes, scale, recorded = [], [], None, PlantTime()
         if r > 0:
             if (rdir / "data.npz").is_file():  # recorded before the loop was stopped
                 new = [load(rdir / "data.npz")]
@@ -158,21 +161,39 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
                 save(concatenate(new), rdir / "data.npz")
                 atomic_write_json(rdir / "excitation.json", {"scale": scale, "notes": notes})
             data = [*data, *new]
+            recorded = plant_time(cfg, concatenate(new))
+            spent += recorded
             env_cfg, found = discover_round(cfg, concatenate(data), rdir)
         start = params if cfg.loop.warm_start else None
         report = train_round(cfg, r, env_cfg, start, data, rdir, hooks, plants)
         params = report.pop("params")
         report |= {"round": r, "effects": found, "excitation_scale": scale, "notes": notes}
         report["data_episodes"] = int(sum(d.n_episodes for d in data))
+        report["plant_time"] = recorded.to_json()
+        report["plant_time_so_far"] = spent.to_json()
+        atomic_write_json(rdir / "round.json", report)  # the round's whole report, data used too
         rounds.append(report)
         if r > 0 and not improved(rounds[-2], rounds[-1]):
             log.info("round %d: the real return no longer improves; the loop stops", r)
             break
-    atomic_write_json(out_dir / "loop.json", {"rounds": rounds})
+    atomic_write_json(out_dir / "loop.json", {"rounds": rounds, "plant_time": spent.to_json()})
     plots.save(plots.loop_rounds(rounds), out_dir / "plots" / "loop_rounds.png")
     if hooks.console:
         print_table([round_row(x) for x in rounds], title=f"{cfg.name}: the sim2real loop")
     return rounds
+
+
+def plant_time(cfg: Config, data: Dataset) -> PlantTime:
+    """The plant time a round's recorded data cost: each of its records (`record`; active
+    excitation adds records) deployed loop.deploy_episodes, then excited
+    loop.excitation_episodes, every episode `data.horizon` steps of `data.dt`."""
+    return PlantTime.of_round(
+        data.n_episodes,
+        data.horizon,
+        data.dt,
+        cfg.loop.deploy_episodes,
+        cfg.loop.excitation_episodes,
+    )
 
 
 def discover_round(cfg: Config, data: Dataset, rdir: Path):
@@ -192,11 +213,7 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
     env = make_env(env_cfg)
     model, model_report = None, {}
     if r > 0 and cfg.uses_model():
-        from hds.dynamics import build
-
-        save(concatenate(data), rdir / "model_data.npz")
-        dyn = dataclasses.replace(cfg.dynamics, data=str(rdir / "model_data.npz"))
-        model, model_report = build(dyn, env, None, jax.random.PRNGKey(cfg.seed), rdir / "dynamics")
+        model, model_report = round_model(cfg, env_cfg, env, concatenate(data), rdir)
     method = f"loop{r}"
     simulator = Simulator(env)
 
@@ -234,10 +251,30 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
     report = {"rows": [row.to_json() for row in rows], "real_return": real, "gap": gap}
     if afresh.any():
         report["trained_afresh"] = np.flatnonzero(afresh).tolist()
+    if model_report:
+        report["model"] = {
+            k: model_report.get(k) for k in ("used", "simulator_effects", "multistep")
+        }
     if "not_used_because" in model_report:
         report["model_not_used_because"] = model_report["not_used_because"]
     atomic_write_json(rdir / "round.json", report)
     return report | {"params": trained}
+
+
+def round_model(cfg: Config, env_cfg, env, data: Dataset, rdir: Path):
+    """A round's learned model (HDS), fitted on all the loop's data so far (every round's
+    policy deployed on the plant, and its excitation) with `env`, the simulator the round
+    trains on (env_cfg: the corrected one), as its base: dynamics=hybrid (a residual) learns
+    what the corrected simulator still misses, not what discovery already named. Returns
+    (model, report); the model is None, the report saying why, where it predicts the held-out
+    episodes no better than that simulator alone (dynamics.require_better)."""
+    from hds.dynamics import build
+
+    save(data, rdir / "model_data.npz")
+    dyn = dataclasses.replace(cfg.dynamics, data=str(rdir / "model_data.npz"))
+    model, report = build(dyn, env, None, jax.random.PRNGKey(cfg.seed), rdir / "dynamics")
+    report["simulator_effects"] = [f"{e.name}@{e.target}" for e in env_cfg.effects]
+    return model, report
 
 
 def improved(before: dict, after: dict) -> bool:
@@ -253,7 +290,8 @@ def improved(before: dict, after: dict) -> bool:
 
 def round_row(report: dict) -> dict:
     """A round of the loop as one row: named effects with their 95% intervals, the real
-    return and its interval, the gap and the episodes of data so far."""
+    return and its interval, the gap, the episodes of data so far and the plant time they
+    cost (seconds deployed + excited; rounds written before it was reported: 0)."""
     names = ", ".join(
         f"{e['name']}@{e['target']} "
         + " ".join(
@@ -269,6 +307,9 @@ def round_row(report: dict) -> dict:
         "interval": f"[{lo:.1f}, {hi:.1f}]",
         "gap": gap,
         "episodes": report["data_episodes"],
+        "plant_s": "{deployment_s:.0f} + {excitation_s:.0f}".format(
+            **PlantTime.from_json(report.get("plant_time_so_far")).to_json()
+        ),
         "named": names or "-",
     }
 

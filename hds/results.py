@@ -1,8 +1,8 @@
 """The typed results of an experiment: a `Row` per method and run of the batch, and the
-`Summary` of a run (what summary.json holds). Every writer builds them
-(`hds.gap.gap_rows`, `hds.experiment.run`) and every reader parses them (`hds.report`,
-`hds.callbacks`, `hds.loop`, `hds.run`, `hds.logger`, `hds.story`) through `from_json`, so a
-result file's keys are spelled in one place.
+`Summary` of a run (what summary.json holds), the `PlantTime` a loop round's data cost. Every
+writer builds them (`hds.gap.gap_rows`, `hds.experiment.run`) and every reader parses
+them (`hds.report`, `hds.callbacks`, `hds.loop`, `hds.run`, `hds.logger`, `hds.story`) through
+`from_json`, so a result file's keys are spelled in one place.
 
 `to_json` writes the layout summary.json has always had (a row is one flat object: method, its
 settings, returns, gaps), so run directories written before these types existed still load,
@@ -123,6 +123,56 @@ class Row(Mapping):
 
 def rows_from_json(rows) -> list[Row]:
     return [Row.from_json(r) for r in rows]
+
+
+@dataclass(frozen=True)
+class PlantTime:
+    """Seconds of plant time data cost (steps x dt): the policy deployed on the plant and
+    open-loop excitation. A loop round reports what it recorded and its total so far; the lab
+    study states what each method needed (docs/loop.md)."""
+
+    deployment_s: float = 0.0
+    excitation_s: float = 0.0
+
+    @property
+    def total_s(self) -> float:
+        return self.deployment_s + self.excitation_s
+
+    @classmethod
+    def of_round(
+        cls, episodes: int, horizon: int, dt: float, deploy_episodes: int, excitation_episodes: int
+    ) -> PlantTime:
+        """The plant time of a round's `episodes` recorded episodes of `horizon` steps, each
+        record of the round `deploy_episodes` deployed, then `excitation_episodes` excited
+        (hds.data.acquire.deployed_and_excited; active excitation records more of both)."""
+        per_record = deploy_episodes + excitation_episodes
+        if episodes % per_record:
+            raise ValueError(
+                f"{episodes} episodes are no whole number of records of {deploy_episodes} "
+                f"deployed and {excitation_episodes} excited: the round's data were not "
+                "recorded by this loop's settings (loop.deploy_episodes, "
+                "loop.excitation_episodes); record the round again"
+            )
+        records, seconds = episodes // per_record, horizon * dt
+        return cls(records * deploy_episodes * seconds, records * excitation_episodes * seconds)
+
+    def __add__(self, other: PlantTime) -> PlantTime:
+        return PlantTime(
+            self.deployment_s + other.deployment_s, self.excitation_s + other.excitation_s
+        )
+
+    def to_json(self) -> dict:
+        return {
+            "deployment_s": self.deployment_s,
+            "excitation_s": self.excitation_s,
+            "total_s": self.total_s,
+        }
+
+    @classmethod
+    def from_json(cls, data: Mapping | None) -> PlantTime:
+        """As to_json wrote it; a round written before plant time was reported: none."""
+        data = data or {}
+        return cls(float(data.get("deployment_s", 0.0)), float(data.get("excitation_s", 0.0)))
 
 
 @dataclass

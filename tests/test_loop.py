@@ -4,16 +4,20 @@ actuator's range) when the data never move a joint past its friction."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from hds import loop
 from hds.checkpoint import Checkpoints
+from hds.data import Dataset
 from hds.envs import make_env
 from hds.experiment import Hooks, run_plants
+from hds.results import PlantTime
 from tests.conftest import make_config
 
 # Round 0 and one correction round, on a tiny budget: 20 N of Coulomb friction on the rail of
@@ -103,6 +107,10 @@ def test_active_excitation_pushes_harder_within_the_actuator_range():
     actions = np.concatenate([d.actions for d in data])
     low, high = env.sim.ctrl_range[0]
     assert actions.min() >= low and actions.max() <= high
+    # the plant time the round reports is the recorded data's: every record, steps x dt
+    spent = loop.plant_time(cfg, concatenate(data))
+    assert spent.total_s == pytest.approx(actions.shape[0] * actions.shape[1] * env.sim.dt)
+    assert spent.deployment_s == pytest.approx(len(data) * 2 * cfg.env.task.horizon * env.sim.dt)
 
 
 def test_the_loop_figure_shows_each_round_s_return_and_gap():
@@ -303,3 +311,106 @@ def test_designed_excitation_in_a_round_and_in_the_corrected_simulator():
     data, source = discovery_data(make_config(*LOOP, *over, *DESIGNED[:1]), env, plant)
     assert source["excitation"] == "designed"
     np.testing.assert_array_equal(data.actions[0], data.actions[1])
+
+
+# --- HDS's hybrid: a learned residual on top of the simulator the round trains on
+
+HYBRID = (
+    "env.backend=analytic",
+    "dynamics=residual",
+    "dynamics.hidden=[32,32]",
+    "dynamics.epochs=100",
+    "dynamics.patience=30",
+    "dynamics.minibatch=64",
+    "dynamics.eval_steps=[1,10]",
+)
+
+
+@pytest.fixture(scope="module")
+def hybrid_round():
+    """A round's config with dynamics=residual (HDS's hybrid), the corrected simulator it
+    trains on (20 N of rail friction, as discovery names it), and the round's data recorded on
+    a plant (the policy deployed, and the excitation)."""
+    from hds.config import EffectConfig, env_config
+
+    cfg = make_config(*LOOP, *HYBRID)
+    friction = EffectConfig("coulomb_friction", "slider", {"force": 20.0})
+    corrected_cfg = env_config(dataclasses.replace(cfg.env, effects=[friction]))
+    corrected = make_env(corrected_cfg)
+    params = untrained_policy(cfg, corrected)
+
+    def recorded(plant):
+        return loop.record(cfg, corrected, plant, params, jax.random.PRNGKey(1), 0.4)
+
+    return cfg, corrected_cfg, corrected, friction, recorded
+
+
+def test_the_hybrid_is_fitted_on_round_data_on_top_of_the_corrected_simulator(
+    hybrid_round, tmp_path
+):
+    """On a plant with viscous damping beyond the corrected simulator, the round's hybrid
+    predicts the held-out episodes better than the corrected simulator and is used; its base
+    is that simulator's step: with zero correction, exactly the corrected step (friction
+    included), not the raw simulator's."""
+    from hds.config import EffectConfig
+    from hds.real.brax_plant import BraxPlant
+
+    cfg, corrected_cfg, corrected, friction, recorded = hybrid_round
+    damping = EffectConfig("viscous_damping", "slider", {"coefficient": 30.0})
+    plant = BraxPlant(make_env(corrected_cfg, effects=[friction, damping]))
+    model, report = loop.round_model(cfg, corrected_cfg, corrected, recorded(plant), tmp_path)
+    assert model is not None and report["used"] is True
+    assert report["simulator_effects"] == ["coulomb_friction@slider"]
+    for row in report["multistep"].values():
+        assert row["model"] < row["simulator"], report["multistep"]
+    zero = dataclasses.replace(
+        model,
+        params=jax.tree.map(jnp.zeros_like, model.params),
+        norm=dataclasses.replace(model.norm, y_mean=jnp.zeros_like(model.norm.y_mean)),
+    )
+    obs, u = jnp.array([0.1, 0.05, 0.3, -0.2]), jnp.array([0.2])
+
+    def step(env):
+        state = env.sim.step(env.params, env.sim.init(obs[:2], obs[2:], env.params), u)
+        return jnp.concatenate([state.q, state.qd])
+
+    np.testing.assert_allclose(zero.predict(obs, u), step(corrected), atol=1e-6)
+    assert not np.allclose(zero.predict(obs, u), step(make_env(cfg.env)), atol=1e-4)
+
+
+@pytest.mark.slow  # a second fit (~20 s on 2 busy cores)
+def test_the_hybrid_is_refused_where_it_predicts_no_better_than_the_corrected_simulator(
+    hybrid_round, tmp_path
+):
+    """On a plant that is the corrected simulator nothing is left to learn: the round's hybrid
+    predicts the held-out episodes no better than the corrected simulator, and is not used
+    (round.json and the log say why). The raw simulator, without the friction, it would beat."""
+    from hds.real.brax_plant import BraxPlant
+
+    cfg, corrected_cfg, corrected, _, recorded = hybrid_round
+    data = recorded(BraxPlant(corrected))
+    model, report = loop.round_model(cfg, corrected_cfg, corrected, data, tmp_path)
+    assert model is None and report["used"] is False
+    assert "model against simulator, k=1:" in report["not_used_because"]
+
+
+def test_each_round_reports_the_plant_time_its_recorded_data_cost():
+    """Plant time is steps x dt of the data a round recorded, split into the policy's deployed
+    episodes and the excitation; active excitation's further records count too."""
+    cfg = make_config(*LOOP)
+    dt, horizon = 0.04, 50
+    one = 6 + 10  # loop.deploy_episodes + loop.excitation_episodes of LOOP
+    for records in (1, 3):
+        data = Dataset(
+            np.zeros((records * one, horizon + 1, 4)), np.zeros((records * one, horizon, 1)), dt
+        )
+        spent = loop.plant_time(cfg, data)
+        assert spent.total_s == pytest.approx(data.actions.shape[0] * data.actions.shape[1] * dt)
+        assert spent.deployment_s == pytest.approx(records * 6 * horizon * dt)
+        assert spent.excitation_s == pytest.approx(records * 10 * horizon * dt)
+    total = loop.plant_time(cfg, data) + loop.plant_time(cfg, data)
+    assert PlantTime.from_json(total.to_json()) == total and total.total_s == pytest.approx(
+        2 * 3 * one * 2.0
+    )
+    with pytest.raises(ValueError, match="no whole number of records"):
+        loop.plant_time(cfg, Dataset(np.zeros((5, 3, 4)), np.zeros((5, 2, 1)), dt))

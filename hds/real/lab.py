@@ -198,3 +198,27 @@ def in_bounds(family: str, truth: dict) -> list[str]:
         if d.choices and value not in d.choices or not low <= value <= high:
             out.append(f"{d.key} = {value} outside [{low}, {high}]")
     return out
+
+
+# effects on the observations (no dynamics for a simulator to be randomized over)
+OBSERVED = ("sensor_noise", "encoder_quantization")
+
+
+def randomization(family: str) -> list[dict]:
+    """Domain randomization over the family's own distribution (`dr.effects`: [{name, target,
+    ranges: {param: [low, high]}}]): every drawn value's whole range, a static friction's from
+    the lowest sliding force times the lowest ratio to the highest times the highest. Left
+    out, as a randomized simulator cannot draw them per rollout: discrete values (the delay's
+    steps, the cogging's periods: an effect whose period is not drawn is dropped, as a cogging
+    of the wrong period is another disturbance) and the effects on the observations."""
+    _, table = _family(family)
+    low: dict[str, float] = {}
+    high: dict[str, float] = {}
+    for d in table:
+        low[d.key], high[d.key] = d.bounds(low)[0], d.bounds(high)[1]
+    dropped = {(d.effect, d.target) for d in table if d.choices or d.effect in OBSERVED}
+    ranged: dict[tuple[str, str], dict] = {}
+    for d in table:
+        if (d.effect, d.target) not in dropped:
+            ranged.setdefault((d.effect, d.target), {})[d.param] = [low[d.key], high[d.key]]
+    return [{"name": n, "target": t, "ranges": r} for (n, t), r in ranged.items()]

@@ -1,0 +1,39 @@
+"""The lab study's domain randomization (experiments/lab_study/, make study-lab): over the
+lab family's own distribution (hds.real.lab.randomization), as the study's configs state it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from hds.real import lab
+
+CONF = Path(__file__).resolve().parents[1] / "experiments" / "lab_study" / "conf" / "experiment"
+
+
+@pytest.mark.parametrize("family", sorted(lab.FAMILIES))
+def test_every_draw_lies_inside_the_family_s_randomization(family):
+    """Every continuous value a draw has, on the simulator's dynamics, lies inside its range;
+    what a randomized simulator cannot draw per rollout (a discrete value, the sensors) is left
+    out, and no range is empty or reversed."""
+    ranged = {(e["name"], e["target"]): e["ranges"] for e in lab.randomization(family)}
+    assert ranged
+    for k in range(20):
+        truth = lab.draw(family, k)
+        for e in truth["effects"]:
+            if e["name"] in lab.OBSERVED or e["name"] in ("action_delay", "cogging_torque"):
+                assert (e["name"], e["target"]) not in ranged
+                continue
+            ranges = ranged[(e["name"], e["target"])]
+            for param, (low, high) in ranges.items():
+                assert low < high and low <= e["params"][param] <= high, (k, e, param)
+
+
+@pytest.mark.parametrize(
+    "family, config", [("lab_cartpole", "lab_study"), ("lab_furuta", "lab_study_furuta")]
+)
+def test_the_study_randomizes_over_the_family_s_own_distribution(family, config):
+    stated = yaml.safe_load((CONF / f"{config}.yaml").read_text())["dr"]["effects"]
+    assert stated == lab.randomization(family)
