@@ -28,20 +28,10 @@ from hds.algo.pods import (
 from hds.envs import make_env
 from hds.evaluation import Evaluator
 from hds.networks import make_policy
-from tests.conftest import ROOT, make_config, trained
+from tests.conftest import FAST, ROOT, make_config, trained
 
-# Small budgets on the analytic backend, which compiles in seconds (tests/test_analytic.py
-# checks it against brax and MuJoCo).
-TINY = (
-    "env.backend=analytic",
-    "algo.epochs=6",
-    "algo.chunk=3",
-    "algo.rollouts=16",
-    "env.task.horizon=30",
-    "algo.inner_epochs=4",
-    "eval_episodes=8",
-    "logger=none",
-)
+# conftest.FAST: conf/debug/fast.yaml, the tests' budget where the policy must learn
+TINY = FAST
 
 
 @pytest.fixture(scope="module")
@@ -235,6 +225,12 @@ def test_hds_run_writes_every_output(tmp_path):
         *TINY[:-1],
         "method=hds",
         "real=brax",  # its oracle trains beside: two methods, two W&B runs
+        # the model's data and fit at their smallest (the defaults fit for a minute), and the
+        # model used however it fits: the trainer runs through it, as HDS does
+        "dynamics.episodes=8",
+        "dynamics.horizon=26",
+        "dynamics.epochs=5",
+        "dynamics.require_better=false",
         "seeds=2",
         f"hydra.run.dir={out}",
     ]
