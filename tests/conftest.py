@@ -1,5 +1,22 @@
 """Shared fixtures. JAX compiles are the main cost on CPU: build each env and compile each
-function once per session (session-scoped fixtures), with the persistent compilation cache on."""
+function once per session (session-scoped fixtures), with the persistent compilation cache on.
+
+Writing a cheap test (`make test` must stay under 10 minutes on 2 cores from an empty cache):
+- Train on one of the shared budgets below, `TINY` (runs, shapes and bookkeeping) or `FAST`
+  (a policy that learns), plus only the overrides the test is about. Every file that trains
+  with the same shapes lowers the same programs, so the persistent compilation cache (shared
+  by both workers and every `python -m hds.run` the tests start) compiles them once for the
+  whole suite; a budget of its own (another rollout count, horizon, chunk or evaluation
+  episodes) compiles every program again. Seeds, swept values and `algo.epochs` do not split
+  programs, except where the epochs change the chunk (their largest divisor not above
+  `algo.chunk`).
+- Build what several tests read once: a module- or session-scoped fixture, not a training
+  per test.
+- A learned dynamics model or a discovery in a test that checks something else: the
+  smallest data and fitting budget (`dynamics.episodes`, `dynamics.horizon`,
+  `dynamics.epochs`), as the defaults fit for minutes.
+- A test over ~20 s goes under `@pytest.mark.slow`, with a cheaper test of the same
+  behaviour left in `make test`."""
 
 from __future__ import annotations
 
@@ -60,6 +77,23 @@ LONGEST_FIRST = (
 def pytest_collection_modifyitems(items):
     rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: rest as collected
+
+
+# The tests' shared budgets on the closed-form engine (compiles in seconds; tests/test_analytic.py
+# checks it against brax and MuJoCo). TINY: 4 rollouts of 10 steps, one regression epoch: for
+# what runs, not for what it learns. FAST: conf/debug/fast.yaml (16 rollouts of 30 steps, 6
+# epochs in chunks of 3), where a test needs the policy to improve.
+TINY = (
+    "env.backend=analytic",
+    "algo.epochs=2",
+    "algo.chunk=2",
+    "algo.rollouts=4",
+    "env.task.horizon=10",
+    "algo.inner_epochs=1",
+    "eval_episodes=2",
+    "logger=none",
+)
+FAST = ("debug=fast", "logger=none")
 
 
 def make_config(*overrides: str, config_name: str = "config"):

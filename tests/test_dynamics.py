@@ -297,16 +297,34 @@ def test_dynamics_configs_compose_and_bad_values_are_named():
         make_config("dynamics=mlp", "dynamics.excitation=noise")
 
 
-def test_a_model_drives_rollouts_inside_the_trainer(setup, fitted):
+@pytest.fixture(scope="module")
+def through_model(setup, fitted):
+    """dynamics.branch -> (policy before, state, metrics) of the trainer through the ensemble
+    (key 0), trained once per branch for the tests below."""
     from hds.algo.pods import make_train_from_config
 
     cfg, env, *_ = setup
     model, _ = fitted("ensemble")
-    trainer = make_train_from_config(cfg, env, model)
-    hparams = trainer.default_hparams
+    cache = {}
+
+    def get(branch):
+        if branch not in cache:
+            branched = replace(cfg, dynamics=replace(cfg.dynamics, branch=branch))
+            trainer = make_train_from_config(branched, env, model)
+            key, hparams = jax.random.PRNGKey(0), trainer.default_hparams
+            before = trainer.init(key, hparams).policy
+            cache[branch] = (before, *jax.jit(trainer.train)(key, hparams))
+        return cache[branch]
+
+    return get
+
+
+def test_a_model_drives_rollouts_inside_the_trainer(setup, through_model):
+    from hds.algo.pods import make_train_from_config
+
+    cfg, env, *_ = setup
+    before, state, metrics = through_model(cfg.dynamics.branch)
     key = jax.random.PRNGKey(0)
-    before = trainer.init(key, hparams).policy
-    state, metrics = jax.jit(trainer.train)(key, hparams)
     assert np.all(np.isfinite(np.asarray(metrics["return"])))
     assert np.all(np.isfinite(np.asarray(metrics["loss"])))
     assert int(np.sum(metrics["skipped"])) == 0
@@ -340,20 +358,12 @@ def test_branched_model_rollouts_start_from_states_the_used_simulator_rollouts_v
     np.testing.assert_array_equal(fewer, starts[:40])
 
 
-def test_branched_model_rollouts_drive_the_trainer(setup, fitted):
+def test_branched_model_rollouts_drive_the_trainer(through_model):
     """dynamics.branch=5 (of a 10-step horizon): training through the model stays finite,
     and its short rollouts from simulator states train otherwise than whole ones."""
-    from hds.algo.pods import make_train_from_config
-
-    cfg, env, *_ = setup
-    model, _ = fitted("ensemble")
-    key = jax.random.PRNGKey(0)
     results = {}
     for branch in (0, 5):
-        trainer = make_train_from_config(
-            replace(cfg, dynamics=replace(cfg.dynamics, branch=branch)), env, model
-        )
-        state, metrics = jax.jit(trainer.train)(key, trainer.default_hparams)
+        _, state, metrics = through_model(branch)
         assert np.all(np.isfinite(np.asarray(metrics["loss"])))
         assert int(np.sum(metrics["skipped"])) == 0
         results[branch] = jax.tree.leaves(state.policy)[0]

@@ -21,18 +21,7 @@ import pytest
 from hds import experiment
 from hds import run as hds_run
 from hds.envs import make_env
-from tests.conftest import ROOT, make_config, trained, wandb_records
-
-TINY = (
-    "env.backend=analytic",
-    "algo.epochs=2",
-    "algo.chunk=2",
-    "algo.rollouts=4",
-    "env.task.horizon=10",
-    "algo.inner_epochs=1",
-    "eval_episodes=2",
-    "logger=none",
-)
+from tests.conftest import ROOT, TINY, make_config, trained, wandb_records
 
 
 def cli(*args) -> list[str]:

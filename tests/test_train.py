@@ -28,30 +28,36 @@ from hds.algo.pods import (
 from hds.envs import make_env
 from hds.gap import Evaluator
 from hds.networks import make_policy
-from tests.conftest import ROOT, make_config, trained
+from tests.conftest import FAST, ROOT, make_config, trained
 
-# Small budgets on the analytic backend, which compiles in seconds (tests/test_analytic.py
-# checks it against brax and MuJoCo).
-TINY = (
-    "env.backend=analytic",
-    "algo.epochs=6",
-    "algo.chunk=3",
-    "algo.rollouts=16",
-    "env.task.horizon=30",
-    "algo.inner_epochs=4",
-    "eval_episodes=8",
-    "logger=none",
-)
+# conftest.FAST: conf/debug/fast.yaml, the tests' budget where the policy must learn
+TINY = FAST
+
+
+def train_in_chunks(cfg, trainer):
+    """(state, metrics [runs, epochs]) of the runs of cfg, trained as hds.experiment.train
+    trains them: init, then run_chunk over the chunks of epochs, with its compiled programs
+    (on a CPU one run's, run by run). Those are the programs of every other training of these
+    shapes in the suite (the persistent cache's), where a jit of the whole training compiled
+    a program of its own."""
+    from hds.experiment import batch_hparams, compiled_programs
+
+    init, run_chunk, keys, hparams = compiled_programs(cfg, trainer, batch_hparams(cfg, trainer))
+    state, chunks = init(keys, hparams), []
+    for _ in range(cfg.algo.epochs // trainer.chunk):
+        state, metrics = run_chunk(state, hparams)
+        chunks.append(metrics)
+    return state, jax.tree.map(lambda *m: np.concatenate(m, axis=1), *chunks)
 
 
 @pytest.fixture(scope="module")
 def setup():
-    cfg = make_config(*TINY)
+    cfg = make_config(*TINY, "seeds=2")
     env = make_env(cfg.env)
     trainer = make_train_from_config(cfg, env)
-    train = jax.jit(jax.vmap(trainer.train, in_axes=(0, None)))
-    keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(2))
-    state, metrics = train(keys, trainer.default_hparams)
+    train = lambda: train_in_chunks(cfg, trainer)  # noqa: E731
+    keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(2))  # seeds 0 and 1, as cfg.runs()
+    state, metrics = train()
     return cfg, env, trainer, train, keys, state, metrics
 
 
@@ -83,7 +89,7 @@ def test_a_trainer_built_from_its_parts_trains_as_the_config_s(setup):
         exploration=Exploration(lambda scale, decay: lambda epoch: jnp.zeros(()), scale=0.0),
         budget=Budget(epochs, rollouts=16, chunk=3),
     )
-    built, _ = jax.jit(jax.vmap(trainer.train, in_axes=(0, None)))(keys, trainer.default_hparams)
+    built, _ = train_in_chunks(cfg, trainer)
     for a, b in zip(jax.tree.leaves(built.policy), jax.tree.leaves(state.policy), strict=True):
         np.testing.assert_array_equal(a, b)
 
@@ -94,10 +100,8 @@ def test_more_improvement_steps_reach_better_targets(setup):
     epoch starts from the same rollouts, and the line search accepts only improvements, so
     every sequence ends at least as high as after one step."""
     cfg, env, trainer, _, keys, _, metrics = setup
-    more = make_train_from_config(make_config(*TINY, "algo.improve_steps=3"), env)
-    _, more_metrics = jax.jit(jax.vmap(more.run_chunk, in_axes=(0, None)))(
-        jax.vmap(more.init, in_axes=(0, None))(keys, more.default_hparams), more.default_hparams
-    )
+    more_cfg = make_config(*TINY, "seeds=2", "algo.improve_steps=3")
+    _, more_metrics = train_in_chunks(more_cfg, make_train_from_config(more_cfg, env))
     one, three = (
         np.asarray(metrics["improved_return"])[:, 0],
         np.asarray(more_metrics["improved_return"])[:, 0],
@@ -143,8 +147,7 @@ def test_closed_loop_improvement_trains_and_never_accepts_worse(setup):
 
 def test_same_seed_same_numbers_and_seeds_differ(setup):
     *_, train, keys, state, metrics = setup
-    trainer = setup[2]
-    state2, metrics2 = train(keys, trainer.default_hparams)
+    state2, metrics2 = train()
     for a, b in zip(jax.tree.leaves(state.policy), jax.tree.leaves(state2.policy)):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(metrics["return"], metrics2["return"])
@@ -235,6 +238,12 @@ def test_hds_run_writes_every_output(tmp_path):
         *TINY[:-1],
         "method=hds",
         "real=brax",  # its oracle trains beside: two methods, two W&B runs
+        # the model's data and fit at their smallest (the defaults fit for a minute), and the
+        # model used however it fits: the trainer runs through it, as HDS does
+        "dynamics.episodes=8",
+        "dynamics.horizon=26",
+        "dynamics.epochs=5",
+        "dynamics.require_better=false",
         "seeds=2",
         f"hydra.run.dir={out}",
     ]
