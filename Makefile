@@ -22,14 +22,16 @@ run: $(STAMP)
 	$(BIN)/python -m hds.run +experiment=sim2real_friction
 
 # Two workers, a test file each (its session's compiled fixtures stay in one process), the
-# longest files first (tests/conftest.py: LONGEST_FIRST). The longest end-to-end tests
-# (marked slow: a whole sim2real loop and its resume, domain
-# randomization against fixed values, a training on the tree engine, the corrected simulator's
-# active excitation, the mjx backend, a sweep on joblib's launcher, the bench's scaling and
-# sections runs, a discovery on each tree-engine system and on EMPS, retraining on a corrected
-# simulator, HDS's beta sweep and model-share ramp, the noise-decay sweep, sharding, a toy
-# effect's training, more improvement steps) run in `make test-slow`, to keep `make test` (what
-# CI runs) under 10 minutes on 2 cores with an empty compilation cache.
+# longest files first (tests/conftest.py: LONGEST_FIRST). The longest end-to-end tests, each
+# with a cheaper test of the same behaviour in make test, are marked slow and run in
+# `make test-slow`: a whole sim2real loop and its resume, domain randomization against fixed
+# values, HDS end to end through the command line, the corrected and real simulators closing the
+# gap, a training on the tree engine, the corrected simulator's active excitation, the mjx
+# backend, sweeps on joblib's and submitit's launchers, the bench's scaling and sections runs, a
+# discovery on each tree-engine system and on EMPS, retraining on a corrected simulator, HDS's
+# beta sweep and model-share ramp, the noise-decay sweep, sharding, a toy effect's training, more
+# improvement steps. That keeps `make test` (what CI runs) under 10 minutes on 2 cores with an
+# empty compilation cache.
 # TEST_WORKERS=0 runs them in this process.
 TEST_WORKERS ?= 2
 test: $(STAMP)

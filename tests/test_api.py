@@ -376,7 +376,8 @@ def test_jobs_side_by_side_print_a_line_each_tenth_not_a_live_bar(tmp_path, caps
     assert not one_job_at_a_time(hydra(RunMode.MULTIRUN, joblib))
 
 
-@pytest.mark.parametrize("killed_at", [3, 6])  # after the first chunk; after the last one
+# after the first chunk; after the last one (make test-slow: the same path, later)
+@pytest.mark.parametrize("killed_at", [3, pytest.param(6, marks=pytest.mark.slow)])
 def test_a_failing_run_closes_its_w_and_b_run_and_a_resume_continues_it(tmp_path, killed_at):
     cfg = hds.compose(["debug=fast", "real=none", "logger.group=test"])
 

@@ -358,6 +358,9 @@ def test_branched_model_rollouts_start_from_states_the_used_simulator_rollouts_v
     np.testing.assert_array_equal(fewer, starts[:40])
 
 
+# make test-slow: a second compile of the trainer through the model; make test keeps branch 0
+# (test_a_model_drives_rollouts_inside_the_trainer)
+@pytest.mark.slow
 def test_branched_model_rollouts_drive_the_trainer(through_model):
     """dynamics.branch=5 (of a 10-step horizon): training through the model stays finite,
     and its short rollouts from simulator states train otherwise than whole ones."""

@@ -360,11 +360,11 @@ def vmapped_seeds(tmp_path_factory):
     return {r["seed"]: r for r in result.rows}
 
 
-# joblib's processes in make test-slow: submitit's local executor, the path a SLURM sweep takes,
-# runs in make test
-@pytest.mark.parametrize(
-    "launcher", [pytest.param("local_processes", marks=pytest.mark.slow), "local_submitit"]
-)
+# make test-slow (40 s cold each): joblib's processes and submitit's local executor, the path a
+# SLURM sweep takes (make test-slurm runs a real cluster); make test keeps the default launcher's
+# sweeps above and below
+@pytest.mark.slow
+@pytest.mark.parametrize("launcher", ["local_processes", "local_submitit"])
 def test_other_launchers_run_a_sweep_with_the_vmapped_numbers(tmp_path, launcher, vmapped_seeds):
     hds_run_cli(
         "-m", *TINY, "seed=0,1", f"hydra/launcher={launcher}", f"hydra.sweep.dir={tmp_path}"

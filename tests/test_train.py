@@ -228,6 +228,10 @@ def test_kill_and_resume_gives_identical_parameters(tmp_path, monkeypatch):
     assert resumed_history == history
 
 
+# make test-slow: HDS through the command line end to end (80 s cold); make test keeps HDS's
+# model inside the trainer (test_dynamics) and a saved HDS policy run through its model
+# (test_api::test_hds_evaluate_runs_a_policy_through_a_learned_model)
+@pytest.mark.slow
 def test_hds_run_writes_every_output(tmp_path):
     out = tmp_path / "run"
     env = {**os.environ, "WANDB_MODE": "offline"}
@@ -266,6 +270,10 @@ def test_hds_run_writes_every_output(tmp_path):
     assert "real_return" in proc.stdout and "Traceback" not in proc.stderr
 
 
+# make test-slow (60 s cold): make test keeps a run on the corrected model
+# (test_discover::test_command_line_writes_the_report_and_hds_run_accepts_the_corrected_model)
+# and the simulator kinds' own tests (test_simulators)
+@pytest.mark.slow
 def test_the_corrected_and_the_real_simulator_close_the_gap(tmp_path):
     """simulator=corrected trains on the effects gap discovery names on plant data, and
     simulator=real (the oracle) on the plant's own: both then predict the plant's return far
