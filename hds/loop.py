@@ -208,7 +208,8 @@ def discover_round(cfg: Config, data: Dataset, rdir: Path):
 def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
     """Train (warm-started from `params`, None: from scratch) on the round's simulator and, for HDS,
     a model refitted on the loop's data; evaluate on `plants` (the runs' plants). A round
-    trained before is restored from its checkpoints; its report is written to round.json."""
+    trained before is restored from its checkpoints. Returns its report (run_loop adds the
+    data used and writes round.json) and the trained parameters (`params`)."""
     round_cfg = round_config(cfg, r)
     env = make_env(env_cfg)
     model, model_report = None, {}
@@ -257,14 +258,13 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
         }
     if "not_used_because" in model_report:
         report["model_not_used_because"] = model_report["not_used_because"]
-    atomic_write_json(rdir / "round.json", report)
     return report | {"params": trained}
 
 
 def round_model(cfg: Config, env_cfg, env, data: Dataset, rdir: Path):
     """A round's learned model (HDS), fitted on all the loop's data so far (every round's
     policy deployed on the plant, and its excitation) with `env`, the simulator the round
-    trains on (env_cfg: the corrected one), as its base: dynamics=hybrid (a residual) learns
+    trains on (env_cfg: the corrected one), as its base: dynamics=residual (the hybrid) learns
     what the corrected simulator still misses, not what discovery already named. Returns
     (model, report); the model is None, the report saying why, where it predicts the held-out
     episodes no better than that simulator alone (dynamics.require_better)."""
