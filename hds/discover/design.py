@@ -430,8 +430,7 @@ class Designer:
         for ue in u:
             he, me, _ = self._predict_open(theta, jnp.asarray(ue, jnp.float32), x0, noise)
             h, meat = h + np.asarray(he, np.float64), meat + np.asarray(me, np.float64)
-        inv = np.linalg.pinv(h / len(u))
-        return np.sqrt(np.maximum(np.diag(inv @ (meat / len(u)) @ inv), 0.0))
+        return np.sqrt(np.maximum(np.diag(_covariance(h / len(u), meat / len(u))), 0.0))
 
     def trajectory(self, theta, design: Design, x0s) -> tuple[np.ndarray, np.ndarray]:
         """The predicted trajectories [S, T+1, n_obs] and controls [S, T, n_act] from x0s."""
