@@ -179,7 +179,7 @@ class PlantTime:
 class Summary:
     """What a run leaves in summary.json: its name, its rows (one per method and run), the rows
     on its further plants (`eval_plants`), each method's timing and metric history
-    ({method: {metric: [n_runs][epochs]}}), the report of its learned model and of gap
+    (`{method: {metric: [n_runs][epochs]}}`), the report of its learned model and of gap
     discovery, and the plant it was evaluated on (`real`: plant, name, friction_gap, effects)."""
 
     name: str
