@@ -230,6 +230,7 @@ def run_case(name, spec, repeats, log, criterion="asked"):
             ts = time.perf_counter()
             cum, ratios, fits, predicted = [], [], [], []
             applied_gap, all_ctrl, chosen, predicted_now, noise_est = 0.0, [], [], [], []
+            noise_diff = []
             if signal == "designed":
                 obs, acts, estimate, noise, design, infos = [], [], None, None, None, []
                 used = 0
@@ -273,7 +274,10 @@ def run_case(name, spec, repeats, log, criterion="asked"):
                     for k_, v in zip(labels, fit["values"], strict=True):
                         key_, p = k_.rsplit(".", 1)
                         estimate.setdefault(key_, {})[p] = float(v)
-                    noise = noise_level(o)
+                    # the sensor noise from the fit's one-step residuals (Designer.sensor_noise);
+                    # the measurements' differences (noise_level) hold the motion too
+                    noise = fit["noise"]
+                    noise_diff.append((noise_level(o) / np.asarray(spec["noise"])).tolist())
                     noise_est.append((noise / np.asarray(spec["noise"])).tolist())
                     # the rounds' designs together: precisions add, t over all episodes
                     prec = sum(n_ / se**2 for n_, se in infos)
@@ -329,6 +333,7 @@ def run_case(name, spec, repeats, log, criterion="asked"):
                 "chosen": chosen,  # per round: the design, or the rival the model preferred
                 "predicted_half_now": predicted_now,
                 "noise_estimate_over_true": noise_est,
+                "noise_differences_over_true": noise_diff,
                 "model_half": model_half.tolist(),
                 "model_ratio": model_ratio,
                 "sliding_share": sliding,

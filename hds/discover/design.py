@@ -16,7 +16,8 @@ So the excitation can be optimised before the plant is touched:
              that cannot be excited open loop, zero by default
   information  I = sum over windows of J_w^T Sigma^-1 J_w, J_w = d(window's prediction)/d theta
              on the trajectory the current estimate predicts, Sigma the measurement noise
-             (measured on the data so far, `noise_level`), parameters in units of their size
+             (measured on the data so far from the model's one-step residuals at the
+             estimate, `Designer.sensor_noise`), parameters in units of their size
   criterion  D: -log det I (default); A: trace I^-1; "<effect>@<target>.<param>": that
              parameter's variance (I^-1)_jj
   limits     the actuators' range (scaled by the amplitude bound), the joints' range (minus a
@@ -269,6 +270,7 @@ class Designer:
         self._jac = jax.jit(self._jacobian)
         self._predict = jax.jit(lambda *a: self._parts(*a)[:2])
         self._predict_open = jax.jit(self._parts_open)
+        self._one_step = jax.jit(self._one_step_fn)
         self._steps = {}  # the optimiser's step per learning rate, compiled on first use
 
     # -- parameters -----------------------------------------------------------------------
@@ -330,6 +332,69 @@ class Designer:
             return self.residuals(theta.at[slots].set(values), obs, u, weight)
 
         return jax.jacfwd(res)(theta[slots])
+
+    def _one_step_fn(self, theta, obs, u):
+        """Every step's one-step prediction from its measured state minus the next measurement,
+        [T, n_obs], and the prediction's sensitivity to that state A_t [T, n_obs, n_obs]."""
+        model, params = self.model, self.model.params(theta)
+        empty = jnp.zeros((0, u.shape[-1]), u.dtype)
+
+        def one(x, ut, target):
+            def pred(x):
+                return model.window(params, x, empty, ut[None])[0]
+
+            err = pred(x) - target
+            err = jnp.where(self.angular, jnp.arctan2(jnp.sin(err), jnp.cos(err)), err)
+            return err, jax.jacfwd(pred)(x)
+
+        return jax.vmap(one)(obs[:-1], u, obs[1:])
+
+    def sensor_noise(self, theta, obs, u) -> np.ndarray:
+        """[n_obs] the measurement noise std of records obs [E, T+1, n_obs] of controls
+        u [E, T, n_act], from the model's one-step residuals at theta (the fit's estimate).
+
+        Differences of the measurements (`hds.discover.data.noise_level`) hold the motion
+        itself wherever the sampled motion is not smooth at the sample rate: a cart's velocity
+        under a PRBS or a 3 Hz chirp at 25 Hz has fourth differences of several times its
+        sensor noise with no noise at all. The model removes the motion: from a measured state
+        y_t = x_t + n_t the one-step residual is r_t = A_t n_t - n_(t+1) (A_t the prediction's
+        sensitivity to its initial state), so white noise of variances s gives
+        E[r_t,o^2] = sum_p A_t,op^2 s_p + s_o: a linear system in s over the records. Each
+        residual's variance is taken robustly (its median absolute deviation), so a law
+        mismatch confined to a few steps (a friction's reversals) does not count as noise;
+        one spread over every step does (then this is the residual level the fit sees). The
+        fitted parameters take a handful of degrees of freedom from E x T residuals: ignored."""
+        import scipy.optimize
+
+        obs, u = np.asarray(obs, np.float64), np.asarray(u, np.float64)
+        if obs.ndim != 3 or u.shape[:2] != (obs.shape[0], obs.shape[1] - 1):
+            raise ValueError(
+                f"obs {obs.shape} and u {u.shape} do not match: give the records' observations "
+                "[E, T+1, n_obs] and the controls applied between them [E, T, n_act]"
+            )
+        theta32 = jnp.asarray(theta, jnp.float32)
+        res, sens = [], 0.0
+        for o, a in zip(obs, u, strict=True):
+            r, jac = self._one_step(theta32, *_f32(o, a))
+            res.append(np.asarray(r, np.float64))
+            sens = sens + np.mean(np.asarray(jac, np.float64) ** 2, axis=0)
+        res = np.concatenate(res)
+        system = sens / len(obs) + np.eye(obs.shape[-1])
+
+        def solve(keep):
+            r = res[keep]
+            var = (np.median(np.abs(r - np.median(r, axis=0)), axis=0) / 0.6745) ** 2
+            return np.sqrt(scipy.optimize.nnls(system, var)[0])
+
+        sigma = solve(np.ones(len(res), bool))
+        # a joint within the noise of rest: the smoothed laws (a friction's tanh of width
+        # 1 / sharpness) are not linear over the noise there, and a plant's stiction is not
+        # what they model; those steps' residuals are left out (if a fifth of them remain:
+        # a few hundred residuals hold a median to a few percent)
+        nq = self.sim.nq
+        speed = np.abs(obs[:, :-1, nq:]).reshape(-1, obs.shape[-1] - nq)
+        slow = (speed < 1.0 / self.sim.sharpness + 3.0 * sigma[nq:]).any(axis=1)
+        return solve(~slow) if np.mean(slow) < 0.8 else sigma
 
     def information(self, theta, obs, u, noise) -> np.ndarray:
         """[M, M] Fisher information of one episode's windows about the fitted parameters
@@ -750,7 +815,8 @@ class WindowFit:
         ), scale
 
     def __call__(self, obs, acts, theta0, noise=None) -> dict:
-        from hds.discover.data import noise_level
+        """The fit from theta0; `noise` [n_obs] the sensor noise std, None: measured from the
+        fit's own one-step residuals (`Designer.sensor_noise`), returned as "noise"."""
         from hds.discover.fit import confidence_intervals
 
         d = self.d
@@ -760,7 +826,8 @@ class WindowFit:
         theta, loss, h, g, _, vh, vg = d.engine.fit(
             np.asarray(theta0, np.float64)[None], slots, delay, data, self.iterations
         )
-        noise = noise_level(np.asarray(obs, np.float64)) if noise is None else noise
+        if noise is None:
+            noise = d.sensor_noise(theta[0], obs, acts)
         floor2 = float(np.mean((np.asarray(noise) / scale) ** 2))
         count = float(len(obs) * len(d.starts) * d.horizon * d.sim.n_obs)
         misfit = max(float(loss[0]) - floor2, 0.0) * count
@@ -771,6 +838,7 @@ class WindowFit:
             "half": full.half,  # noise and law mismatch: what discovery reports
             "noise_half": full.half - full.bias,  # the noise part alone
             "theta": np.asarray(theta[0], np.float64),
+            "noise": np.asarray(noise, np.float64),
             # the residuals' level over the sensor noise's (1: the model fits to the noise;
             # above: law mismatch the noise part of the next prediction does not hold)
             "residual_over_noise": math.sqrt(max(float(loss[0]), 0.0) / max(floor2, 1e-30)),
@@ -810,7 +878,6 @@ def designed_controls(
     taken off the simulator and given to the design as the estimate (traced), so every round
     designs on one simulator, and one Designer (`get_designer`) serves them all, refining the
     effects found so far as well as looking for the others."""
-    from hds.discover.data import noise_level
     from hds.discover.workflow import fit_backend, with_backend
 
     env_cfg = with_backend(env_cfg, fit_backend(env_cfg, discover_cfg.backend))
@@ -825,7 +892,9 @@ def designed_controls(
             "information is taken of): add e.g. coulomb_friction or actuator_gain"
         )
     designer = get_designer(env_cfg, keys, dt, steps, discover_cfg.horizon, discover_cfg.stride)
-    noise = None if data is None else noise_level(np.asarray(data.obs, np.float64))
+    noise = None
+    if data is not None:  # the model's one-step residuals on the plant's record, at the estimate
+        noise = designer.sensor_noise(designer.theta(estimate), data.obs, data.actions)
     limits = limits_of(env_cfg, float(scale))
     design = designer.design(estimate, x0s, noise, limits, seed=discover_cfg.seed)
     return np.repeat(design.controls()[None], episodes, axis=0)
