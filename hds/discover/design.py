@@ -271,6 +271,8 @@ class Designer:
         self._predict = jax.jit(lambda *a: self._parts(*a)[:2])
         self._predict_open = jax.jit(self._parts_open)
         self._one_step = jax.jit(self._one_step_fn)
+        self._record = jax.jit(self._record_fn)
+        self._noise_loss = jax.jit(self._noise_loss_fn)
         self._steps = {}  # the optimiser's step per learning rate, compiled on first use
 
     # -- parameters -----------------------------------------------------------------------
@@ -496,6 +498,66 @@ class Designer:
             he, me, _ = self._predict_open(theta, jnp.asarray(ue, jnp.float32), x0, noise)
             h, meat = h + np.asarray(he, np.float64), meat + np.asarray(me, np.float64)
         return np.sqrt(np.maximum(np.diag(_covariance(h / len(u), meat / len(u))), 0.0))
+
+    def _noise_loss_fn(self, theta, obs, u, noise, scale):
+        """The sum over one episode's windows of the squared residuals (each over `scale`)
+        that white sensor noise of std `noise` alone leaves the fit in expectation: a
+        window's residual r_i = P_i n_s - n_(s+1+i) holds the noise of its measured initial
+        state (P_i its prediction's sensitivity to that state) besides its targets'."""
+        model, k = self.model, self.horizon
+        params = model.params(theta)
+        empty = jnp.zeros((0, u.shape[-1]), u.dtype)
+
+        def one(s):
+            u_w = jax.lax.dynamic_slice_in_dim(u, s, k)
+            jx = jax.jacfwd(lambda x: model.window(params, x, empty, u_w))(obs[s])
+            return jnp.sum((jx * noise[None, None, :] / scale[None, :, None]) ** 2)
+
+        start = jnp.sum(jax.vmap(one)(jnp.asarray(self.starts)))
+        return start + len(self.starts) * k * jnp.sum((noise / scale) ** 2)
+
+    def noise_loss(self, theta, obs, u, noise, scale) -> float:
+        """The fit's mean squared normalized residual that sensor noise alone would leave on
+        the records obs [E, T+1, n_obs], u [E, T, n_act] (the fit's `scale` [n_obs]): the
+        floor above which a residual is law mismatch. With measured initial states it is
+        more than the targets' noise (sum of (noise / scale)^2 / n_obs): each window's
+        initial state carries noise too, which its prediction propagates."""
+        total = 0.0
+        args = _f32(theta, np.maximum(np.asarray(noise, np.float64), 0.0), scale)
+        for o, a in zip(np.asarray(obs), np.asarray(u), strict=True):
+            total += float(self._noise_loss(args[0], *_f32(o, a), *args[1:]))
+        return total / (len(obs) * len(self.starts) * self.horizon * self.sim.n_obs)
+
+    def _record_fn(self, theta, obs, u, noise):
+        """H and B B^T of one recorded episode (scaled as the fit scales it)."""
+        std = obs.std(axis=0)
+        h, b = self._sandwich_fn(theta, obs, u, noise, jnp.maximum(std, 1e-6 * std.max() + 1e-12))
+        return h, b @ b.T
+
+    def record_se(self, theta, obs, u, noise) -> np.ndarray:
+        """[M] standard errors of the fit's estimate at theta on the records obs [E, T+1, n_obs]
+        of controls u [E, T, n_act] (all E together) if their residuals were white sensor
+        noise of std `noise` [n_obs] alone: the sandwich H^-1 B B^T H^-1 on the recorded
+        trajectories. The design's prediction made on the record the plant gave: against the
+        fit's cluster-robust noise part (the episodes' own gradients' scatter) it tells the
+        sensor noise's share from a law mismatch that differs between episodes."""
+        obs, u = np.asarray(obs, np.float64), np.asarray(u, np.float64)
+        e = len(obs)
+        if obs.shape != (e, self.steps + 1, self.sim.n_obs) or u.shape != (
+            e,
+            self.steps,
+            self.sim.n_act,
+        ):
+            raise ValueError(
+                f"obs {obs.shape} and u {u.shape}: give [E, {self.steps + 1}, {self.sim.n_obs}] "
+                f"and [E, {self.steps}, {self.sim.n_act}] (this designer's record length)"
+            )
+        theta32, noise32 = _f32(theta, np.maximum(np.asarray(noise, np.float64), 1e-9))
+        h = meat = 0.0
+        for o, a in zip(obs, u, strict=True):
+            he, me = self._record(theta32, *_f32(o, a), noise32)
+            h, meat = h + np.asarray(he, np.float64), meat + np.asarray(me, np.float64)
+        return np.sqrt(np.maximum(np.diag(_covariance(h, meat)), 0.0))
 
     def trajectory(self, theta, design: Design, x0s) -> tuple[np.ndarray, np.ndarray]:
         """The predicted trajectories [S, T+1, n_obs] and controls [S, T, n_act] from x0s."""
@@ -828,7 +890,8 @@ class WindowFit:
         )
         if noise is None:
             noise = d.sensor_noise(theta[0], obs, acts)
-        floor2 = float(np.mean((np.asarray(noise) / scale) ** 2))
+        # what the noise alone leaves, the initial states' noise propagated included
+        floor2 = d.noise_loss(theta[0], obs, acts, noise, scale)
         count = float(len(obs) * len(d.starts) * d.horizon * d.sim.n_obs)
         misfit = max(float(loss[0]) - floor2, 0.0) * count
         values = np.asarray(theta[0], np.float64)[d.slots]
