@@ -50,6 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import scipy.linalg
+import scipy.optimize
 from scipy import stats
 
 from hds.discover.fit import config_key, get_engine
@@ -61,6 +62,7 @@ CRITERIA = ("D", "A")
 PENALTY = 1e3  # weight of a limit's squared violation (in units of the limit) against the criterion
 RIDGE = 1e-9  # relative ridge on the information: a parameter no window sees stays finite
 EIVAL_FLOOR = 1e-12
+FLOOR_Z = 1.96  # standard errors of a measured noise floor a misfit must exceed (WindowFit)
 
 
 @dataclass(frozen=True)
@@ -270,6 +272,7 @@ class Designer:
         self._jac = jax.jit(self._jacobian)
         self._predict = jax.jit(lambda *a: self._parts(*a)[:2])
         self._predict_open = jax.jit(self._parts_open)
+        self._rollout_open = jax.jit(self._open_rollout)
         self._one_step = jax.jit(self._one_step_fn)
         self._record = jax.jit(self._record_fn)
         self._noise_loss = jax.jit(self._noise_loss_fn)
@@ -366,7 +369,6 @@ class Designer:
         mismatch confined to a few steps (a friction's reversals) does not count as noise;
         one spread over every step does (then this is the residual level the fit sees). The
         fitted parameters take a handful of degrees of freedom from E x T residuals: ignored."""
-        import scipy.optimize
 
         obs, u = np.asarray(obs, np.float64), np.asarray(u, np.float64)
         if obs.ndim != 3 or u.shape[:2] != (obs.shape[0], obs.shape[1] - 1):
@@ -374,19 +376,23 @@ class Designer:
                 f"obs {obs.shape} and u {u.shape} do not match: give the records' observations "
                 "[E, T+1, n_obs] and the controls applied between them [E, T, n_act]"
             )
+        return self._sensor_noise(theta, obs, u)[0]
+
+    def _sensor_noise(self, theta, obs, u) -> tuple[np.ndarray, int]:
+        """`sensor_noise` and how many steps' residuals it was taken from."""
         theta32 = jnp.asarray(theta, jnp.float32)
-        res, sens = [], 0.0
+        res, sens = [], []
         for o, a in zip(obs, u, strict=True):
             r, jac = self._one_step(theta32, *_f32(o, a))
             res.append(np.asarray(r, np.float64))
-            sens = sens + np.mean(np.asarray(jac, np.float64) ** 2, axis=0)
-        res = np.concatenate(res)
-        system = sens / len(obs) + np.eye(obs.shape[-1])
+            sens.append(np.asarray(jac, np.float64) ** 2)
+        res, sens = np.concatenate(res), np.concatenate(sens)
+        eye = np.eye(obs.shape[-1])
 
         def solve(keep):
             r = res[keep]
             var = (np.median(np.abs(r - np.median(r, axis=0)), axis=0) / 0.6745) ** 2
-            return np.sqrt(scipy.optimize.nnls(system, var)[0])
+            return np.sqrt(scipy.optimize.nnls(sens[keep].mean(axis=0) + eye, var)[0])
 
         sigma = solve(np.ones(len(res), bool))
         # a joint within the noise of rest: the smoothed laws (a friction's tanh of width
@@ -396,7 +402,9 @@ class Designer:
         nq = self.sim.nq
         speed = np.abs(obs[:, :-1, nq:]).reshape(-1, obs.shape[-1] - nq)
         slow = (speed < 1.0 / self.sim.sharpness + 3.0 * sigma[nq:]).any(axis=1)
-        return solve(~slow) if np.mean(slow) < 0.8 else sigma
+        if np.mean(slow) < 0.8:
+            return solve(~slow), int(np.sum(~slow))
+        return sigma, len(res)
 
     def information(self, theta, obs, u, noise) -> np.ndarray:
         """[M, M] Fisher information of one episode's windows about the fitted parameters
@@ -466,8 +474,8 @@ class Designer:
         h, meat = self._predict(*_f32(*_rollout_args(theta, design, x0s), noise))
         return np.sqrt(np.maximum(np.diag(_covariance(h, meat)), 0.0))
 
-    def _parts_open(self, theta, u, x0, noise):
-        """H and B B^T of one episode of the open-loop controls u [T, n_act] from x0."""
+    def _open_rollout(self, theta, u, x0):
+        """[T+1, n_obs] the model's trajectory under the open-loop controls u [T, n_act]."""
         sim, params = self.sim, self.model.params(theta)
         state = sim.init(x0[: sim.nq], x0[sim.nq :], params)
 
@@ -475,17 +483,24 @@ class Designer:
             state = sim.step(params, state, ut)
             return state, sim.observe(params, state)
 
-        obs = jnp.concatenate([x0[None], jax.lax.scan(step, state, u)[1]])
-        std = obs.std(axis=0)
-        scale = jnp.maximum(std, 1e-6 * std.max() + 1e-12)
+        return jnp.concatenate([x0[None], jax.lax.scan(step, state, u)[1]])
+
+    def _parts_open(self, theta, u, x0, noise, scale=None):
+        """H and B B^T of one episode of the open-loop controls u [T, n_act] from x0, its
+        residuals over `scale` (None: the episode's own std, a record of it repeated)."""
+        obs = self._open_rollout(theta, u, x0)
+        if scale is None:
+            std = obs.std(axis=0)
+            scale = jnp.maximum(std, 1e-6 * std.max() + 1e-12)
         h, b = self._sandwich_fn(theta, obs, u, noise, scale)
         return h, b @ b.T, obs
 
     def predicted_se_of(self, estimate: dict | None, controls, x0, noise) -> np.ndarray:
         """[M] one episode's standard errors of the fit on each of the open-loop records
         controls [E, T, n_act] from x0 [n_obs] (any signal: random steps, a PRBS, a design's
-        controls), pooled over them as the fit's sandwich pools episodes; what a standard
-        signal is predicted to give, on the same model and noise as a design's prediction."""
+        controls), pooled over them as the fit's sandwich pools episodes (each weighted by
+        the signals' std over all of them, as the fit weighs them); what a standard signal
+        is predicted to give, on the same model and noise as a design's prediction."""
         u = np.asarray(controls, np.float64)
         if u.ndim != 3 or u.shape[1:] != (self.steps, self.sim.n_act):
             raise ValueError(
@@ -493,9 +508,12 @@ class Designer:
             )
         theta = jnp.asarray(self.theta(estimate), jnp.float32)
         x0, noise = _f32(x0, np.maximum(np.asarray(noise, np.float64), 1e-9))
+        obs = np.concatenate([np.asarray(self._rollout_open(theta, *_f32(ue), x0)) for ue in u])
+        std = obs.std(axis=0)
+        scale = jnp.asarray(np.maximum(std, 1e-6 * std.max() + 1e-12), jnp.float32)
         h = meat = 0.0
         for ue in u:
-            he, me, _ = self._predict_open(theta, jnp.asarray(ue, jnp.float32), x0, noise)
+            he, me, _ = self._predict_open(theta, *_f32(ue), x0, noise, scale)
             h, meat = h + np.asarray(he, np.float64), meat + np.asarray(me, np.float64)
         return np.sqrt(np.maximum(np.diag(_covariance(h / len(u), meat / len(u))), 0.0))
 
@@ -528,10 +546,9 @@ class Designer:
             total += float(self._noise_loss(args[0], *_f32(o, a), *args[1:]))
         return total / (len(obs) * len(self.starts) * self.horizon * self.sim.n_obs)
 
-    def _record_fn(self, theta, obs, u, noise):
-        """H and B B^T of one recorded episode (scaled as the fit scales it)."""
-        std = obs.std(axis=0)
-        h, b = self._sandwich_fn(theta, obs, u, noise, jnp.maximum(std, 1e-6 * std.max() + 1e-12))
+    def _record_fn(self, theta, obs, u, noise, scale):
+        """H and B B^T of one recorded episode, its residuals over `scale`."""
+        h, b = self._sandwich_fn(theta, obs, u, noise, scale)
         return h, b @ b.T
 
     def record_se(self, theta, obs, u, noise) -> np.ndarray:
@@ -552,10 +569,14 @@ class Designer:
                 f"obs {obs.shape} and u {u.shape}: give [E, {self.steps + 1}, {self.sim.n_obs}] "
                 f"and [E, {self.steps}, {self.sim.n_act}] (this designer's record length)"
             )
-        theta32, noise32 = _f32(theta, np.maximum(np.asarray(noise, np.float64), 1e-9))
+        # every episode weighted as the fit weighs them all: by each signal's std over the
+        # records together (an episode's own std would weigh a quiet episode up)
+        std = obs.reshape(-1, obs.shape[-1]).std(axis=0)
+        scale = np.maximum(std, 1e-6 * std.max() + 1e-12)
+        fixed = _f32(theta, np.maximum(np.asarray(noise, np.float64), 1e-9), scale)
         h = meat = 0.0
         for o, a in zip(obs, u, strict=True):
-            he, me = self._record(theta32, *_f32(o, a), noise32)
+            he, me = self._record(fixed[0], *_f32(o, a), *fixed[1:])
             h, meat = h + np.asarray(he, np.float64), meat + np.asarray(me, np.float64)
         return np.sqrt(np.maximum(np.diag(_covariance(h, meat)), 0.0))
 
@@ -888,10 +909,17 @@ class WindowFit:
         theta, loss, h, g, _, vh, vg = d.engine.fit(
             np.asarray(theta0, np.float64)[None], slots, delay, data, self.iterations
         )
+        # what the noise alone leaves, the initial states' noise propagated included; and the
+        # floor's own uncertainty: a variance from n residuals' median absolute deviation has
+        # a relative standard error of 2.33 / sqrt(n), and a misfit within FLOOR_Z of them
+        # is not counted as law mismatch (the misfit is the loss above the floor times every
+        # entry: a floor a few percent low would read as a mismatch)
         if noise is None:
-            noise = d.sensor_noise(theta[0], obs, acts)
-        # what the noise alone leaves, the initial states' noise propagated included
-        floor2 = d.noise_loss(theta[0], obs, acts, noise, scale)
+            noise, used = d._sensor_noise(theta[0], obs, acts)
+            spread = FLOOR_Z * 2.33 / math.sqrt(max(used, 1))
+        else:
+            spread = 0.0
+        floor2 = d.noise_loss(theta[0], obs, acts, noise, scale) * (1.0 + spread)
         count = float(len(obs) * len(d.starts) * d.horizon * d.sim.n_obs)
         misfit = max(float(loss[0]) - floor2, 0.0) * count
         values = np.asarray(theta[0], np.float64)[d.slots]
