@@ -485,6 +485,12 @@ class Designer:
 
         return jnp.concatenate([x0[None], jax.lax.scan(step, state, u)[1]])
 
+    def open_loop(self, estimate: dict | None, controls, x0) -> np.ndarray:
+        """[T+1, n_obs] the trajectory the model predicts at `estimate` under the open-loop
+        controls [T, n_act] from x0 [n_obs] (to check a signal against the limits)."""
+        theta = jnp.asarray(self.theta(estimate), jnp.float32)
+        return np.asarray(self._rollout_open(theta, *_f32(controls, x0)), np.float64)
+
     def _parts_open(self, theta, u, x0, noise, scale=None):
         """H and B B^T of one episode of the open-loop controls u [T, n_act] from x0, its
         residuals over `scale` (None: the episode's own std, a record of it repeated)."""
