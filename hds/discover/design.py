@@ -369,7 +369,6 @@ class Designer:
         mismatch confined to a few steps (a friction's reversals) does not count as noise;
         one spread over every step does (then this is the residual level the fit sees). The
         fitted parameters take a handful of degrees of freedom from E x T residuals: ignored."""
-
         obs, u = np.asarray(obs, np.float64), np.asarray(u, np.float64)
         if obs.ndim != 3 or u.shape[:2] != (obs.shape[0], obs.shape[1] - 1):
             raise ValueError(
@@ -909,7 +908,8 @@ class WindowFit:
         from hds.discover.fit import confidence_intervals
 
         d = self.d
-        data, scale = self.data(np.asarray(obs, np.float64), np.asarray(acts, np.float64))
+        obs, acts = np.asarray(obs, np.float64), np.asarray(acts, np.float64)
+        data, scale = self.data(obs, acts)
         slots = d.slots[None, :]
         delay = np.zeros((1, d.sim.n_act), np.int32)
         theta, loss, h, g, _, vh, vg = d.engine.fit(
