@@ -143,6 +143,49 @@ def test_noise_pull_matches_central_differences(small, analytic_cfg, residuals):
     np.testing.assert_allclose(np.asarray(h), j.T @ j, rtol=1e-4)
 
 
+def test_sensor_noise_from_the_model_residuals(small, analytic_cfg, residuals):
+    """Records of a bang-bang-like drive with friction (the simulator's own laws) plus white
+    noise of a known std: the noise from the model's one-step residuals at the true
+    parameters is the known one on every channel, at two noise levels, while the motion
+    alone (no noise) shows none; and the fit's residual floor under that noise is the mean
+    squared residual of its windows."""
+    theta = small.theta({FRICTION: {"force": 30.0}, "actuator_gain@slide": {"gain": 0.9}})
+    limits = limits_of(analytic_cfg, 1.0)
+    rng = np.random.default_rng(3)
+    clean, controls = [], []
+    for _ in range(96):  # saturating Fourier drives: the cart reverses within a few steps
+        coef = rng.normal(0.0, 3.0, (1, 6))
+        bounds = (limits.u_low, limits.u_high)
+        args = (theta, coef, [3.0], [0.0], np.zeros((1, 4)), DOWN, DOWN, *bounds)
+        obs, u = small._rollout(*(jnp.asarray(a, jnp.float32) for a in args))
+        clean.append(np.asarray(obs, np.float64))
+        controls.append(np.asarray(u, np.float64))
+    clean, controls = np.stack(clean), np.stack(controls)
+    sigma = np.array([1e-3, 2e-3, 1e-2, 2e-2])
+    for level in (1.0, 0.2):
+        noisy = clean + rng.normal(size=clean.shape) * sigma * level
+        estimate = small.sensor_noise(theta, noisy, controls)
+        np.testing.assert_allclose(estimate / (sigma * level), 1.0, atol=0.15)
+    assert np.all(small.sensor_noise(theta, clean, controls) < 0.05 * sigma)
+    # the fit's residual floor under that noise: the windows' measured initial states carry
+    # noise too, so the mean squared normalized residual is above the targets' noise alone
+    # (the last, smaller noise level: the windows' residuals are linear in it)
+    scale = clean.reshape(-1, 4).std(axis=0)
+    floor = small.noise_loss(theta, noisy, controls, sigma * level, scale)
+    theta32, weight = jnp.asarray(theta, jnp.float32), jnp.asarray(1.0 / scale, jnp.float32)
+    r = np.concatenate(
+        [
+            residuals(theta32, jnp.asarray(o), jnp.asarray(u), weight)
+            for o, u in zip(noisy, controls)
+        ]
+    )
+    targets_only = np.mean((sigma * level / scale) ** 2)
+    assert floor > 1.2 * targets_only
+    assert np.mean(np.asarray(r, np.float64) ** 2) == pytest.approx(floor, rel=0.1)
+    with pytest.raises(ValueError, match="obs"):
+        small.sensor_noise(theta, clean, controls[:, :-1])
+
+
 def test_one_designer_per_simulator_and_the_estimate_taken_off_it(analytic_cfg):
     """get_designer builds a Designer once per simulator, keys and record length; a corrected
     simulator's found friction becomes the design's estimate, its action delay stays on it."""

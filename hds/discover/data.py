@@ -59,6 +59,10 @@ def noise_level(obs: np.ndarray, order: int = 4) -> np.ndarray:
     the median absolute deviation of its `order`-th time differences. Smooth motion has tiny
     high differences and the rare kinks (an action switching) do not move a median, so what
     is left is white noise, whose order-th difference has variance C(2 order, order) sigma^2.
+    Where the sampled motion is not smooth at the sample rate (a velocity under a PRBS, a
+    chirp near a quarter of Nyquist) the differences hold the motion too and this
+    overestimates, by 2-4x on a cart's velocity at 25 Hz; with a model fitted,
+    `hds.discover.design.Designer.sensor_noise` takes the noise from its residuals instead.
     """
     if obs.shape[1] <= order:
         return np.zeros(obs.shape[-1])

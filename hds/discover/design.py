@@ -16,7 +16,8 @@ So the excitation can be optimised before the plant is touched:
              that cannot be excited open loop, zero by default
   information  I = sum over windows of J_w^T Sigma^-1 J_w, J_w = d(window's prediction)/d theta
              on the trajectory the current estimate predicts, Sigma the measurement noise
-             (measured on the data so far, `noise_level`), parameters in units of their size
+             (measured on the data so far from the model's one-step residuals at the
+             estimate, `Designer.sensor_noise`), parameters in units of their size
   criterion  D: -log det I (default); A: trace I^-1; "<effect>@<target>.<param>": that
              parameter's variance (I^-1)_jj
   limits     the actuators' range (scaled by the amplitude bound), the joints' range (minus a
@@ -49,6 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import scipy.linalg
+import scipy.optimize
 from scipy import stats
 
 from hds.discover.fit import config_key, get_engine
@@ -60,6 +62,7 @@ CRITERIA = ("D", "A")
 PENALTY = 1e3  # weight of a limit's squared violation (in units of the limit) against the criterion
 RIDGE = 1e-9  # relative ridge on the information: a parameter no window sees stays finite
 EIVAL_FLOOR = 1e-12
+FLOOR_Z = 1.96  # standard errors of a measured noise floor a misfit must exceed (WindowFit)
 
 
 @dataclass(frozen=True)
@@ -269,6 +272,10 @@ class Designer:
         self._jac = jax.jit(self._jacobian)
         self._predict = jax.jit(lambda *a: self._parts(*a)[:2])
         self._predict_open = jax.jit(self._parts_open)
+        self._rollout_open = jax.jit(self._open_rollout)
+        self._one_step = jax.jit(self._one_step_fn)
+        self._record = jax.jit(self._record_fn)
+        self._noise_loss = jax.jit(self._noise_loss_fn)
         self._steps = {}  # the optimiser's step per learning rate, compiled on first use
 
     # -- parameters -----------------------------------------------------------------------
@@ -330,6 +337,73 @@ class Designer:
             return self.residuals(theta.at[slots].set(values), obs, u, weight)
 
         return jax.jacfwd(res)(theta[slots])
+
+    def _one_step_fn(self, theta, obs, u):
+        """Every step's one-step prediction from its measured state minus the next measurement,
+        [T, n_obs], and the prediction's sensitivity to that state A_t [T, n_obs, n_obs]."""
+        model, params = self.model, self.model.params(theta)
+        empty = jnp.zeros((0, u.shape[-1]), u.dtype)
+
+        def one(x, ut, target):
+            def pred(x):
+                return model.window(params, x, empty, ut[None])[0]
+
+            err = pred(x) - target
+            err = jnp.where(self.angular, jnp.arctan2(jnp.sin(err), jnp.cos(err)), err)
+            return err, jax.jacfwd(pred)(x)
+
+        return jax.vmap(one)(obs[:-1], u, obs[1:])
+
+    def sensor_noise(self, theta, obs, u) -> np.ndarray:
+        """[n_obs] the measurement noise std of records obs [E, T+1, n_obs] of controls
+        u [E, T, n_act], from the model's one-step residuals at theta (the fit's estimate).
+
+        Differences of the measurements (`hds.discover.data.noise_level`) hold the motion
+        itself wherever the sampled motion is not smooth at the sample rate: a cart's velocity
+        under a PRBS or a 3 Hz chirp at 25 Hz has fourth differences of several times its
+        sensor noise with no noise at all. The model removes the motion: from a measured state
+        y_t = x_t + n_t the one-step residual is r_t = A_t n_t - n_(t+1) (A_t the prediction's
+        sensitivity to its initial state), so white noise of variances s gives
+        E[r_t,o^2] = sum_p A_t,op^2 s_p + s_o: a linear system in s over the records. Each
+        residual's variance is taken robustly (its median absolute deviation), so a law
+        mismatch confined to a few steps (a friction's reversals) does not count as noise;
+        one spread over every step does (then this is the residual level the fit sees). The
+        fitted parameters take a handful of degrees of freedom from E x T residuals: ignored."""
+        obs, u = np.asarray(obs, np.float64), np.asarray(u, np.float64)
+        if obs.ndim != 3 or u.shape[:2] != (obs.shape[0], obs.shape[1] - 1):
+            raise ValueError(
+                f"obs {obs.shape} and u {u.shape} do not match: give the records' observations "
+                "[E, T+1, n_obs] and the controls applied between them [E, T, n_act]"
+            )
+        return self._sensor_noise(theta, obs, u)[0]
+
+    def _sensor_noise(self, theta, obs, u) -> tuple[np.ndarray, int]:
+        """`sensor_noise` and how many steps' residuals it was taken from."""
+        theta32 = jnp.asarray(theta, jnp.float32)
+        res, sens = [], []
+        for o, a in zip(obs, u, strict=True):
+            r, jac = self._one_step(theta32, *_f32(o, a))
+            res.append(np.asarray(r, np.float64))
+            sens.append(np.asarray(jac, np.float64) ** 2)
+        res, sens = np.concatenate(res), np.concatenate(sens)
+        eye = np.eye(obs.shape[-1])
+
+        def solve(keep):
+            r = res[keep]
+            var = (np.median(np.abs(r - np.median(r, axis=0)), axis=0) / 0.6745) ** 2
+            return np.sqrt(scipy.optimize.nnls(sens[keep].mean(axis=0) + eye, var)[0])
+
+        sigma = solve(np.ones(len(res), bool))
+        # a joint within the noise of rest: the smoothed laws (a friction's tanh of width
+        # 1 / sharpness) are not linear over the noise there, and a plant's stiction is not
+        # what they model; those steps' residuals are left out (if a fifth of them remain:
+        # a few hundred residuals hold a median to a few percent)
+        nq = self.sim.nq
+        speed = np.abs(obs[:, :-1, nq:]).reshape(-1, obs.shape[-1] - nq)
+        slow = (speed < 1.0 / self.sim.sharpness + 3.0 * sigma[nq:]).any(axis=1)
+        if np.mean(slow) < 0.8:
+            return solve(~slow), int(np.sum(~slow))
+        return sigma, len(res)
 
     def information(self, theta, obs, u, noise) -> np.ndarray:
         """[M, M] Fisher information of one episode's windows about the fitted parameters
@@ -399,8 +473,8 @@ class Designer:
         h, meat = self._predict(*_f32(*_rollout_args(theta, design, x0s), noise))
         return np.sqrt(np.maximum(np.diag(_covariance(h, meat)), 0.0))
 
-    def _parts_open(self, theta, u, x0, noise):
-        """H and B B^T of one episode of the open-loop controls u [T, n_act] from x0."""
+    def _open_rollout(self, theta, u, x0):
+        """[T+1, n_obs] the model's trajectory under the open-loop controls u [T, n_act]."""
         sim, params = self.sim, self.model.params(theta)
         state = sim.init(x0[: sim.nq], x0[sim.nq :], params)
 
@@ -408,17 +482,30 @@ class Designer:
             state = sim.step(params, state, ut)
             return state, sim.observe(params, state)
 
-        obs = jnp.concatenate([x0[None], jax.lax.scan(step, state, u)[1]])
-        std = obs.std(axis=0)
-        scale = jnp.maximum(std, 1e-6 * std.max() + 1e-12)
+        return jnp.concatenate([x0[None], jax.lax.scan(step, state, u)[1]])
+
+    def open_loop(self, estimate: dict | None, controls, x0) -> np.ndarray:
+        """[T+1, n_obs] the trajectory the model predicts at `estimate` under the open-loop
+        controls [T, n_act] from x0 [n_obs] (to check a signal against the limits)."""
+        theta = jnp.asarray(self.theta(estimate), jnp.float32)
+        return np.asarray(self._rollout_open(theta, *_f32(controls, x0)), np.float64)
+
+    def _parts_open(self, theta, u, x0, noise, scale=None):
+        """H and B B^T of one episode of the open-loop controls u [T, n_act] from x0, its
+        residuals over `scale` (None: the episode's own std, a record of it repeated)."""
+        obs = self._open_rollout(theta, u, x0)
+        if scale is None:
+            std = obs.std(axis=0)
+            scale = jnp.maximum(std, 1e-6 * std.max() + 1e-12)
         h, b = self._sandwich_fn(theta, obs, u, noise, scale)
         return h, b @ b.T, obs
 
     def predicted_se_of(self, estimate: dict | None, controls, x0, noise) -> np.ndarray:
         """[M] one episode's standard errors of the fit on each of the open-loop records
         controls [E, T, n_act] from x0 [n_obs] (any signal: random steps, a PRBS, a design's
-        controls), pooled over them as the fit's sandwich pools episodes; what a standard
-        signal is predicted to give, on the same model and noise as a design's prediction."""
+        controls), pooled over them as the fit's sandwich pools episodes (each weighted by
+        the signals' std over all of them, as the fit weighs them); what a standard signal
+        is predicted to give, on the same model and noise as a design's prediction."""
         u = np.asarray(controls, np.float64)
         if u.ndim != 3 or u.shape[1:] != (self.steps, self.sim.n_act):
             raise ValueError(
@@ -426,11 +513,77 @@ class Designer:
             )
         theta = jnp.asarray(self.theta(estimate), jnp.float32)
         x0, noise = _f32(x0, np.maximum(np.asarray(noise, np.float64), 1e-9))
+        obs = np.concatenate([np.asarray(self._rollout_open(theta, *_f32(ue), x0)) for ue in u])
+        std = obs.std(axis=0)
+        scale = jnp.asarray(np.maximum(std, 1e-6 * std.max() + 1e-12), jnp.float32)
         h = meat = 0.0
         for ue in u:
-            he, me, _ = self._predict_open(theta, jnp.asarray(ue, jnp.float32), x0, noise)
+            he, me, _ = self._predict_open(theta, *_f32(ue), x0, noise, scale)
             h, meat = h + np.asarray(he, np.float64), meat + np.asarray(me, np.float64)
         return np.sqrt(np.maximum(np.diag(_covariance(h / len(u), meat / len(u))), 0.0))
+
+    def _noise_loss_fn(self, theta, obs, u, noise, scale):
+        """The sum over one episode's windows of the squared residuals (each over `scale`)
+        that white sensor noise of std `noise` alone leaves the fit in expectation: a
+        window's residual r_i = P_i n_s - n_(s+1+i) holds the noise of its measured initial
+        state (P_i its prediction's sensitivity to that state) besides its targets'."""
+        model, k = self.model, self.horizon
+        params = model.params(theta)
+        empty = jnp.zeros((0, u.shape[-1]), u.dtype)
+
+        def one(s):
+            u_w = jax.lax.dynamic_slice_in_dim(u, s, k)
+            jx = jax.jacfwd(lambda x: model.window(params, x, empty, u_w))(obs[s])
+            return jnp.sum((jx * noise[None, None, :] / scale[None, :, None]) ** 2)
+
+        start = jnp.sum(jax.vmap(one)(jnp.asarray(self.starts)))
+        return start + len(self.starts) * k * jnp.sum((noise / scale) ** 2)
+
+    def noise_loss(self, theta, obs, u, noise, scale) -> float:
+        """The fit's mean squared normalized residual that sensor noise alone would leave on
+        the records obs [E, T+1, n_obs], u [E, T, n_act] (the fit's `scale` [n_obs]): the
+        floor above which a residual is law mismatch. With measured initial states it is
+        more than the targets' noise (sum of (noise / scale)^2 / n_obs): each window's
+        initial state carries noise too, which its prediction propagates."""
+        total = 0.0
+        args = _f32(theta, np.maximum(np.asarray(noise, np.float64), 0.0), scale)
+        for o, a in zip(np.asarray(obs), np.asarray(u), strict=True):
+            total += float(self._noise_loss(args[0], *_f32(o, a), *args[1:]))
+        return total / (len(obs) * len(self.starts) * self.horizon * self.sim.n_obs)
+
+    def _record_fn(self, theta, obs, u, noise, scale):
+        """H and B B^T of one recorded episode, its residuals over `scale`."""
+        h, b = self._sandwich_fn(theta, obs, u, noise, scale)
+        return h, b @ b.T
+
+    def record_se(self, theta, obs, u, noise) -> np.ndarray:
+        """[M] standard errors of the fit's estimate at theta on the records obs [E, T+1, n_obs]
+        of controls u [E, T, n_act] (all E together) if their residuals were white sensor
+        noise of std `noise` [n_obs] alone: the sandwich H^-1 B B^T H^-1 on the recorded
+        trajectories. The design's prediction made on the record the plant gave: against the
+        fit's cluster-robust noise part (the episodes' own gradients' scatter) it tells the
+        sensor noise's share from a law mismatch that differs between episodes."""
+        obs, u = np.asarray(obs, np.float64), np.asarray(u, np.float64)
+        e = len(obs)
+        if obs.shape != (e, self.steps + 1, self.sim.n_obs) or u.shape != (
+            e,
+            self.steps,
+            self.sim.n_act,
+        ):
+            raise ValueError(
+                f"obs {obs.shape} and u {u.shape}: give [E, {self.steps + 1}, {self.sim.n_obs}] "
+                f"and [E, {self.steps}, {self.sim.n_act}] (this designer's record length)"
+            )
+        # every episode weighted as the fit weighs them all: by each signal's std over the
+        # records together (an episode's own std would weigh a quiet episode up)
+        std = obs.reshape(-1, obs.shape[-1]).std(axis=0)
+        scale = np.maximum(std, 1e-6 * std.max() + 1e-12)
+        fixed = _f32(theta, np.maximum(np.asarray(noise, np.float64), 1e-9), scale)
+        h = meat = 0.0
+        for o, a in zip(obs, u, strict=True):
+            he, me = self._record(fixed[0], *_f32(o, a), *fixed[1:])
+            h, meat = h + np.asarray(he, np.float64), meat + np.asarray(me, np.float64)
+        return np.sqrt(np.maximum(np.diag(_covariance(h, meat)), 0.0))
 
     def trajectory(self, theta, design: Design, x0s) -> tuple[np.ndarray, np.ndarray]:
         """The predicted trajectories [S, T+1, n_obs] and controls [S, T, n_act] from x0s."""
@@ -750,18 +903,29 @@ class WindowFit:
         ), scale
 
     def __call__(self, obs, acts, theta0, noise=None) -> dict:
-        from hds.discover.data import noise_level
+        """The fit from theta0; `noise` [n_obs] the sensor noise std, None: measured from the
+        fit's own one-step residuals (`Designer.sensor_noise`), returned as "noise"."""
         from hds.discover.fit import confidence_intervals
 
         d = self.d
-        data, scale = self.data(np.asarray(obs, np.float64), np.asarray(acts, np.float64))
+        obs, acts = np.asarray(obs, np.float64), np.asarray(acts, np.float64)
+        data, scale = self.data(obs, acts)
         slots = d.slots[None, :]
         delay = np.zeros((1, d.sim.n_act), np.int32)
         theta, loss, h, g, _, vh, vg = d.engine.fit(
             np.asarray(theta0, np.float64)[None], slots, delay, data, self.iterations
         )
-        noise = noise_level(np.asarray(obs, np.float64)) if noise is None else noise
-        floor2 = float(np.mean((np.asarray(noise) / scale) ** 2))
+        # what the noise alone leaves, the initial states' noise propagated included; and the
+        # floor's own uncertainty: a variance from n residuals' median absolute deviation has
+        # a relative standard error of 2.33 / sqrt(n), and a misfit within FLOOR_Z of them
+        # is not counted as law mismatch (the misfit is the loss above the floor times every
+        # entry: a floor a few percent low would read as a mismatch)
+        if noise is None:
+            noise, used = d._sensor_noise(theta[0], obs, acts)
+            spread = FLOOR_Z * 2.33 / math.sqrt(max(used, 1))
+        else:
+            spread = 0.0
+        floor2 = d.noise_loss(theta[0], obs, acts, noise, scale) * (1.0 + spread)
         count = float(len(obs) * len(d.starts) * d.horizon * d.sim.n_obs)
         misfit = max(float(loss[0]) - floor2, 0.0) * count
         values = np.asarray(theta[0], np.float64)[d.slots]
@@ -771,6 +935,7 @@ class WindowFit:
             "half": full.half,  # noise and law mismatch: what discovery reports
             "noise_half": full.half - full.bias,  # the noise part alone
             "theta": np.asarray(theta[0], np.float64),
+            "noise": np.asarray(noise, np.float64),
             # the residuals' level over the sensor noise's (1: the model fits to the noise;
             # above: law mismatch the noise part of the next prediction does not hold)
             "residual_over_noise": math.sqrt(max(float(loss[0]), 0.0) / max(floor2, 1e-30)),
@@ -810,7 +975,6 @@ def designed_controls(
     taken off the simulator and given to the design as the estimate (traced), so every round
     designs on one simulator, and one Designer (`get_designer`) serves them all, refining the
     effects found so far as well as looking for the others."""
-    from hds.discover.data import noise_level
     from hds.discover.workflow import fit_backend, with_backend
 
     env_cfg = with_backend(env_cfg, fit_backend(env_cfg, discover_cfg.backend))
@@ -825,7 +989,9 @@ def designed_controls(
             "information is taken of): add e.g. coulomb_friction or actuator_gain"
         )
     designer = get_designer(env_cfg, keys, dt, steps, discover_cfg.horizon, discover_cfg.stride)
-    noise = None if data is None else noise_level(np.asarray(data.obs, np.float64))
+    noise = None
+    if data is not None:  # the model's one-step residuals on the plant's record, at the estimate
+        noise = designer.sensor_noise(designer.theta(estimate), data.obs, data.actions)
     limits = limits_of(env_cfg, float(scale))
     design = designer.design(estimate, x0s, noise, limits, seed=discover_cfg.seed)
     return np.repeat(design.controls()[None], episodes, axis=0)
