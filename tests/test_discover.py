@@ -557,8 +557,7 @@ def test_a_refused_effect_says_which_rule_refused_it_and_with_what_numbers():
     fit = _Refits({("coulomb_friction@slider",): 2113.0, ("mass_scale@cart",): 17047.0})
     _refuse_law_mismatch(fit, chain, refused)
     assert [with_it.refused_because for with_it, _ in refused] == [
-        "without it the identification misfit rises by 724, less than the 1.39e+03 the "
-        "model leaves"
+        "without it the identification misfit rises by 724, less than the 1.39e+03 the model leaves"
     ]
     # an interval that reaches no friction, and a held-out share (20^2 - 19^2) below the 100
     # the model leaves per residual; without it the misfit rises far more than 100
