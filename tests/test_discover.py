@@ -372,6 +372,9 @@ def test_a_lag_standing_in_for_mujocos_soft_friction_is_law_mismatch(plants, tas
     assert 0 < lag.explained_fraction < 0.1 * result.missing_effects[0].explained_fraction
     assert_recovered(result, [hidden], rtol=0.05)
     assert any("actuator_lag@slide" in w and "law mismatch" in w for w in result.warnings)
+    # which rule refused it, in its warning and its JSON
+    assert lag.reason and lag.to_json()["reason"] == lag.reason
+    assert any("actuator_lag@slide" in w and lag.reason in w for w in result.warnings)
 
 
 def _cartpole_model(nominal):
@@ -539,6 +542,48 @@ def test_an_effect_whose_held_out_share_is_within_the_law_mismatch_is_refused():
     # measurement noise is all the model leaves (no misfit above it): nothing is refused
     chain[-1] = dataclasses.replace(last, misfit=0.0)
     assert _refuse_within_heldout_mismatch(_HeldOut(keys), chain, []) == chain
+
+
+def test_a_refused_effect_says_which_rule_refused_it_and_with_what_numbers():
+    """Three rules refuse an effect as law mismatch once selection ends, and an interval that
+    reaches no effect is only one of them: the real double pendulum's Coulomb friction,
+    4 standard errors from 0, was read as refused for its interval while it removed less than
+    the model leaves by every rule. Each refusal now says which rule and what it compared."""
+    from hds.discover.explain import State, _refuse_law_mismatch, _refuse_within_heldout_mismatch
+
+    # the identification misfit: the cart refitted beside the friction earns 724 of 1389
+    chain = [_state([], 903558.0), _state([MASS], 17047.0), _state([MASS, FRICTION], 1389.0)]
+    refused = []
+    fit = _Refits({("coulomb_friction@slider",): 2113.0, ("mass_scale@cart",): 17047.0})
+    _refuse_law_mismatch(fit, chain, refused)
+    assert [with_it.refused_because for with_it, _ in refused] == [
+        "without it the identification misfit rises by 724, less than the 1.39e+03 the model leaves"
+    ]
+    # an interval that reaches no friction, and a held-out share (20^2 - 19^2) below the 100
+    # the model leaves per residual; without it the misfit rises far more than 100
+    zero = np.zeros(1, np.int32)
+    h, g = np.diag([1e5, 0.1]), np.zeros((4, 2))
+    base = dataclasses.replace(_state([], 903558.0), heldout_error=20.0)
+    last = dataclasses.replace(_state([FRICTION], 100.0, (1.0, 10.0), h, g), heldout_error=19.0)
+    refused = []
+    _refuse_law_mismatch(_Refits({}), [base, dataclasses.replace(last, delay=zero)], refused)
+    assert [with_it.refused_because for with_it, _ in refused] == [
+        "its 95% interval reaches no effect, without it the held-out MSE rises by 39, less "
+        "than the 100 per residual the model leaves"
+    ]
+    # the held-out share alone: the cart's 0.030^2 - 0.0295^2 against 0.0295^2
+    keys = {("coulomb_friction@slider",): 0.030, ("mass_scale@cart",): 0.4}
+    chain = [
+        State([], np.zeros(3), zero, 0.5, 0.1, misfit=0.25),
+        State([FRICTION], np.zeros(3), zero, 0.030, 0.1, misfit=0.030**2),
+        State([FRICTION, MASS], np.zeros(3), zero, 0.0295, 0.1, misfit=0.0295**2),
+    ]
+    refused = []
+    _refuse_within_heldout_mismatch(_HeldOut(keys), chain, refused)
+    assert [with_it.refused_because for with_it, _ in refused] == [
+        "without it the held-out MSE rises by 2.98e-05, less than the 0.00087 per residual "
+        "the model leaves"
+    ]
 
 
 def test_an_effect_that_trades_off_is_refitted_jointly_from_the_start():

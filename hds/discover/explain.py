@@ -51,6 +51,9 @@ class State:
     # the identification windows' estimated initial states [W, n_obs] (estimated initial
     # states only): where the fits of effects added to this model start theirs
     z: np.ndarray | None = None
+    # a state refused as law mismatch (`Selection.mismatch`): which rule refused its last
+    # effect, with the numbers the rule compared
+    refused_because: str = ""
 
     @property
     def keys(self) -> set[str]:
@@ -237,7 +240,8 @@ def forward_selection(
         # what is left once the best candidate is no effect is the named laws' mismatch,
         # which further candidates would only compensate
         if _within_mismatch(model, grown, model.candidates[best], cfg.min_scale_change):
-            mismatch.append((grown, state))
+            reason = "its change is within its noise interval or the scale margin"
+            mismatch.append((dataclasses.replace(grown, refused_because=reason), state))
             stopped = f"the best remaining candidate, {label}, is law mismatch, not an effect"
             break
         state = grown
@@ -515,24 +519,54 @@ def _refuse_law_mismatch(
         sets = [[c for c in state.selected if c is not out] for out in state.selected]
         reduced = fit.sets(state, sets) if len(sets) > 1 else [states[0]]
         rises = np.array([r.misfit - state.misfit for r in reduced])
+        small = rises < state.misfit
+        # the held-out episodes decide where the interval reaches no effect
+        # (`_shown_on_held_out`)
+        shares, left = _held_out_shares(fit, state, reduced)
         indistinct = _indistinct(model, state, fit.cfg.min_scale_change)
-        if indistinct.any():  # the held-out episodes decide (`_shown_on_held_out`)
-            shares, left = _held_out_shares(fit, state, reduced)
-            indistinct &= ~_shown_on_held_out(shares, left)
-        weak = (rises < state.misfit) | indistinct
+        indistinct &= ~_shown_on_held_out(shares, left)
+        weak = small | indistinct
         if not weak.any():
             break
-        states = _refuse_weakest(fit, states, sets, reduced, rises, weak, refused)
+        reasons = [
+            "; ".join(
+                ([_misfit_reason(rises[i], state.misfit)] if small[i] else [])
+                + (
+                    ["its 95% interval reaches no effect, " + _held_out_reason(shares[i], left)]
+                    if indistinct[i]
+                    else []
+                )
+            )
+            for i in range(len(weak))
+        ]
+        states = _refuse_weakest(fit, states, sets, reduced, rises, weak, refused, reasons)
     return states
 
 
-def _refuse_weakest(fit, states, sets, reduced, rises, weak, refused) -> list[State]:
+def _misfit_reason(rise: float, misfit: float) -> str:
+    return (
+        f"without it the identification misfit rises by {rise:.3g}, less than the "
+        f"{misfit:.3g} the model leaves"
+    )
+
+
+def _held_out_reason(share: float, left: float) -> str:
+    return (
+        f"without it the held-out MSE rises by {share:.3g}, less than the {left:.3g} per "
+        "residual the model leaves"
+    )
+
+
+def _refuse_weakest(fit, states, sets, reduced, rises, weak, refused, reasons) -> list[State]:
     """Take out the weak effect whose removal raises the error least (`rises`), append the
-    refused state (its effect last) with the state without it to `refused`, and return the
-    chain rebuilt without it."""
+    refused state (its effect last, `reasons` of it as `refused_because`) with the state
+    without it to `refused`, and return the chain rebuilt without it."""
     state = states[-1]
     j = int(np.flatnonzero(weak)[np.argmin(rises[weak])])
-    refused.append((dataclasses.replace(state, selected=sets[j] + [state.selected[j]]), reduced[j]))
+    with_it = dataclasses.replace(
+        state, selected=sets[j] + [state.selected[j]], refused_because=reasons[j]
+    )
+    refused.append((with_it, reduced[j]))
     return _chain_without(fit, states, j, reduced[j])
 
 
@@ -559,7 +593,8 @@ def _refuse_within_heldout_mismatch(
         weak = rises < left
         if not weak.any():
             break
-        states = _refuse_weakest(fit, states, sets, reduced, rises, weak, refused)
+        reasons = [_held_out_reason(r, left) for r in rises]
+        states = _refuse_weakest(fit, states, sets, reduced, rises, weak, refused, reasons)
     return states
 
 

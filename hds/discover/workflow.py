@@ -44,6 +44,8 @@ class NamedEffect:
     ci95: dict[str, list[float]]
     explained_fraction: float  # share of the held-out k-step error (MSE) it removed
     at_joint: dict[str, float] = field(default_factory=dict)  # control-unit values x gear
+    # refused as law mismatch: which rule refused it, with the numbers it compared
+    reason: str = ""
 
     @property
     def physical_name(self) -> str:
@@ -60,6 +62,7 @@ class NamedEffect:
             "physical_name": self.physical_name,
             "at_joint": self.at_joint,
             "kind": effect_type(self.name).target_kind,
+            **({"reason": self.reason} if self.reason else {}),
         }
 
     def fitted(self, units: bool = False) -> str:
@@ -295,6 +298,11 @@ def discover(
     # effect the data cannot separate from a named one
     if mismatch > 0:
         tentative, law_mismatch = rest[named_count:mismatch], rest[max(named_count, mismatch) :]
+        for e in law_mismatch:
+            e.reason = (
+                f"it, or an effect selected before it, removed less than the {structured:.1%} "
+                "of the held-out error that the structure of the named effects' residual holds"
+            )
     else:  # no law named: what it leaves is structure outside the library
         tentative, law_mismatch = rest[named_count:], []
     # no gap at all (the simulator already predicts the held-out data to min_improvement):
@@ -318,7 +326,10 @@ def discover(
         timing,
     )
     refused = [
-        name_effects(model, [m], [0.0] * (len(m.selected) - 1) + [share])[-1]
+        dataclasses.replace(
+            name_effects(model, [m], [0.0] * (len(m.selected) - 1) + [share])[-1],
+            reason=m.refused_because,
+        )
         for m, share in refused_shares(selection)
     ]
     result.tentative, result.law_mismatch = tentative, law_mismatch + refused
@@ -580,10 +591,13 @@ def warnings(result: Discovery, cfg: DiscoverConfig) -> list[str]:
         out.append(
             f"{e.name}@{e.target} ({e.fitted()}) is law mismatch (the plant's laws are not exactly "
             f"the library's), not added: it lowered the held-out error by "
-            f"{e.explained_fraction:.1%} of it, less than the structure the named effects' "
-            "residual still has, or less than the misfit they leave without it, or less of "
-            "the held-out error than the model leaves, or with an interval that does not "
-            "exclude no effect"
+            f"{e.explained_fraction:.1%} of it; "
+            + (
+                e.reason
+                or "less than the structure the named effects' residual still has, or less "
+                "than the misfit they leave without it, or less of the held-out error than "
+                "the model leaves, or with an interval that does not exclude no effect"
+            )
         )
     for r in result.correlations:
         if r["inseparable"]:

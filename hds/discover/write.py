@@ -110,7 +110,8 @@ def _selection_notes(result: Discovery, files: dict | None = None) -> list[str]:
     if result.law_mismatch:
         lines += ["", "Law mismatch (not added: the named laws are not exactly the plant's):"]
         for e in result.law_mismatch:
-            lines.append(f"- `{e.name}` on {e.target} ({e.explained_fraction:.2%})")
+            why = f": {e.reason}" if e.reason else ""
+            lines.append(f"- `{e.name}` on {e.target} ({e.explained_fraction:.2%}){why}")
     if result.selection.dropped:
         keys = ", ".join(f"`{c.key}`" for c in result.selection.dropped)
         lines += ["", f"Dropped once a later effect made them redundant (proxies): {keys}."]
