@@ -210,14 +210,30 @@ class Engine:
                 # parameters by no more than that.
                 a0, g0, _ = reduced(r, jt, jz, z, 0.0, jnp.zeros(windows))
                 a0 = jnp.where(both, a0, jnp.eye(m))
+                # a parameter held at its bound, the step pushing past it, is settled there;
+                # the others' step is taken with it fixed
                 newton = solve(a0, g0.sum(0))
+                at = theta[jnp.where(valid, slots, 0)]
+                held = valid & (
+                    ((at <= lower[slots]) & (newton < 0)) | ((at >= upper[slots]) & (newton > 0))
+                )
+                free = valid & ~held
+                newton = jnp.where(
+                    free,
+                    jnp.linalg.solve(
+                        jnp.where(free[:, None] & free[None, :], a0, jnp.eye(m)),
+                        -jnp.where(free, g0.sum(0), 0.0),
+                    ),
+                    0.0,
+                )
                 pulls = jax.ops.segment_sum(g0, data[2], num_segments=episodes)
                 part = jax.ops.segment_sum(data[4], data[2], num_segments=episodes) > 0
                 n = jnp.maximum(part.sum(), 2)
                 centred = jnp.where(part[:, None], pulls - pulls.sum(0) / n, 0.0)
                 influence = centred @ jnp.linalg.inv(a0)
                 se = jnp.sqrt(jnp.sum(influence**2, 0) * n / (n - 1))
-                stalled = jnp.all(~valid | (jnp.abs(newton) <= SETTLED * se))
+                # (NaN where the data do not determine a parameter: that holds no fit back)
+                stalled = jnp.all(~free | ~(jnp.abs(newton) > SETTLED * se))
             else:
                 stalled = still
             done = (~first & ((better & small) | stalled)) | (lam > LAMBDA_MAX) | ~jnp.any(valid)
