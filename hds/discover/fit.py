@@ -14,7 +14,11 @@ data layout and reused for every candidate, every round and every call:
 entries `slots[c]` of theta (-1 pads), from theta0[c], with its own action delays. Each
 iteration linearizes the k-step residuals (forward mode: one tangent per fitted parameter,
 all windows of all identification episodes in one batch), solves the damped Gauss-Newton
-system and keeps the step only if the error falls. It returns the Gauss-Newton matrix
+system and keeps the step only if the error falls. With each window's initial state estimated
+(noisy data), the states are eliminated window by window (a Schur complement), each window
+keeps its state's step only where that lowers its own error and has its own damping, and a
+fit stops once theta has settled (a further step would move it by a tenth of its standard
+error) rather than when the last states stop improving. It returns the Gauss-Newton matrix
 H = J J^T and the per-episode gradients G[e] = J_e r_e at the optimum, from which
 `confidence_intervals` builds a cluster-robust (sandwich) covariance: windows of one
 episode overlap and their errors correlate, so episodes, not residuals, are the independent units.
@@ -101,7 +105,9 @@ class Engine:
         scale, with the measurement itself as one more residual (z), starting from z0.
         Noisy initial states would otherwise bias the effects that damp their consequences
         (friction, damping). The per-window unknowns are eliminated by a Schur complement,
-        window by window. Started from the states of the model a candidate is added to,
+        window by window; each window keeps its state's step where that lowers its own
+        error (its own damping), so the few near a kink that overshoot do not refuse the step
+        of all. Started from the states of the model a candidate is added to,
         rather than from the measurements, a fit spends its iterations on the effects: the
         states move little when one effect is added."""
         model = self.model
