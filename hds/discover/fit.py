@@ -43,6 +43,7 @@ TOLERANCE = 1e-4  # an accepted step that lowers the error by less than this sha
 ABS_TOLERANCE = 1e-9  # ... or by less than this (mean squared normalized error): converged
 LAMBDA0, LAMBDA_MAX = 1e-3, 1e4
 SETTLED = 0.1  # estimated states: settled when a step moves theta by this share of its se
+SLOW = 1e-3  # ... and the error falls by less than this share a step
 
 
 class Engine:
@@ -178,7 +179,7 @@ class Engine:
             a, g, states = reduced(r, jt, jz, z, lam, lam_z)
             dtheta = solve(a, g.sum(0))
             trial = jnp.where(first, theta, jnp.clip(theta + dtheta @ basis, lower, upper))
-            loss = jnp.sum(per_window(r, z))
+            loss = jnp.sum(per_window(r, z)) if estimate else jnp.sum(r * r)  # as before
             if estimate:
                 z_step = states(dtheta)
                 both_r = jax.vmap(res, in_axes=(None, 0))(trial, jnp.stack([z_step, z]))
@@ -193,7 +194,7 @@ class Engine:
             else:  # the trial's linearization gives its error, and the next Jacobian if kept
                 z_trial, took = z, jnp.zeros(windows, bool)
                 r_t, jt_t, jz_t = linear(trial, z)
-                trial_loss = jnp.sum(per_window(r_t, z))
+                trial_loss = jnp.sum(r_t * r_t)
                 better = first | (trial_loss < loss)  # False for NaN
                 r_new, jt_new, jz_new = (
                     jnp.where(better, new, old) for new, old in ((r_t, r), (jt_t, jt), (jz_t, jz))
@@ -239,7 +240,9 @@ class Engine:
                 influence = centred @ jnp.linalg.inv(a0)
                 se = jnp.sqrt(jnp.sum(influence**2, 0) * n / (n - 1))
                 # (NaN where the data do not determine a parameter: that holds no fit back)
-                stalled = jnp.all(~free | ~(jnp.abs(newton) > SETTLED * se))
+                # (the se is measured where the fit stands: while the error still falls fast,
+                # the episodes' spread there is no measure of the optimum's)
+                stalled = jnp.all(~free | ~(jnp.abs(newton) > SETTLED * se)) & (gain < SLOW)
             else:
                 stalled = still
             done = (~first & ((better & small) | stalled)) | (lam > LAMBDA_MAX) | ~jnp.any(valid)
