@@ -17,8 +17,8 @@ all windows of all identification episodes in one batch), solves the damped Gaus
 system and keeps the step only if the error falls. With each window's initial state estimated
 (noisy data), the states are eliminated window by window (a Schur complement), each window
 keeps its state's step only where that lowers its own error and has its own damping, and a
-fit stops once theta has settled (a further step would move it by a tenth of its standard
-error) rather than when the last states stop improving. It returns the Gauss-Newton matrix
+fit stops once theta has settled (a further step would move it by a hundredth of its
+standard error) rather than when the last states stop improving. It returns the Gauss-Newton matrix
 H = J J^T and the per-episode gradients G[e] = J_e r_e at the optimum, from which
 `confidence_intervals` builds a cluster-robust (sandwich) covariance: windows of one
 episode overlap and their errors correlate, so episodes, not residuals, are the independent units.
@@ -42,7 +42,10 @@ from hds.discover.model import Model, build_model
 TOLERANCE = 1e-4  # an accepted step that lowers the error by less than this share: converged
 ABS_TOLERANCE = 1e-9  # ... or by less than this (mean squared normalized error): converged
 LAMBDA0, LAMBDA_MAX = 1e-3, 1e4
-SETTLED = 0.1  # estimated states: settled when a step moves theta by this share of its se
+# estimated states: settled when a step moves theta by less than this share of its se. Not
+# 0.1: selection's later decisions compare fits of different models (a dead band's held-out
+# share against the misfit left), and a stop that loose flipped one on a lab draw
+SETTLED = 0.01
 SLOW = 1e-3  # ... and the error falls by less than this share a step
 
 
