@@ -60,6 +60,18 @@ def main() -> None:
             f"{result.initial_state}; named {named}; unexplained "
             f"{result.unexplained_fraction:.3f}; stopped: {result.stopped}"
         )
+        for r in sorted({row["round"] for row in result.candidates}):
+            its = [row["iterations"] for row in result.candidates if row["round"] == r]
+            print(
+                f"  round {r}: LM iterations sum {sum(its)}, median {np.median(its):.0f}, "
+                f"max {max(its)}"
+            )
+            slow = [
+                f"{row['name']}@{row['target']} {row['params']}: {row['iterations']}"
+                for row in result.candidates
+                if row["round"] == r and row["iterations"] >= 10
+            ]
+            print(f"    the rows of 10 or more: {slow}")
         print("  timing", {k: round(v, 2) for k, v in result.timing.items()}, flush=True)
         if profiler:
             pstats.Stats(profiler).sort_stats("cumulative").print_stats(45)

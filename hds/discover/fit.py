@@ -14,7 +14,11 @@ data layout and reused for every candidate, every round and every call:
 entries `slots[c]` of theta (-1 pads), from theta0[c], with its own action delays. Each
 iteration linearizes the k-step residuals (forward mode: one tangent per fitted parameter,
 all windows of all identification episodes in one batch), solves the damped Gauss-Newton
-system and keeps the step only if the error falls. It returns the Gauss-Newton matrix
+system and keeps the step only if the error falls. With each window's initial state estimated
+(noisy data), the states are eliminated window by window (a Schur complement), each window
+keeps its state's step only where that lowers its own error and has its own damping, and a
+fit stops once theta has settled (a further step would move it by a hundredth of its
+standard error) rather than when the last states stop improving. It returns the Gauss-Newton matrix
 H = J J^T and the per-episode gradients G[e] = J_e r_e at the optimum, from which
 `confidence_intervals` builds a cluster-robust (sandwich) covariance: windows of one
 episode overlap and their errors correlate, so episodes, not residuals, are the independent units.
@@ -38,6 +42,11 @@ from hds.discover.model import Model, build_model
 TOLERANCE = 1e-4  # an accepted step that lowers the error by less than this share: converged
 ABS_TOLERANCE = 1e-9  # ... or by less than this (mean squared normalized error): converged
 LAMBDA0, LAMBDA_MAX = 1e-3, 1e4
+# estimated states: settled when a step moves theta by less than this share of its se. Not
+# 0.1: selection's later decisions compare fits of different models (a dead band's held-out
+# share against the misfit left), and a stop that loose flipped one on a lab draw
+SETTLED = 0.01
+SLOW = 1e-3  # ... and the error falls by less than this share a step
 
 
 class Engine:
@@ -100,7 +109,9 @@ class Engine:
         scale, with the measurement itself as one more residual (z), starting from z0.
         Noisy initial states would otherwise bias the effects that damp their consequences
         (friction, damping). The per-window unknowns are eliminated by a Schur complement,
-        window by window. Started from the states of the model a candidate is added to,
+        window by window; each window keeps its state's step where that lowers its own
+        error (its own damping), so the few near a kink that overshoot do not refuse the step
+        of all. Started from the states of the model a candidate is added to,
         rather than from the measurements, a fit spends its iterations on the effects: the
         states move little when one effect is added."""
         model = self.model
@@ -128,19 +139,24 @@ class Engine:
             r, jac = jax.vmap(lambda tt, tz: jax.jvp(res, (theta, z), (tt, tz)))(t_theta, t_z)
             return r[0], jac[:m], jac[m:]  # [W, R], [M, W, R], [n_z, W, R]
 
-        def total(r, z):
-            return jnp.sum(r * r) + (jnp.sum(z * z) if estimate else 0.0)
+        def per_window(r, z):
+            return jnp.sum(r * r, 1) + (jnp.sum(z * z, 1) if estimate else 0.0)
 
-        def reduced(r, jt, jz, z, lam):
-            """The damped normal equations for theta, initial states eliminated, and the
-            back-substitution for the states: (S, per-window g [W, M], states(dtheta))."""
+        def damp(a, lam):
+            """a + lam diag(a), on the last two axes (floored: a flat direction still damps)."""
+            d = jnp.diagonal(a, axis1=-2, axis2=-1)
+            d = jnp.maximum(d, 1e-9 * jnp.max(d, axis=-1, keepdims=True) + 1e-30)
+            return a + lam[..., None, None] * (d[..., :, None] * jnp.eye(a.shape[-1]))
+
+        def reduced(r, jt, jz, z, lam, lam_z):
+            """The damped normal equations for theta (damping lam), each window's initial
+            state eliminated (its own damping lam_z [W]), and the back-substitution for the
+            states: (S, per-window g [W, M], states(dtheta))."""
             g = jnp.einsum("mwr,wr->wm", jt, r)
-            a = jnp.einsum("mwr,lwr->ml", jt, jt)
-            a = a + lam * jnp.diag(jnp.maximum(jnp.diag(a), 1e-9 * jnp.max(jnp.diag(a)) + 1e-30))
+            a = damp(jnp.einsum("mwr,lwr->ml", jt, jt), jnp.asarray(lam))
             if not estimate:
                 return a, g, lambda dtheta: z
-            azz = jnp.einsum("iwr,jwr->wij", jz, jz) + jnp.eye(n_obs)
-            azz = azz + lam * jax.vmap(jnp.diag)(jnp.diagonal(azz, axis1=1, axis2=2))
+            azz = damp(jnp.einsum("iwr,jwr->wij", jz, jz) + jnp.eye(n_obs), lam_z)
             azt = jnp.einsum("iwr,mwr->wim", jz, jt)
             gz = jnp.einsum("iwr,wr->wi", jz, r) + z
             kinv = jnp.linalg.inv(azz)
@@ -149,39 +165,105 @@ class Engine:
             g = g - jnp.einsum("wim,wi->wm", azt, k_gz)
             return a, g, lambda dtheta: z - k_gz - jnp.einsum("wim,m->wi", k_azt, dtheta)
 
-        # One linearization per iteration, at the trial point: it gives the trial's error and,
-        # when the step is kept, the next Jacobian (iteration 0 takes theta0 as its trial).
+        def solve(a, g):
+            return jnp.linalg.solve(jnp.where(both, a, jnp.eye(m)), -jnp.where(valid, g, 0.0))
+
+        episodes = data[0].shape[0]
+
+        # One linearization per accepted step, at the new point: it gives the next Jacobian
+        # (iteration 0 linearizes at theta0). With initial states estimated, the step's
+        # states are kept window by window (a window keeps its new state only where that
+        # lowers its own error at the new theta), each window with its own damping: a few
+        # windows near a kink (friction's) that overshoot would otherwise refuse the step of
+        # all, and hold every other window and theta back.
         def body(carry):
-            theta, z, r, jt, jz, lam, it, _ = carry
-            a, g, states = reduced(r, jt, jz, z, lam)
-            a = jnp.where(both, a, jnp.eye(m))
-            dtheta = jnp.linalg.solve(a, -jnp.where(valid, g.sum(0), 0.0))
+            theta, z, r, jt, jz, lam, lam_z, it, _ = carry
             first = it == 0
+            a, g, states = reduced(r, jt, jz, z, lam, lam_z)
+            dtheta = solve(a, g.sum(0))
             trial = jnp.where(first, theta, jnp.clip(theta + dtheta @ basis, lower, upper))
-            z_trial = jnp.where(first, z, states(dtheta))
-            r_trial, jt_trial, jz_trial = linear(trial, z_trial)
-            loss, trial_loss = total(r, z), total(r_trial, z_trial)
-            better = first | (trial_loss < loss)  # False for NaN
+            loss = jnp.sum(per_window(r, z)) if estimate else jnp.sum(r * r)  # as before
+            if estimate:
+                z_step = states(dtheta)
+                both_r = jax.vmap(res, in_axes=(None, 0))(trial, jnp.stack([z_step, z]))
+                moved, kept = per_window(both_r[0], z_step), per_window(both_r[1], z)
+                took = moved < kept  # False for NaN
+                z_trial = jnp.where(first, z, jnp.where(took[:, None], z_step, z))
+                trial_loss = jnp.sum(jnp.where(took, moved, kept))
+                better = first | (trial_loss < loss)  # False for NaN
+                r_new, jt_new, jz_new = jax.lax.cond(
+                    better, lambda: linear(trial, z_trial), lambda: (r, jt, jz)
+                )
+            else:  # the trial's linearization gives its error, and the next Jacobian if kept
+                z_trial, took = z, jnp.zeros(windows, bool)
+                r_t, jt_t, jz_t = linear(trial, z)
+                trial_loss = jnp.sum(r_t * r_t)
+                better = first | (trial_loss < loss)  # False for NaN
+                r_new, jt_new, jz_new = (
+                    jnp.where(better, new, old) for new, old in ((r_t, r), (jt_t, jt), (jz_t, jz))
+                )
             gain = (loss - trial_loss) / jnp.maximum(loss, 1e-30)
             lam = jnp.where(first, lam, jnp.where(better, jnp.maximum(lam * 0.3, 1e-9), lam * 5))
+            lam_z = jnp.where(
+                first | ~better,
+                lam_z,
+                jnp.clip(jnp.where(took, lam_z * 0.3, lam_z * 5), 1e-9, 1e9),
+            )
             still = jnp.all(jnp.abs(trial - theta) <= 1e-7 * (jnp.abs(theta) + 1e-3))
             small = (gain < TOLERANCE) | (loss - trial_loss < ABS_TOLERANCE * r.size)
-            stalled = False if estimate else still  # with states estimated, z may still move
+            if estimate:
+                # with states estimated, z may still move (by less and less, window by window)
+                # while theta has settled: done when a full Gauss-Newton step (states
+                # following) would move each parameter by less than SETTLED of its standard
+                # error, the episodes' spread of their pulls (the intervals' sandwich, centred:
+                # the mean pull is the step itself). The states' remaining gains change the
+                # parameters by no more than that.
+                a0, g0, _ = reduced(r, jt, jz, z, 0.0, jnp.zeros(windows))
+                a0 = jnp.where(both, a0, jnp.eye(m))
+                # a parameter held at its bound, the step pushing past it, is settled there;
+                # the others' step is taken with it fixed
+                newton = solve(a0, g0.sum(0))
+                at = theta[jnp.where(valid, slots, 0)]
+                held = valid & (
+                    ((at <= lower[slots]) & (newton < 0)) | ((at >= upper[slots]) & (newton > 0))
+                )
+                free = valid & ~held
+                newton = jnp.where(
+                    free,
+                    jnp.linalg.solve(
+                        jnp.where(free[:, None] & free[None, :], a0, jnp.eye(m)),
+                        -jnp.where(free, g0.sum(0), 0.0),
+                    ),
+                    0.0,
+                )
+                pulls = jax.ops.segment_sum(g0, data[2], num_segments=episodes)
+                part = jax.ops.segment_sum(data[4], data[2], num_segments=episodes) > 0
+                n = jnp.maximum(part.sum(), 2)
+                centred = jnp.where(part[:, None], pulls - pulls.sum(0) / n, 0.0)
+                influence = centred @ jnp.linalg.inv(a0)
+                se = jnp.sqrt(jnp.sum(influence**2, 0) * n / (n - 1))
+                # (NaN where the data do not determine a parameter: that holds no fit back)
+                # (the se is measured where the fit stands: while the error still falls fast,
+                # the episodes' spread there is no measure of the optimum's)
+                stalled = jnp.all(~free | ~(jnp.abs(newton) > SETTLED * se)) & (gain < SLOW)
+            else:
+                stalled = still
             done = (~first & ((better & small) | stalled)) | (lam > LAMBDA_MAX) | ~jnp.any(valid)
             pick = lambda new, old: jnp.where(better, new, old)  # noqa: E731
             return (
                 pick(trial, theta),
                 pick(z_trial, z),
-                pick(r_trial, r),
-                pick(jt_trial, jt),
-                pick(jz_trial, jz),
+                r_new,
+                jt_new,
+                jz_new,
                 lam,
+                lam_z,
                 it + 1,
                 done,
             )
 
         def cond(carry):
-            return (carry[6] < iterations + 1) & ~carry[7]
+            return (carry[7] < iterations + 1) & ~carry[8]
 
         n_res = self.horizon * n_obs
         start = (
@@ -191,16 +273,17 @@ class Engine:
             jnp.zeros((m, windows, n_res)),
             jnp.zeros((n_z, windows, n_res)),
             jnp.asarray(LAMBDA0, theta0.dtype),
+            jnp.full((windows,), LAMBDA0, theta0.dtype),
             jnp.asarray(0),
             jnp.asarray(False),
         )
-        theta, z, r, jt, jz, _, its, _ = jax.lax.while_loop(cond, body, start)
+        theta, z, r, jt, jz, _, _, its, _ = jax.lax.while_loop(cond, body, start)
         # the Gauss-Newton matrix and the per-episode gradients at the optimum (initial
         # states profiled out), for the confidence intervals, then the same for each view
         views = jnp.asarray(np.concatenate([np.ones((1, n_res), bool), self.views]), r.dtype)
 
         def normal(view):
-            a, g, _ = reduced(r * view, jt * view, jz * view, z, 0.0)
+            a, g, _ = reduced(r * view, jt * view, jz * view, z, 0.0, jnp.zeros(windows))
             return a, jax.ops.segment_sum(g, data[2], num_segments=data[0].shape[0])
 
         h, per_episode = jax.vmap(normal)(views)
