@@ -9,7 +9,6 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy import stats
 
 from hds.algo.rollout import policy_rollout
 from hds.data import initial_states
@@ -34,6 +33,10 @@ def mean_ci(values) -> MeanCI:
     mean = float(values.mean())
     if len(values) < 2:
         return MeanCI(mean, mean, mean)
+    # scipy.stats here, not at the top: importing it costs every `python -m hds.run` ~1 s
+    # (2-core AMD EPYC), and a run that reports no interval never needs it
+    from scipy import stats
+
     half = float(stats.t.ppf(0.975, len(values) - 1) * stats.sem(values))
     return MeanCI(mean, mean - half, mean + half)
 

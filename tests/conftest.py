@@ -32,10 +32,13 @@ from pathlib import Path
 # prints the same table; a full `make run` trains to other numbers, as training amplifies any
 # rounding difference), so every number a test compares comes from this session's flags: set
 # before JAX starts its backend, and the runs the tests start inherit it.
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (
-        os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=1"
-    ).strip()
+# XLA's newer CPU fusion emitters (on by default in jax 0.9) compile slower than its classic ones:
+# a FAST trainer chunk in 6.6-7.7 CPU s without them against 10.4-13.1 s with (two runs each,
+# 2-core AMD EPYC at load 7-10, 2026-11-27), and its run took no longer; its return differs in
+# the 7th digit, so as with -O1 every number a test compares comes from this session's flags.
+for flag in ("--xla_backend_optimization_level=1", "--xla_cpu_use_fusion_emitters=false"):
+    if flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()
 os.environ.setdefault("WANDB_MODE", "offline")
 os.environ.setdefault("WANDB_SILENT", "true")
 

@@ -27,7 +27,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import signal
 
 # Register lengths scipy.signal.max_len_seq has feedback taps for without being given any.
 PRBS_ORDERS = range(4, 33)
@@ -134,6 +133,8 @@ def chirp(
     phase0 = rng.uniform(0.0, 360.0, size=(n_episodes, 1, n_act))  # degrees, as scipy takes
     t = (np.arange(horizon) * dt)[None, :, None]
     # scipy's chirp is a cosine; a phase of -90 degrees makes it the sine from phase0
+    from scipy import signal  # here, not at the top: ~1 s of every process (hds.gap)
+
     wave = signal.chirp(t, f0=f0, t1=horizon * dt, f1=f1, method="linear", phi=phase0 - 90.0)
     return _clip(middle + half * wave, ctrl_range)
 
@@ -162,6 +163,8 @@ def prbs(
     # a random non-zero register per (episode, actuator): a random shift of the sequence
     start = rng.integers(1, 2**order, size=n_episodes * n_act)
     states = (start[:, None] >> np.arange(order)) & 1
+    from scipy import signal  # here, not at the top: ~1 s of every process (hds.gap)
+
     bits = np.stack([signal.max_len_seq(order, state=s, length=n_bits)[0] for s in states])
     bits = np.repeat(bits, bit_steps, axis=1)[:, :horizon].reshape(n_episodes, n_act, horizon)
     u = middle[:, None] + half[:, None] * (2.0 * bits - 1.0)
