@@ -530,35 +530,38 @@ def summarise(results) -> tuple[str, dict]:
                     f"{pred / noise:.2f} | {now} | {inflated} | {sensor} | {like} | {share} |"
                 )
     summary["predicted_over_achieved"] = [float(x) for x in errors]
-    within = float(np.mean(np.abs(np.asarray(errors) - 1) <= 0.3))
-    summary["share_within_30pct"] = within
     lines.append("")
-    lines.append(
-        f"Predicted within 30% of the achieved noise part: {within:.0%} of "
-        f"{len(errors)} (case, parameter, amount) cells."
-    )
-    if errors_now:
-        within_n = float(np.mean(np.abs(np.asarray(errors_now) - 1) <= 0.3))
-        summary["share_within_30pct_current"] = within_n
-        lines.append(
-            f"Every round predicted at the current estimate and measured noise: {within_n:.0%} "
-            f"of {len(errors_now)} cells within 30%."
-        )
-    if errors_like:
-        within_l = float(np.mean(np.abs(np.asarray(errors_like) - 1) <= 0.3))
-        summary["share_within_30pct_sensor_part"] = within_l
-        lines.append(
-            f"Like with like (every round at the current estimate and measured noise against "
-            f"the sensor part on the record): {within_l:.0%} of {len(errors_like)} cells "
-            "within 30%."
-        )
-    if errors_inflated:
-        within_i = float(np.mean(np.abs(np.asarray(errors_inflated) - 1) <= 0.3))
-        summary["share_within_30pct_residual_level"] = within_i
-        lines.append(
-            f"With the last fit's residual level as the noise: {within_i:.0%} of "
-            f"{len(errors_inflated)} cells within 30%."
-        )
+    # each comparison's share of cells within 30% (the first always, the others where measured)
+    shares = [
+        (
+            "share_within_30pct",
+            errors,
+            "Predicted within 30% of the achieved noise part: {:.0%} of {} (case, parameter, "
+            "amount) cells.",
+        ),
+        (
+            "share_within_30pct_current",
+            errors_now,
+            "Every round predicted at the current estimate and measured noise: {:.0%} of {} cells "
+            "within 30%.",
+        ),
+        (
+            "share_within_30pct_sensor_part",
+            errors_like,
+            "Like with like (every round at the current estimate and measured noise against the "
+            "sensor part on the record): {:.0%} of {} cells within 30%.",
+        ),
+        (
+            "share_within_30pct_residual_level",
+            errors_inflated,
+            "With the last fit's residual level as the noise: {:.0%} of {} cells within 30%.",
+        ),
+    ]
+    for k, (key, errs, sentence) in enumerate(shares):
+        if k == 0 or errs:
+            within = float(np.mean(np.abs(np.asarray(errs) - 1) <= 0.3))
+            summary[key] = within
+            lines.append(sentence.format(within, len(errs)))
     return "\n".join(lines), summary
 
 
