@@ -57,3 +57,37 @@ def test_every_task_of_the_study_builds_its_system_on_the_study_s_backend(task):
     )
     assert cfg.env.name == task
     make_env(cfg.env)
+
+
+def _swept_methods(config: str) -> list[str]:
+    """The methods a study sweep config runs, each a job (its own or its parent's list)."""
+    while True:
+        data = yaml.safe_load((CONF / f"{config}.yaml").read_text())
+        methods = data.get("hydra", {}).get("sweeper", {}).get("params", {}).get("method")
+        if methods:
+            return methods.split(",")
+        config = next(d for d in data["defaults"] if isinstance(d, str) and d.startswith("lab_"))
+
+
+@pytest.mark.parametrize(
+    "task", ["cartpole_balance", "cartpole_swingup", "furuta_balance", "furuta_swingup"]
+)
+def test_every_job_of_the_study_s_sweeps_composes(task):
+    """Each job `make study-lab` sweeps (the per-draw and the shared sweep, with each of its
+    methods) composes and passes validation: a job whose config is refused fails only once
+    the sweep reaches it, possibly an hour into the study."""
+    from hds.config import compose
+
+    family = "_furuta" if task.startswith("furuta") else ""
+    jobs = [
+        (config, method)
+        for config in (f"lab_study{family}", f"lab_study{family}_shared")
+        for method in _swept_methods(config)
+    ]
+    assert len(jobs) == 4
+    for config, method in jobs:
+        cfg = compose(
+            [f"env={task}", f"+experiment=[{config},lab_task_{task}]", f"method={method}"],
+            config_dirs=[CONF.parent],
+        )
+        assert cfg.env.name == task, (config, method)
