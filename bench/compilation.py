@@ -38,6 +38,11 @@ def entries_of(path: Path) -> set[str]:
     return {p.name for p in path.iterdir()}
 
 
+def program_cache_of(cache: Path) -> Path:
+    """The program cache the worker keeps beside a compilation cache (hds.utils.runtime)."""
+    return cache.with_name(cache.name + "-programs")
+
+
 def cache_size_mib(path: Path) -> float:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / 2**20
 
@@ -67,6 +72,7 @@ def measure(backend: str, overrides: list[str]) -> dict:
         new = sorted(entries_of(cache) - entries)
     finally:
         shutil.rmtree(cache, ignore_errors=True)
+        shutil.rmtree(program_cache_of(cache), ignore_errors=True)
     # A warm process that writes a new run_chunk entry missed the cache: its program differed
     # from the cold one's (e.g. a source file edited in between, which changes the HLO's
     # source locations).
