@@ -231,6 +231,7 @@ def run_worker(kind: str, spec: dict, timeout: float = 1800.0, env: dict | None 
     with tempfile.TemporaryDirectory(prefix="hds-bench-") as tmp:
         out = Path(tmp) / "result.json"
         cmd = [sys.executable, "-m", "bench.worker", kind, json.dumps(spec), str(out)]
+        cpu = resource.getrusage(resource.RUSAGE_CHILDREN)
         with timed() as t:
             proc = subprocess.run(
                 cmd,
@@ -245,6 +246,8 @@ def run_worker(kind: str, spec: dict, timeout: float = 1800.0, env: dict | None 
             raise RuntimeError(f"bench.worker {kind} failed (rc {proc.returncode}):\n{tail}")
         result = json.loads(out.read_text())
     result["process_s"] = t.s
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)  # the worker's (it has ended)
+    result["process_cpu_s"] = after.ru_utime + after.ru_stime - cpu.ru_utime - cpu.ru_stime
     return result
 
 

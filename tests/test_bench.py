@@ -229,8 +229,9 @@ def test_a_compile_rerun_of_one_backend_keeps_the_other_backends_rows(tmp_path):
         ("tree", "cold"),
         ("tree", "warm"),
     ]
-    assert rows["analytic", "warm"][-2:] == [1.0, "2026-11-27 10:00 UTC (load 1/2)"]
-    assert rows["tree", "warm"][-2:] == [3.0, "2026-11-27 11:00 UTC (load 1/2)"]
+    # process total, process CPU s (not in these entries), measured (load)
+    assert rows["analytic", "warm"][-3:] == [1.0, None, "2026-11-27 10:00 UTC (load 1/2)"]
+    assert rows["tree", "warm"][-3:] == [3.0, None, "2026-11-27 11:00 UTC (load 1/2)"]
     met = {
         t["target"].split(":")[0] + (" warm" if "second" in t["target"] else " cold"): t["met"]
         for t in stored["targets"]
