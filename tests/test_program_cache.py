@@ -71,6 +71,18 @@ def test_a_changed_config_closure_or_source_file_changes_the_key(tiny, tmp_path,
     assert program_key(cfg, trainer.run_chunk) != key
 
 
+def test_an_edited_function_outside_hds_changes_its_fingerprint():
+    def force(v):  # a user's effect, edited in place between two runs
+        return -2.0 * v
+
+    def edited(v):
+        return -3.0 * v
+
+    edited.__qualname__ = force.__qualname__
+    assert fingerprint(force) != fingerprint(edited)
+    assert fingerprint(force) == fingerprint(force)
+
+
 def test_no_key_where_the_cache_is_off_or_a_closure_cannot_be_hashed(tiny, monkeypatch):
     cfg, trainer = tiny
     monkeypatch.setenv("HDS_PROGRAM_CACHE", "off")

@@ -203,7 +203,7 @@ def fingerprint(obj, h=None, _path: tuple = ()) -> str:
         put("method", name_of(obj.__func__).encode())
         fingerprint(obj.__self__, h, path)
     elif isinstance(obj, types.FunctionType):
-        put("function", name_of(obj).encode() + obj.__code__.co_code)
+        put("function", name_of(obj).encode() + _code_bytes(obj.__code__))
         cells = [c.cell_contents for c in obj.__closure__ or ()]
         for part in (cells, obj.__defaults__, obj.__kwdefaults__):
             fingerprint(part, h, path)
@@ -224,6 +224,13 @@ def fingerprint(obj, h=None, _path: tuple = ()) -> str:
         where = " > ".join(type(x).__name__ for x in path)
         raise Unhashable(f"{name_of(type(obj))} (at {where})")
     return h.hexdigest() if top else ""
+
+
+def _code_bytes(code) -> bytes:
+    """A function's bytecode with its constants and the names it reads: a function outside hds
+    (a user's effect) edited in place changes these, where `source_digest` does not see it."""
+    consts = [_code_bytes(c) if hasattr(c, "co_code") else repr(c).encode() for c in code.co_consts]
+    return code.co_code + b"\0".join([*consts, *(n.encode() for n in code.co_names)])
 
 
 def _flat(fn, in_tree, out_trees: list):
