@@ -200,12 +200,19 @@ def load_results(path: Path = RESULTS_JSON) -> dict:
     return read_json(path)
 
 
-def save_section(name: str, data: dict, path: Path = RESULTS_JSON, md: Path = RESULTS_MD) -> dict:
-    """Merge one section's result into results.json (others are kept) and re-render RESULTS.md."""
+def save_section(
+    name: str, data: dict, path: Path = RESULTS_JSON, md: Path = RESULTS_MD, merge=None
+) -> dict:
+    """Merge one section's result into results.json (others are kept) and re-render RESULTS.md.
+    `merge(stored, new)` (a section's own, where a partial rerun should keep the stored rows it
+    did not measure again) combines the section's stored result with the new one."""
     from bench.markdown import render
     from hds.utils.io import atomic_write_bytes, atomic_write_json
 
     results = load_results(path)
+    stored = results.get("sections", {}).get(name)
+    if merge is not None and stored:
+        data = merge(stored, data)
     results.setdefault("sections", {})[name] = {
         **data,
         "measured_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
@@ -224,6 +231,7 @@ def run_worker(kind: str, spec: dict, timeout: float = 1800.0, env: dict | None 
     with tempfile.TemporaryDirectory(prefix="hds-bench-") as tmp:
         out = Path(tmp) / "result.json"
         cmd = [sys.executable, "-m", "bench.worker", kind, json.dumps(spec), str(out)]
+        cpu = resource.getrusage(resource.RUSAGE_CHILDREN)
         with timed() as t:
             proc = subprocess.run(
                 cmd,
@@ -238,6 +246,8 @@ def run_worker(kind: str, spec: dict, timeout: float = 1800.0, env: dict | None 
             raise RuntimeError(f"bench.worker {kind} failed (rc {proc.returncode}):\n{tail}")
         result = json.loads(out.read_text())
     result["process_s"] = t.s
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)  # the worker's (it has ended)
+    result["process_cpu_s"] = after.ru_utime + after.ru_stime - cpu.ru_utime - cpu.ru_stime
     return result
 
 

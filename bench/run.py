@@ -110,7 +110,7 @@ def run_section(name: str, budget: dict, command: str, files: tuple[Path, Path])
     result.update(
         budget=budget, wall_s=t.s, load_before=before, load_after=load_average(), command=command
     )
-    save_section(name, result, *files)
+    save_section(name, result, *files, merge=getattr(module, "merge", None))
     return result
 
 

@@ -32,7 +32,7 @@ import re  # noqa: E402
 import sys  # noqa: E402
 
 from bench.common import best_of, block, compose, peak_rss_mb, timed  # noqa: E402
-from hds.utils.runtime import RunByRun, over_runs, runs_vmapped  # noqa: E402
+from hds.utils.runtime import RunByRun, over_runs, program_key, runs_vmapped  # noqa: E402
 
 
 def memory_analysis(compiled) -> dict | None:
@@ -86,8 +86,10 @@ def train(spec: dict) -> dict:
         "epochs": cfg.algo.epochs,
     }
     if spec.get("program", "train") == "chunk":
-        if vmapped == 1:  # as hds.run: one run's program, called on each run (RunByRun)
-            init, chunk = RunByRun(trainer.init), RunByRun(trainer.run_chunk)
+        if vmapped == 1:  # as hds.run: one run's program, called on each run (RunByRun), kept
+            # in the program cache beside the compilation cache (hds.experiment's key)
+            key = program_key(cfg, trainer.run_chunk)
+            init, chunk = RunByRun(trainer.init), RunByRun(trainer.run_chunk, key=key)
         else:
             init = jax.jit(over_runs(trainer.init, vmapped, seeds))
             chunk = jax.jit(over_runs(trainer.run_chunk, vmapped, seeds))

@@ -44,7 +44,13 @@ from hds.real.brax_plant import BraxPlant
 from hds.results import Row, Summary
 from hds.simulators import Simulator, friction_gap_of
 from hds.utils.io import atomic_write_json
-from hds.utils.runtime import RunByRun, enable_compilation_cache, over_runs, runs_vmapped
+from hds.utils.runtime import (
+    RunByRun,
+    enable_compilation_cache,
+    over_runs,
+    program_key,
+    runs_vmapped,
+)
 
 log = logging.getLogger("hds")
 
@@ -221,7 +227,8 @@ def compiled_programs(cfg: Config, trainer: Trainer, hparams):
     keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray([r["seed"] for r in runs]))
     vmapped = runs_vmapped(cfg.vmap_runs, len(runs))
     if vmapped == 1:  # one run's program, whatever the batch: compiled once (RunByRun)
-        return RunByRun(trainer.init), RunByRun(trainer.run_chunk), keys, hparams
+        chunk = RunByRun(trainer.run_chunk, key=program_key(cfg, trainer.run_chunk))
+        return RunByRun(trainer.init), chunk, keys, hparams
     if vmapped == len(runs):  # a loop over the runs cannot be split across devices
         keys, hparams = _shard((keys, hparams))
     init = jax.jit(over_runs(trainer.init, vmapped, len(runs)))

@@ -190,3 +190,58 @@ def test_bench_scaling_memory_grows_with_vmapped_seeds_not_looped_ones(tmp_path)
     assert temp[1] > 1.5 * temp[0] and temp[2] < temp[1], temp  # a loop holds one run at a time
     assert all(r["run_s"] > 0 and len(r["repeat_run_s"]) <= 1 for r in (one, two, looped))
     assert "calls in median" in (tmp_path / "RESULTS.md").read_text()
+
+
+def test_a_compile_rerun_of_one_backend_keeps_the_other_backends_rows(tmp_path):
+    """`python -m bench.run compile --set compile.backends=tree` replaces the tree rows and keeps
+    the analytic ones measured before, each row naming the run it comes from."""
+    from bench import compilation
+    from bench.common import save_section
+
+    def entry(backend, seconds, at):
+        process = {
+            k: seconds for k in ("import_s", "build_s", "init_s", "trace_s", "compile_s", "run_s")
+        }
+        return {
+            "backend": backend,
+            "overrides": [],
+            "measured_at": at,
+            "load": [1.0, 1.0, 1.0],
+            "load_after": [2.0, 2.0, 2.0],
+            "cold": {**process, "process_s": 6 * seconds},
+            "warm": {**process, "process_s": seconds},
+            "cache_mib": 0.5,
+            "warm_hit": True,
+        }
+
+    files = (tmp_path / "results.json", tmp_path / "RESULTS.md")
+
+    def save(*entries):
+        section = {**compilation.section(list(entries), []), "budget": {}, "wall_s": 1.0}
+        return save_section("compile", section, *files, merge=compilation.merge)
+
+    save(entry("analytic", 1.0, "2026-11-27 10:00 UTC"), entry("tree", 2.0, "2026-11-27 10:05 UTC"))
+    stored = save(entry("tree", 3.0, "2026-11-27 11:00 UTC"))["sections"]["compile"]
+    rows = {(r[0], r[1]): r for r in stored["tables"][0]["rows"]}
+    assert sorted(rows) == [
+        ("analytic", "cold"),
+        ("analytic", "warm"),
+        ("tree", "cold"),
+        ("tree", "warm"),
+    ]
+    # process total, process CPU s (not in these entries), measured (load)
+    assert rows["analytic", "warm"][-3:] == [1.0, None, "2026-11-27 10:00 UTC (load 1/2)"]
+    assert rows["tree", "warm"][-3:] == [3.0, None, "2026-11-27 11:00 UTC (load 1/2)"]
+    met = {
+        t["target"].split(":")[0] + (" warm" if "second" in t["target"] else " cold"): t["met"]
+        for t in stored["targets"]
+    }
+    assert met == {
+        "analytic cold": True,
+        "analytic warm": True,
+        "tree cold": False,
+        "tree warm": True,
+    }
+    report = files[1].read_text()
+    assert "2026-11-27 10:00 UTC (load 1/2)" in report and "2026-11-27 11:00 UTC" in report
+    assert "2026-11-27 10:05 UTC" not in report  # the replaced tree rows are gone
