@@ -3,6 +3,8 @@ by jax.export, under a key of everything it is built from."""
 
 from __future__ import annotations
 
+import sys
+
 import jax
 import numpy as np
 import pytest
@@ -96,3 +98,27 @@ def test_no_key_where_the_cache_is_off_or_a_closure_cannot_be_hashed(tiny, monke
     with pytest.raises(Unhashable, match="Opaque"):
         fingerprint(lambda x: (x, opaque))
     assert program_key(cfg, lambda x: (x, opaque)) is None
+
+
+def test_a_changed_global_of_a_function_outside_hds_changes_its_fingerprint(tmp_path):
+    """A user's module-level constant, edited between two runs, is read by the function as a
+    global: its bytecode is the same, its program is not."""
+    import importlib.util
+
+    def load(text: str):
+        path = tmp_path / "user_effect.py"
+        path.write_text(text)
+        spec = importlib.util.spec_from_file_location("user_effect", path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules["user_effect"] = module
+        spec.loader.exec_module(module)
+        return module.force
+
+    try:
+        first = fingerprint(load("GAIN = 2.0\ndef force(v):\n    return -GAIN * v\n"))
+        again = fingerprint(load("GAIN = 2.0\ndef force(v):\n    return -GAIN * v\n"))
+        edited = fingerprint(load("GAIN = 3.0\ndef force(v):\n    return -GAIN * v\n"))
+    finally:
+        sys.modules.pop("user_effect", None)
+    assert first == again
+    assert first != edited

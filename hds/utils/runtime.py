@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import sys
 from pathlib import Path
 
 import jax
@@ -136,7 +137,8 @@ def environment_digest() -> str:
     from importlib.metadata import PackageNotFoundError, version
 
     parts = [jax.default_backend(), str(jax.devices()[0].device_kind), str(jax.device_count())]
-    for name in ("jax", "jaxlib", "brax", "mujoco", "flax", "optax", "numpy", "scipy"):
+    parts.append(sys.version)
+    for name in _VERSIONED:
         try:
             parts.append(f"{name}={version(name)}")
         except PackageNotFoundError:
@@ -144,6 +146,32 @@ def environment_digest() -> str:
     settings = {k: v for k, v in jax.config.values.items() if "cache" not in k and "log" not in k}
     parts.append(repr(sorted(settings.items(), key=lambda kv: kv[0])))
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()
+
+
+# packages whose code the key covers by version (and hds by `source_digest`); a function or
+# module from anywhere else (a user's effect, reward or helper) is hashed by its file and the
+# globals it reads, which bytecode alone does not show
+_VERSIONED = ("jax", "jaxlib", "brax", "mujoco", "flax", "optax", "numpy", "scipy")
+
+
+def _covered(module_name: str | None) -> bool:
+    top = (module_name or "").split(".")[0]
+    return top in ("hds", *_VERSIONED) or top in sys.stdlib_module_names
+
+
+def _file_bytes(module) -> bytes:
+    path = getattr(module, "__file__", None)
+    if not path or not Path(path).is_file():
+        raise Unhashable(f"module {getattr(module, '__name__', module)!r} without a source file")
+    return Path(path).read_bytes()
+
+
+def _names_read(code) -> set[str]:
+    names = set(code.co_names)
+    for c in code.co_consts:
+        if hasattr(c, "co_code"):
+            names |= _names_read(c)
+    return names
 
 
 class Unhashable(Exception):
@@ -193,8 +221,12 @@ def fingerprint(obj, h=None, _path: tuple = ()) -> str:
             fingerprint(x, h, path)
     elif isinstance(obj, type):
         put("type", name_of(obj).encode())
+        if not _covered(obj.__module__) and sys.modules.get(obj.__module__) is not None:
+            fingerprint(sys.modules[obj.__module__], h, path)
     elif isinstance(obj, types.ModuleType):
         put("module", obj.__name__.encode())
+        if not _covered(obj.__name__):
+            put("file", _file_bytes(obj))
     elif isinstance(obj, functools.partial):
         put("partial")
         for part in (obj.func, obj.args, obj.keywords):
@@ -207,6 +239,14 @@ def fingerprint(obj, h=None, _path: tuple = ()) -> str:
         cells = [c.cell_contents for c in obj.__closure__ or ()]
         for part in (cells, obj.__defaults__, obj.__kwdefaults__):
             fingerprint(part, h, path)
+        if not _covered(obj.__module__):  # its module's constants and helpers, as they are now
+            module = sys.modules.get(obj.__module__)
+            if module is not None and getattr(module, "__file__", None):
+                put("file", _file_bytes(module))
+            read = sorted(n for n in _names_read(obj.__code__) if n in obj.__globals__)
+            for name in read:
+                put("global", name.encode())
+                fingerprint(obj.__globals__[name], h, path)
     elif isinstance(obj, types.BuiltinFunctionType | np.ufunc):
         put("builtin", name_of(obj).encode() + repr(obj).encode())
     elif type(obj).__name__ == "MjModel" and type(obj).__module__.startswith("mujoco"):
