@@ -43,28 +43,34 @@ from hds.utils.runtime import enable_compilation_cache
 STANDARD = {"steps": "random steps", "prbs": "PRBS, bit 4 steps", "chirp": "chirp"}
 
 
-def bound_case(name, iterations=200, restarts=2, best_starts=2):
+def bound_case(name, iterations=200, restarts=2, best_starts=2, at=None, noise=None):
+    """The per-step search of a case at `at` ({key: {param: value}}, default the true values)
+    with sensor noise `noise` (default the true): the starts are ranked and the search is
+    run there; the times reported are at the true values."""
     spec = CASES[name]
     env, designer, limits, x0, truth, values = setup(name)
+    at = truth if at is None else at
+    noise = spec["noise"] if noise is None else noise
     steps, dt = int(env.task.horizon), float(env.sim.dt)
     t_q = stats.t.ppf(0.975, EPISODES - 1) / np.sqrt(EPISODES)
 
     def time_of(se):  # plant time to the target in units of 16 episodes: (width / target)^2
         return worst(values, t_q * se, designer.labels, spec["targets"]) ** 2
 
-    times, within = {}, {}
+    times, ranks, within = {}, {}, {}
     for label, u in signals(env, steps, dt, limits.u_high[0]).items():
         times[label] = time_of(designer.predicted_se_of(truth, u, x0, spec["noise"]))
-        if max(limits.violation(designer.open_loop(truth, u[0], x0), u[0]).values()) <= 0:
+        ranks[label] = time_of(designer.predicted_se_of(at, u, x0, noise))
+        if max(limits.violation(designer.open_loop(at, u[0], x0), u[0]).values()) <= 0:
             within[label] = u[0]
     # the standard signals and the best `best_starts` others within the rail as starts
-    others = sorted((k for k in within if k not in STANDARD.values()), key=times.get)
+    others = sorted((k for k in within if k not in STANDARD.values()), key=ranks.get)
     starts = {k: within[k] for k in [*STANDARD.values(), *others[:best_starts]] if k in within}
     t0 = time.time()
     best = designer.per_step(
-        truth,
+        at,
         x0,
-        spec["noise"],
+        noise,
         limits,
         criterion=spec["targets"],
         iterations=iterations,
@@ -72,7 +78,7 @@ def bound_case(name, iterations=200, restarts=2, best_starts=2):
         starts=starts,
     )
     wall = time.time() - t0
-    bound = time_of(best["predicted_se"])
+    bound = time_of(designer.predicted_se_of(truth, best["controls"][None], x0, spec["noise"]))
     standard = min(times[v] for v in STANDARD.values())
     best_start = min(times[k] for k in starts)
     return {
@@ -89,6 +95,7 @@ def bound_case(name, iterations=200, restarts=2, best_starts=2):
 
 
 def play(name, controls, repeats=5):
+    """`controls` [T, n_act], or a list of them, one per repeat."""
     """The plant's records of the per-step controls repeated 16 times, fitted as the
     experiment fits (the same plant noise seeds per repeat): the plant seconds to the target
     by 1/sqrt(time) through the width at 16 episodes, per repeat, noise part and reported."""
@@ -104,13 +111,16 @@ def play(name, controls, repeats=5):
     theta0 = designer.theta(None)
     theta0[designer.slots] = start[designer.slots]
     n = sum(ROUNDS)
-    u = np.repeat(np.asarray(controls, np.float64)[None], n, axis=0)
+    per_repeat = np.asarray(controls, np.float64)
+    if per_repeat.ndim == 2:
+        per_repeat = np.repeat(per_repeat[None], repeats, axis=0)
     q0 = np.tile(x0[: env.sim.nq], (n, 1))
     qd0 = np.zeros((n, env.sim.n_obs - env.sim.nq))
     seconds = n * int(env.task.horizon) * float(env.sim.dt)
     out = {"ratio": [], "ratio_reported": []}
     for rep in range(repeats):
         plant = NoisyPlant(plant_base, spec["noise"], 1000 + rep)
+        u = np.repeat(per_repeat[rep][None], n, axis=0)
         ds = collect(plant, env.task, q0, qd0, u)
         fit = fitter(ds.obs, ds.actions, theta0)
         labels, targets = designer.labels, spec["targets"]
@@ -121,9 +131,30 @@ def play(name, controls, repeats=5):
     return out
 
 
-def plant_table(cases, repeats=5):
-    """Markdown: the per-step (oracle) signal's plant time on the plants against the best
-    standard signal's in results.json (the same protocol and noise seeds)."""
+def round1_controls(name, stored, repeats, iterations):
+    """Per repeat: the per-step search at the designed arm's estimate and measured noise after
+    its first 4 episodes (results.json), what a sequential design knows then; not the truth."""
+    spec, out = CASES[name], []
+    for rep in range(repeats):
+        row = next(
+            r for r in stored[name]["rows"] if r["signal"] == "designed" and r["repeat"] == rep
+        )
+        at = {}
+        for label, v in zip(stored[name]["labels"], row["values"][1], strict=True):
+            key, p = label.rsplit(".", 1)
+            at.setdefault(key, {})[p] = float(v)
+        noise = np.asarray(row["noise_estimate_over_true"][1]) * np.asarray(spec["noise"])
+        r = bound_case(name, iterations, 1, 1, at=at, noise=noise)
+        print(f"{name} rep {rep}: at {at}, model bound ratio {r['standard'] / r['bound']:.2f}")
+        out.append(r["controls"])
+    return out
+
+
+def plant_table(cases, repeats=5, round1=False, iterations=100):
+    """Markdown: the per-step signal's plant time on the plants against the best standard
+    signal's in results.json (the same protocol and noise seeds); the per-step signal found
+    at the true values (bound.json, an oracle), or with `round1` at the designed arm's
+    estimate after 4 episodes, per repeat."""
     bound = json.loads((HERE / "bound.json").read_text())
     stored = json.loads((HERE / "results.json").read_text())["cases"]
     lines = [
@@ -134,7 +165,11 @@ def plant_table(cases, repeats=5):
     for name in cases:
         # the control plant has the model's laws at the same true values: the same bound
         source = "friction80" if name == "friction80_own_laws" else name
-        times = play(name, bound[source]["controls"], repeats)
+        if round1:
+            controls = round1_controls(name, stored, repeats, iterations)
+        else:
+            controls = bound[source]["controls"]
+        times = play(name, controls, repeats)
         for key, what in (("ratio", "noise"), ("ratio_reported", "reported")):
             t = np.array(times[key])
             by = {
@@ -164,10 +199,15 @@ def main(argv=None):
     ap.add_argument(
         "--plant", action="store_true", help="play bound.json's controls on the plants instead"
     )
+    ap.add_argument(
+        "--round1",
+        action="store_true",
+        help="with --plant: search per repeat at the designed arm's estimate after 4 episodes",
+    )
     args = ap.parse_args(argv)
     enable_compilation_cache()
     if args.plant:
-        print(plant_table(args.cases))
+        print(plant_table(args.cases, round1=args.round1, iterations=args.iterations))
         return
     results = {}
     lines = [
