@@ -18,6 +18,7 @@ from hds.discover.design import (
     limits_of,
     lqr_gain,
     split_estimate,
+    with_mismatch,
 )
 
 FRICTION = "coulomb_friction@slider"
@@ -293,6 +294,63 @@ def test_designed_record_narrower_than_random_steps(analytic_cfg):
     assert designed < steps_width
     predicted = float(design.predicted_half(episodes)[0])
     assert 0.5 < predicted / designed < 2.0
+
+
+def test_per_step_bad_input_fails_clearly(small, analytic_cfg):
+    limits = limits_of(analytic_cfg, 0.5)
+    with pytest.raises(ValueError, match="x0 has shape"):
+        small.per_step(None, DOWN[:2], np.ones(4), limits)
+    with pytest.raises(ValueError, match="at least one start"):
+        small.per_step(None, DOWN, np.ones(4), limits, restarts=0)
+    with pytest.raises(ValueError, match="start 'prbs' has shape"):
+        small.per_step(None, DOWN, np.ones(4), limits, starts={"prbs": np.zeros((3, 1))})
+
+
+@pytest.mark.slow  # compiles the per-step criterion's gradient: about a minute of CPU
+def test_per_step_keeps_every_limit_and_improves_on_its_start(small, analytic_cfg):
+    """Every step's control free: the result keeps the amplitude bound, the rail pulled in
+    and a speed bound on the model's trajectory, and carries more about the friction than the
+    weak signal it started from."""
+    limits = limits_of(analytic_cfg, amplitude=0.5, max_speed=[0.6, 20.0], joint_margin=0.45)
+    estimate = {FRICTION: {"force": 20.0}, "actuator_gain@slide": {"gain": 1.0}}
+    noise = np.array([1e-3, 2e-3, 1e-2, 2e-2])
+    ctrl = np.array([[-3.0, 3.0]])
+    weak = random_steps(0, 1, small.steps, 0.04, ctrl, scale=0.1)[0]
+    criterion = {f"{FRICTION}.force": 0.05}
+    best = small.per_step(
+        estimate, DOWN, noise, limits, criterion, iterations=12, restarts=1, starts={"weak": weak}
+    )
+    u, obs = best["controls"], best["trajectory"]
+    assert u.shape == (small.steps, 1)
+    assert limits.violation(obs, u) == {"control": 0.0, "joint": 0.0, "speed": 0.0}
+    assert best["value"] <= min(best["history"]) + 1e-9
+    start_se = small.predicted_se_of(estimate, weak[None], DOWN, noise)
+    assert best["predicted_se"][0] < start_se[0]
+
+
+def test_with_mismatch_carries_the_fit_so_far():
+    """The law mismatch measured on the fit so far, carried to the new record: nothing to
+    carry before any data or without a mismatch; the scatter of the noise part scales the
+    sensor prediction; the systematic part stays when every episode carries the same
+    information (it does not average away)."""
+    pred = np.array([0.02, 0.004])
+    assert np.array_equal(with_mismatch(pred, 2, None, None, None, 0)[1], pred)
+    # no mismatch: the noise part is the sensor part, the reported one the noise part
+    noise_now, full_now = with_mismatch(pred, 8, [0.05, 0.01], [0.05, 0.01], [0.05, 0.01], 4)
+    assert np.allclose(noise_now, pred) and np.allclose(full_now, pred)
+    # episodes scatter twice the sensor noise: the noise part twice the prediction
+    noise_now, _ = with_mismatch(pred, 8, [0.05, 0.01], [0.1, 0.02], [0.1, 0.02], 4)
+    assert np.allclose(noise_now, 2 * pred)
+    # the same signal for twice the episodes: se / sqrt(2), a bias of 0.3 stays 0.3
+    from scipy import stats
+
+    se4 = np.array([0.1, 0.02])
+    sensor4 = stats.t.ppf(0.975, 3) * se4 / 2
+    pred8 = stats.t.ppf(0.975, 7) * se4 / np.sqrt(8)
+    noise_now, full_now = with_mismatch(pred8, 8, sensor4, sensor4, sensor4 + 0.3, 4)
+    assert np.allclose(full_now - noise_now, 0.3)
+    with pytest.raises(ValueError, match="at least 2 episodes"):
+        with_mismatch(pred, 8, pred, pred, pred, 1)
 
 
 def test_excitation_key_is_checked():

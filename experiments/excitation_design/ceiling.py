@@ -38,6 +38,27 @@ def signals(env, steps, dt, high):
     return out
 
 
+def setup(name):
+    """A case's designer, limits, initial state, true values {key: {param: value}} and the
+    true values in the designer's label order."""
+    spec = CASES[name]
+    env_cfg = env_config(
+        OmegaConf.to_container(OmegaConf.load(CONF / "env" / f"{spec['env']}.yaml"))
+    )
+    fit_cfg = with_backend(env_cfg, fit_backend(env_cfg, "auto"))
+    env = make_env(env_cfg)
+    steps, dt = int(env.task.horizon), float(env.sim.dt)
+    designer = get_designer(fit_cfg, spec["keys"], dt, steps, horizon=10)
+    limits = limits_of(fit_cfg, AMPLITUDE)
+    x0 = np.concatenate([spec["rest"], np.zeros(env.sim.n_obs - env.sim.nq)])
+    truth = {}
+    for e in spec["real"]["effects"]:
+        gap = spec["real"]["friction_gap"] if e["name"] == "coulomb_friction" else 1.0
+        truth[f"{e['name']}@{e['target']}"] = {p: v * gap for p, v in e["params"].items()}
+    values = [truth[k.rsplit(".", 1)[0]][k.rsplit(".", 1)[1]] for k in designer.labels]
+    return env, designer, limits, x0, truth, values
+
+
 def main():
     enable_compilation_cache()
     lines = [
@@ -46,20 +67,8 @@ def main():
     ]
     for name in ("friction80", "friction_gain"):
         spec = CASES[name]
-        env_cfg = env_config(
-            OmegaConf.to_container(OmegaConf.load(CONF / "env" / f"{spec['env']}.yaml"))
-        )
-        fit_cfg = with_backend(env_cfg, fit_backend(env_cfg, "auto"))
-        env = make_env(env_cfg)
+        env, designer, limits, x0, truth, values = setup(name)
         steps, dt = int(env.task.horizon), float(env.sim.dt)
-        designer = get_designer(fit_cfg, spec["keys"], dt, steps, horizon=10)
-        limits = limits_of(fit_cfg, AMPLITUDE)
-        x0 = np.concatenate([spec["rest"], np.zeros(env.sim.n_obs - env.sim.nq)])
-        truth = {}
-        for e in spec["real"]["effects"]:
-            gap = spec["real"]["friction_gap"] if e["name"] == "coulomb_friction" else 1.0
-            truth[f"{e['name']}@{e['target']}"] = {p: v * gap for p, v in e["params"].items()}
-        values = [truth[k.rsplit(".", 1)[0]][k.rsplit(".", 1)[1]] for k in designer.labels]
         t_q = stats.t.ppf(0.975, EPISODES - 1) / np.sqrt(EPISODES)
         times = {}
         for label, u in signals(env, steps, dt, limits.u_high[0]).items():

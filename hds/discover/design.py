@@ -595,30 +595,17 @@ class Designer:
     # -- the design -----------------------------------------------------------------------
 
     def _objective(self, c, theta, noise, ref, pick, amplitude, middle, gain, x_ref, x0s, lim):
-        low, high, q_low, q_high, speed = lim
         h, meat, obs, _ = self._parts(
-            theta, c, amplitude, middle, gain, x_ref, x0s, low, high, noise
+            theta, c, amplitude, middle, gain, x_ref, x0s, lim[0], lim[1], noise
         )
-        m = h.shape[0]
-        h = h / jnp.outer(ref, ref)  # parameters in units of their size
-        meat = meat / jnp.outer(ref, ref)
-        h = h + RIDGE * (jnp.trace(h) / m + EIVAL_FLOOR) * jnp.eye(m)
-        meat = meat + RIDGE * (jnp.trace(meat) / m + EIVAL_FLOOR) * jnp.eye(m)
-        if pick is None:  # D: log det of the covariance H^-1 B B^T H^-1
-            value = jnp.linalg.slogdet(meat)[1] - 2 * jnp.linalg.slogdet(h)[1]
-        else:  # A (pick all ones) or one parameter's variance (a one-hot pick)
-            inv = jnp.linalg.inv(h)
-            value = jnp.log(jnp.sum(jnp.diag(inv @ meat @ inv) * pick))
-        nq = q_low.shape[0]
-        q, qd = obs[..., :nq], obs[..., nq:]
-        span_q = jnp.where(jnp.isfinite(q_high - q_low), q_high - q_low, 1.0)
-        over_q = jnp.where(jnp.isfinite(q_high), jax.nn.relu(q - q_high), 0.0) + jnp.where(
-            jnp.isfinite(q_low), jax.nn.relu(q_low - q), 0.0
-        )
-        over_v = jnp.where(jnp.isfinite(speed), jax.nn.relu(jnp.abs(qd) - speed), 0.0)
-        span_v = jnp.where(jnp.isfinite(speed), speed, 1.0)
-        penalty = jnp.sum((over_q / span_q) ** 2) + jnp.sum((over_v / span_v) ** 2)
-        return value + PENALTY * penalty / x0s.shape[0]
+        return _traced_criterion(h, meat, ref, pick) + PENALTY * _penalty(obs, lim) / x0s.shape[0]
+
+    def _objective_open(self, v, theta, noise, ref, pick, amplitude, middle, x0, lim):
+        """The criterion and limit penalty of the open-loop controls middle + amplitude v
+        (v [T, n_act] in [-1, 1]); also the trajectory, to check the limits."""
+        h, meat, obs = self._parts_open(theta, middle + amplitude * v, x0, noise)
+        value = _traced_criterion(h, meat, ref, pick)
+        return value + PENALTY * _penalty(obs, lim), (value, obs)
 
     def design(
         self,
@@ -740,6 +727,100 @@ class Designer:
                 design.predicted_se = np.sqrt(np.maximum(np.diag(cov), 0.0))
         return design
 
+    def per_step(
+        self,
+        estimate: dict | None,
+        x0,
+        noise,
+        limits: Limits,
+        criterion="D",
+        iterations: int = 300,
+        restarts: int = 4,
+        learning_rate: float = 0.05,
+        seed: int = 0,
+        starts: dict | None = None,
+    ) -> dict:
+        """The most flexible open-loop excitation: every step's control a free variable in the
+        amplitude bound (projected Adam on the criterion, the joints' and speed limits as
+        penalties), from each of `starts` ({name: controls [T, n_act]}, e.g. the standard
+        signals) and `restarts` random starts; the best iterate that keeps every limit on the
+        model's trajectory. No smoothness and no harmonic limit: a search for how much any
+        open-loop signal of this bound could carry (`design`'s Fourier series is a subset).
+        Returns {"controls", "trajectory", "predicted_se" (one episode), "value" (the
+        criterion, as `design` scores its rivals), "start" (the winning start's name),
+        "history" (the winning run's criterion per iteration)}."""
+        sim = self.sim
+        x0 = np.asarray(x0, np.float64)
+        if x0.shape != (sim.n_obs,):
+            raise ValueError(f"x0 has shape {x0.shape}; give a state [{sim.n_obs}]")
+        if int(iterations) < 1 or int(restarts) < 0 or not (starts or restarts):
+            raise ValueError(
+                f"iterations = {iterations} >= 1 and restarts = {restarts} >= 0, with at least "
+                "one start (restarts > 0 or starts)"
+            )
+        pick = _pick(criterion, self.labels)
+        theta = self.theta(estimate)
+        ref = self.reference(theta)
+        middle = 0.5 * (limits.u_low + limits.u_high)
+        amplitude = 0.5 * (limits.u_high - limits.u_low)
+        noise = np.maximum(np.asarray(noise, np.float64), 1e-9)
+        inits = {}
+        for name, u in (starts or {}).items():
+            u = np.asarray(u, np.float64)
+            if u.shape != (self.steps, sim.n_act):
+                raise ValueError(
+                    f"start {name!r} has shape {u.shape}; give [{self.steps}, {sim.n_act}]"
+                )
+            inits[name] = np.clip((u - middle) / np.maximum(amplitude, 1e-12), -1.0, 1.0)
+        rng = np.random.default_rng(seed)
+        for r in range(int(restarts)):
+            inits[f"random {r}"] = np.clip(rng.normal(0.0, 0.5, (self.steps, sim.n_act)), -1, 1)
+        lim = (limits.u_low, limits.u_high, limits.q_low, limits.q_high, limits.max_speed)
+        statics = _f32(theta, noise, ref)
+        pick32 = None if pick is None else jnp.asarray(pick, jnp.float32)
+        rest = (*_f32(amplitude, middle, x0), _f32(*lim))
+        optimiser, step = self._optimiser_open(float(learning_rate))
+        best = {"value": np.inf}
+        for name, v0 in inits.items():
+            v = jnp.asarray(v0, jnp.float32)
+            opt_state, history = optimiser.init(v), []
+            for _ in range(int(iterations)):
+                v_new, opt_state, value, obs = step(v, opt_state, *statics, pick32, *rest)
+                value = float(value)
+                history.append(value)
+                u = middle + amplitude * np.asarray(v, np.float64)
+                bad = limits.violation(np.asarray(obs, np.float64), u)
+                if np.isfinite(value) and max(bad.values()) <= 0 and value < best["value"]:
+                    best = {"value": value, "controls": u, "start": name}
+                v = v_new
+            if best.get("start") == name:
+                best["history"] = history
+        if "controls" not in best:
+            raise ValueError(
+                "no per-step excitation kept the limits from this initial state: it starts "
+                "outside them, or the limits leave no room to move; widen them"
+            )
+        h, meat, obs = self._predict_open(*_f32(theta, best["controls"], x0, noise))
+        best["trajectory"] = np.asarray(obs, np.float64)
+        best["predicted_se"] = np.sqrt(np.maximum(np.diag(_covariance(h, meat)), 0.0))
+        return best
+
+    def _optimiser_open(self, learning_rate: float):
+        """Adam on per-step controls v in [-1, 1], projected back after every update."""
+        key = ("open", learning_rate)
+        if key not in self._steps:
+            optimiser = optax.adam(learning_rate)
+
+            def step(v, opt_state, *args):
+                (_, (value, obs)), grad = jax.value_and_grad(self._objective_open, has_aux=True)(
+                    v, *args
+                )
+                updates, opt_state = optimiser.update(jnp.nan_to_num(grad), opt_state)
+                return jnp.clip(optax.apply_updates(v, updates), -1.0, 1.0), opt_state, value, obs
+
+            self._steps[key] = (optimiser, jax.jit(step))
+        return self._steps[key]
+
     def _optimiser(self, learning_rate: float):
         """Adam and its compiled step at this learning rate: every estimate, noise, limit and
         initial state is a traced argument, so each later design reuses the program."""
@@ -776,6 +857,51 @@ class Designer:
         return design
 
 
+def with_mismatch(
+    predicted_half,
+    episodes: int,
+    sensor_half,
+    noise_half,
+    half,
+    episodes_before: int,
+    level: float = 0.95,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The fit's noise part and reported half-widths [M] for a record of `episodes` episodes
+    whose sensor-noise half-widths the design predicts (`predicted_half`, e.g. every round's
+    controls so far at the current estimate and noise), from what the fit of the
+    `episodes_before` episodes recorded so far measured: their sensor part on the record
+    (`Designer.record_se` as a half-width), the fit's noise part (t x cluster-robust se) and
+    its reported half-width (noise part plus law-mismatch part, `confidence_intervals`).
+
+    A law mismatch enters the fit's intervals twice, and the design's prediction (sensor
+    noise on the model) holds neither: (1) where it differs between episodes the
+    cluster-robust noise part counts it as scatter, so the noise part is the sensor part
+    times noise_half / sensor_half as measured so far; (2) its systematic part,
+    sqrt(misfit (H^-1)_jj), does not average away: the misfit (a sum over the record) grows
+    with the episodes while H^-1 shrinks as the predicted information grows, so it is carried
+    from the fit so far as sqrt(E / E_before) x (predicted se / sensor se so far). The
+    view-disagreement part is carried the same way (a shift, not scatter). Before any data
+    (episodes_before = 0) there is nothing to carry: the sensor part is returned for both."""
+    pred = np.asarray(predicted_half, np.float64)
+    if episodes_before == 0:
+        return pred.copy(), pred.copy()
+    if episodes_before < 2 or episodes < 2:
+        raise ValueError(
+            f"episodes_before = {episodes_before} and episodes = {episodes}: intervals need "
+            "at least 2 episodes (episodes_before = 0: nothing recorded yet)"
+        )
+    sensor, noise, full = (np.asarray(x, np.float64) for x in (sensor_half, noise_half, half))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scatter = np.where(sensor > 0, noise / sensor, 1.0)
+        # standard errors without the t quantiles, which differ between the two amounts
+        t_before = stats.t.ppf(0.5 + level / 2, episodes_before - 1)
+        t_now = stats.t.ppf(0.5 + level / 2, episodes - 1)
+        shrink = np.where(sensor > 0, (pred / t_now) / (sensor / t_before), 1.0)
+    noise_now = pred * scatter
+    bias = np.maximum(full - noise, 0.0) * math.sqrt(episodes / episodes_before) * shrink
+    return noise_now, noise_now + bias
+
+
 def _rollout_args(theta, design: Design, x0s) -> tuple:
     """The arguments of a design's compiled rollout, in its order (x0s the batched one)."""
     return (
@@ -803,6 +929,34 @@ def _criterion_value(cov, ref, pick) -> float:
     if pick is None:
         return float(np.linalg.slogdet(rel + RIDGE * np.trace(rel) * np.eye(len(rel)))[1])
     return float(np.log(np.sum(np.diag(rel) * pick) + EIVAL_FLOOR))
+
+
+def _traced_criterion(h, meat, ref, pick):
+    """The design's criterion on H and B B^T (traced; parameters in units of their size)."""
+    m = h.shape[0]
+    h = h / jnp.outer(ref, ref)
+    meat = meat / jnp.outer(ref, ref)
+    h = h + RIDGE * (jnp.trace(h) / m + EIVAL_FLOOR) * jnp.eye(m)
+    meat = meat + RIDGE * (jnp.trace(meat) / m + EIVAL_FLOOR) * jnp.eye(m)
+    if pick is None:  # D: log det of the covariance H^-1 B B^T H^-1
+        return jnp.linalg.slogdet(meat)[1] - 2 * jnp.linalg.slogdet(h)[1]
+    inv = jnp.linalg.inv(h)  # A (pick all ones) or one parameter's variance (a one-hot pick)
+    return jnp.log(jnp.sum(jnp.diag(inv @ meat @ inv) * pick))
+
+
+def _penalty(obs, lim):
+    """Sum of the squared excesses over the joints' and speed limits, in units of the limit
+    (traced): the optimisers' soft constraint, checked exactly afterwards."""
+    _, _, q_low, q_high, speed = lim
+    nq = q_low.shape[0]
+    q, qd = obs[..., :nq], obs[..., nq:]
+    span_q = jnp.where(jnp.isfinite(q_high - q_low), q_high - q_low, 1.0)
+    over_q = jnp.where(jnp.isfinite(q_high), jax.nn.relu(q - q_high), 0.0) + jnp.where(
+        jnp.isfinite(q_low), jax.nn.relu(q_low - q), 0.0
+    )
+    over_v = jnp.where(jnp.isfinite(speed), jax.nn.relu(jnp.abs(qd) - speed), 0.0)
+    span_v = jnp.where(jnp.isfinite(speed), speed, 1.0)
+    return jnp.sum((over_q / span_q) ** 2) + jnp.sum((over_v / span_v) ** 2)
 
 
 def _f32(*xs):
