@@ -919,6 +919,20 @@ def test_a_fit_with_estimated_states_reaches_one_optimum_from_two_starts(plants,
     assert abs(second[0][0, slot] - force) < 0.1 * se[0]
     assert second[1][0] == pytest.approx(first[1][0], rel=1e-2)
     assert 0 < second[4][0] < CFG.iterations
+    # a round's screen (`explain._Fitter`): theta alone, the states held where they are
+    # given. Held at the estimated fit's states, the fit of theta lands on its optimum
+    # (theta's own condition of optimality holds there), and the states stay as they were
+    held = engine.fit(
+        theta0, slots, delay, ident, CFG.iterations, False, 1, first[7][0], True, hold=True
+    )
+    np.testing.assert_array_equal(held[7][0], first[7][0])
+    assert abs(held[0][0, slot] - force) < 0.1 * se[0]
+    # held at the measurements, it is the fit from the measured states
+    zero = np.zeros_like(first[7][0])
+    measured = engine.fit(theta0, slots, delay, ident, CFG.iterations, False, 1, zero, True, True)
+    plain = engine.fit(theta0, slots, delay, ident, CFG.iterations, False, rows=1)
+    assert measured[0][0, slot] == pytest.approx(plain[0][0, slot], rel=1e-4)
+    assert abs(measured[0][0, slot] - force) > 0.1 * se[0]  # the noisy states bias it
 
 
 @pytest.mark.slow  # a noisy record: initial states estimated, discovery's slow path

@@ -159,8 +159,10 @@ def forward_selection(
     for round_index in range(1, 2 * cfg.max_effects + 1):
         if len(state.selected) >= cfg.max_effects:
             break
-        batch = fit(state)
+        batch = fit(state, banned)
         theta, delay, held, loss = batch.theta, batch.delay, batch.held, batch.loss
+        # the decisions compare fits with estimated states only, never a screen's row
+        decided = np.where(batch.screened, np.inf, held)
         rows = []
         for i, cand in enumerate(model.candidates):
             rows.append(
@@ -173,6 +175,8 @@ def forward_selection(
                     "identification_error": float(np.sqrt(loss[i])),
                     "new": cand.key not in state.keys,
                     "iterations": int(batch.iterations[i]),
+                    # fitted with the windows' states held (`_Fitter.__call__`), not estimated
+                    "screened": bool(batch.screened[i]),
                 }
             )
         rounds.append(rows)
@@ -187,7 +191,7 @@ def forward_selection(
         # new: its row is a longer refit of the current model, or another delay length)
         refits = [i for i, c in enumerate(model.candidates) if c.key in state.keys]
         if refits:
-            i = min(refits, key=lambda j: held[j])
+            i = min(refits, key=lambda j: decided[j])
             if held[i] < state.heldout_error:
                 state = fit.state(state.selected, batch, i)
                 states[-1] = state
@@ -206,14 +210,14 @@ def forward_selection(
             )
             break
         needed = max(cfg.stop_margin * state.heldout_error, cfg.min_improvement)
-        best = min(fresh, key=lambda j: held[j])
+        best = min(fresh, key=lambda j: decided[j])
         # judged as refitted jointly: where it trades off against an effect already in
         # (friction high and gain low), the round's fit from the current values may stop
         # in the trade-off's valley and understate what it adds
         grown = _settle(fit, fit.state(state.selected + [model.candidates[best]], batch, best))
         drop = state.heldout_error - grown.heldout_error
         label = model.candidates[best].label
-        compensated = _unidentifiable_explains_more(model, unidentifiable, held, best)
+        compensated = _unidentifiable_explains_more(model, unidentifiable, decided, best)
         if not drop >= needed:
             # no swap for a compensation of what the data cannot identify (below)
             swapped = None if compensated else _swap(fit, states, grown)
@@ -657,6 +661,12 @@ def _indistinct(model, state: State, min_scale_change: float) -> np.ndarray:
     )
 
 
+# fresh candidates a round fits again with estimated states after the held-state screen
+# (`_Fitter.__call__`): the best by the screen's held-out error, and the runner-up, where
+# the two rankings may differ in order (experiments/discovery_speed)
+SCREENED = 2
+
+
 class Batch(NamedTuple):
     """One batched fit: per row theta [C, N], delay [C, n_act], held-out error [C],
     identification MSE [C], H [C, M, M], G [C, E, M], slots [C, M], iterations [C], and H
@@ -673,6 +683,8 @@ class Batch(NamedTuple):
     view_h: np.ndarray
     view_g: np.ndarray
     z: np.ndarray  # [C, W, n_obs] the windows' estimated initial states
+    # [C] rows fitted with the states held at the current model's (a screen, `_Fitter`)
+    screened: np.ndarray
 
 
 class _Fitter:
@@ -696,18 +708,53 @@ class _Fitter:
     def width(self, n_slots: int) -> int:
         return next(w for w in self.sizes if w >= n_slots)
 
-    def run(self, theta0, slots, delay, rows=None, z0=None) -> Batch:
+    def run(self, theta0, slots, delay, rows=None, z0=None, hold=False) -> Batch:
         engine = self.engine
         theta, loss, h, g, its, view_h, view_g, z = engine.fit(
-            theta0, slots, delay, self.ident, self.cfg.iterations, self.estimate, rows, z0, True
+            theta0,
+            slots,
+            delay,
+            self.ident,
+            self.cfg.iterations,
+            self.estimate and not hold,
+            rows,
+            z0,
+            True,
+            hold,
         )
         held = engine.errors(theta, delay, self.heldout)
-        return Batch(theta, delay, held, loss, h, g, slots, its, view_h, view_g, z)
+        screened = np.full(len(theta), bool(hold))
+        return Batch(theta, delay, held, loss, h, g, slots, its, view_h, view_g, z, screened)
 
-    def __call__(self, state: State) -> Batch:
+    def __call__(self, state: State, banned=()) -> Batch:
+        """Every candidate added to `state`, fitted. With initial states estimated, a
+        round screens first: each candidate's fit with the windows' states held at the
+        current model's (theta alone, a third of the tangents, no state blocks), then the
+        rows selection decides on are fitted again with the states estimated: the best
+        SCREENED candidates not yet selected (by held-out error, which measured states give
+        either way; the best of them not `banned` among them), and the best refit of the
+        selected ones: the rows selection compares. What a candidate adds to the dynamics
+        moves the windows' states little (a round's fit starts them there for that
+        reason), so the held-state fits rank the candidates as the estimated ones do; the
+        held-out error of a screened row is the held-state fit's
+        (experiments/discovery_speed: the two rankings on the noisy record and lab draws)."""
         model = self.engine.model
         width = self.width(len(state.slots) + self.sw)
-        return self.run(*_batch(model, state, width), z0=state.z)
+        theta0, slots, delay = _batch(model, state, width)
+        if not self.estimate:
+            return self.run(theta0, slots, delay, z0=state.z)
+        screen = self.run(theta0, slots, delay, z0=state.z, hold=True)
+        held = np.where(np.isfinite(screen.held), screen.held, np.inf)
+        chosen = np.zeros(len(theta0), bool)
+        inside = [i for i, c in enumerate(model.candidates) if c.key in state.keys]
+        outside = sorted(set(range(len(held))) - set(inside), key=lambda i: held[i])
+        fresh = [i for i in outside if model.candidates[i].key not in banned]
+        # the best refit, the best SCREENED others (a banned one among them is compared with
+        # the best fresh one by `_unidentifiable_explains_more`), and the best fresh one
+        chosen[sorted(inside, key=lambda i: held[i])[:1] + outside[:SCREENED] + fresh[:1]] = True
+        full = self.run(theta0, slots, delay, rows=chosen, z0=state.z)
+        pick = lambda a, b: np.where(chosen.reshape((-1,) + (1,) * (np.ndim(a) - 1)), a, b)  # noqa: E731
+        return Batch(*(pick(a, b) for a, b in zip(full, screen, strict=True)))
 
     def state(self, selected, batch: Batch, i: int) -> State:
         slots = [int(s) for s in batch.slots[i] if s >= 0]

@@ -57,14 +57,17 @@ class Engine:
         self.losses = jax.jit(jax.vmap(self._loss, in_axes=(0, 0, None)))
         # `iterations` only bounds the while loop, so it is traced: fits of any budget share a
         # program; `estimate` changes the residuals' shapes and stays static
-        self._fit = jax.jit(self._fit_each, static_argnums=(6,))
+        self._fit = jax.jit(self._fit_each, static_argnums=(6, 8))
 
-    def _fit_each(self, theta0, slots, delay, active, data, iterations, estimate: bool, z0):
+    def _fit_each(
+        self, theta0, slots, delay, active, data, iterations, estimate: bool, z0, hold=False
+    ):
         """The candidates' fits one after another (lax.map, not vmap): a vmapped while loop
         runs every row until the slowest converges, here each row stops at its own
         convergence (a fifth of the iterations in a typical round). Rows not `active` (the
         padding of a batch that fills fewer rows) skip their fit: theta0, NaN loss, zeros.
-        Every row starts its windows' initial states (`estimate`) from z0."""
+        Every row starts its windows' initial states (`estimate`) from z0, or (`hold`)
+        keeps them there."""
 
         m, episodes = slots.shape[1], data[0].shape[0]
         dtype = theta0.dtype
@@ -83,7 +86,7 @@ class Engine:
             theta0, slots, delay, active = args
             return jax.lax.cond(
                 active,
-                lambda: self._fit_one(theta0, slots, delay, data, iterations, estimate, z0),
+                lambda: self._fit_one(theta0, slots, delay, data, iterations, estimate, z0, hold),
                 lambda: skipped(theta0),
             )
 
@@ -103,7 +106,7 @@ class Engine:
         count = jnp.maximum(data[4].sum() * r.shape[1] * r.shape[2], 1.0)
         return jnp.sum(r * r) / count
 
-    def _fit_one(self, theta0, slots, delay, data, iterations: int, estimate: bool, z0):
+    def _fit_one(self, theta0, slots, delay, data, iterations: int, estimate: bool, z0, hold=False):
         """One candidate's fit. With `estimate`, each window's initial state is estimated
         along (multiple shooting): z [W, n_obs], its offset from the measurement in units of
         scale, with the measurement itself as one more residual (z), starting from z0.
@@ -113,7 +116,9 @@ class Engine:
         error (its own damping), so the few near a kink that overshoot do not refuse the step
         of all. Started from the states of the model a candidate is added to,
         rather than from the measurements, a fit spends its iterations on the effects: the
-        states move little when one effect is added."""
+        states move little when one effect is added. With `hold` (and not `estimate`), the
+        windows start from the states z0 and keep them: theta alone is fitted, as from
+        measured states (a screen of candidates: `explain._Fitter`)."""
         model = self.model
         n_theta, n_obs, windows = model.n_theta, model.sim.n_obs, data[2].shape[0]
         m = slots.shape[0]
@@ -133,7 +138,8 @@ class Engine:
         )
 
         def res(theta, z):
-            return self._residuals(theta, delay, data, z if estimate else None).reshape(windows, -1)
+            given = z if estimate or hold else None
+            return self._residuals(theta, delay, data, given).reshape(windows, -1)
 
         def linear(theta, z):
             r, jac = jax.vmap(lambda tt, tz: jax.jvp(res, (theta, z), (tt, tz)))(t_theta, t_z)
@@ -193,6 +199,14 @@ class Engine:
                 better = first | (trial_loss < loss)  # False for NaN
                 r_new, jt_new, jz_new = jax.lax.cond(
                     better, lambda: linear(trial, z_trial), lambda: (r, jt, jz)
+                )
+            elif hold:  # a screen: a refused step costs a forward pass, not a linearization
+                z_trial, took = z, jnp.zeros(windows, bool)
+                r_t = res(trial, z)
+                trial_loss = jnp.sum(r_t * r_t)
+                better = first | (trial_loss < loss)  # False for NaN
+                r_new, jt_new, jz_new = jax.lax.cond(
+                    better, lambda: linear(trial, z), lambda: (r, jt, jz)
                 )
             else:  # the trial's linearization gives its error, and the next Jacobian if kept
                 z_trial, took = z, jnp.zeros(windows, bool)
@@ -268,7 +282,7 @@ class Engine:
         n_res = self.horizon * n_obs
         start = (
             theta0,
-            z0 if estimate else jnp.zeros((windows, n_obs)),
+            z0 if estimate or hold else jnp.zeros((windows, n_obs)),
             jnp.zeros((windows, n_res)),
             jnp.zeros((m, windows, n_res)),
             jnp.zeros((n_z, windows, n_res)),
@@ -315,12 +329,17 @@ class Engine:
         rows=None,
         z0=None,
         states: bool = False,
+        hold: bool = False,
     ):
-        """The fits of `_fit_each`; only the first `rows` rows are fitted (default: all),
-        each from the windows' initial states z0 [W, n_obs] (`estimate`; default: the
-        measurements). Returns theta, loss, H, G, iterations, then H and G of each view, and
-        with `states` the estimated initial states z [C, W, n_obs]."""
-        active = np.arange(len(theta0)) < (len(theta0) if rows is None else rows)
+        """The fits of `_fit_each`; only the first `rows` rows are fitted (default: all; or
+        a [C] mask of the rows to fit), each from the windows' initial states z0 [W, n_obs]
+        (`estimate`, or `hold`: kept there; default: the measurements). Returns theta, loss,
+        H, G, iterations, then H and G of each view, and with `states` the estimated initial
+        states z [C, W, n_obs]."""
+        if rows is not None and np.ndim(rows):
+            active = np.asarray(rows, bool)
+        else:
+            active = np.arange(len(theta0)) < (len(theta0) if rows is None else rows)
         if z0 is None:
             z0 = np.zeros((np.shape(data[2])[0], self.model.sim.n_obs))
         theta, loss, h, g, its, z = self._fit(
@@ -332,6 +351,7 @@ class Engine:
             jnp.asarray(iterations, jnp.int32),
             bool(estimate),
             jnp.asarray(z0, jnp.float32),
+            bool(hold and not estimate),
         )
         h, g = np.asarray(h), np.asarray(g)
         out = (theta, loss, h[:, 0], g[:, 0], its, h[:, 1:], g[:, 1:])
