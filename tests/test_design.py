@@ -260,11 +260,18 @@ def test_bad_input_fails_clearly(small, analytic_cfg):
 def test_designed_record_narrower_than_random_steps(analytic_cfg):
     """A toy friction plant (the simulator's own law: no law mismatch, only sensor noise): a
     designed record of 4 episodes gives the fit a narrower interval on the friction than
-    random steps of the same length and amplitude bound, and about the predicted one."""
+    random steps of the same length and amplitude bound, and about the predicted one.
+
+    With 4 episodes the fit's interval is a cluster-robust sandwich over 4 clusters: one noise
+    draw's width scatters by about half of itself (here 0.05-0.12 for the design, 0.06-0.34
+    for the steps), so one draw against one draw is a coin flip that a compiler flag's last
+    digits can turn. Both records therefore meet the same 8 sensor-noise draws, and the test
+    compares what the interval is on average (the median width) and what it is for (the
+    estimates' scatter over the draws)."""
     from hds.envs import make_env
     from hds.real.brax_plant import BraxPlant
 
-    steps, episodes, amplitude, force = 50, 4, 0.5, 60.0
+    steps, episodes, amplitude, force, draws = 50, 4, 0.5, 60.0, 8
     noise = np.array([1e-3, 2e-3, 1e-2, 2e-2])
     designer = Designer(analytic_cfg, [FRICTION], 0.04, steps, horizon=10, harmonics=6)
     fitter = WindowFit(designer, episodes)
@@ -277,23 +284,29 @@ def test_designed_record_narrower_than_random_steps(analytic_cfg):
     design = designer.design({FRICTION: {"force": force}}, DOWN, noise, limits, iterations=40)
     q0, qd0 = np.tile(DOWN[:2], (episodes, 1)), np.zeros((episodes, 2))
     theta0 = designer.theta({FRICTION: {"force": 10.0}})
-    rng = np.random.default_rng(0)
     ctrl = np.asarray(env.sim.ctrl_range, np.float64)
 
-    def width(u):
+    def fits(u):
+        """(widths, estimates) of the friction over the same noise draws for every record."""
         ds = collect(plant, env.task, q0, qd0, u)
-        obs = ds.obs + rng.normal(size=ds.obs.shape) * noise
-        fit = fitter(obs, ds.actions, theta0, noise=noise)
-        assert abs(fit["values"][0] - force) < 0.05 * force
-        return float(fit["noise_half"][0])
+        widths, values = [], []
+        for draw in range(draws):
+            obs = ds.obs + np.random.default_rng(draw).normal(size=ds.obs.shape) * noise
+            fit = fitter(obs, ds.actions, theta0, noise=noise)
+            assert abs(fit["values"][0] - force) < 0.05 * force
+            widths.append(float(fit["noise_half"][0]))
+            values.append(float(fit["values"][0]))
+        return np.array(widths), np.array(values)
 
-    designed = width(np.repeat(design.controls()[None], episodes, axis=0))
+    designed, designed_values = fits(np.repeat(design.controls()[None], episodes, axis=0))
     steps_u = random_steps(0, episodes, steps, 0.04, ctrl, scale=amplitude)
     assert np.abs(steps_u).max() <= amplitude * 3.0 + 1e-9
-    steps_width = width(steps_u)
-    assert designed < steps_width
+    steps_widths, steps_values = fits(steps_u)
+    assert np.median(designed) < np.median(steps_widths)
+    # the narrower interval is a tighter estimate, not a smaller reported number
+    assert designed_values.std() < steps_values.std()
     predicted = float(design.predicted_half(episodes)[0])
-    assert 0.5 < predicted / designed < 2.0
+    assert 0.5 < predicted / np.median(designed) < 2.0
 
 
 def test_per_step_bad_input_fails_clearly(small, analytic_cfg):
