@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from bench.common import REFERENCE, load_average, run_worker
+from hds.utils.runtime import program_cache_beside
 
 # issue 43's targets for the reference configuration on 2 cores: a process from an empty
 # compilation cache, and a second process of the same configuration
@@ -36,11 +37,6 @@ TOP = 8  # programs listed per method (the rest summed in one row)
 
 def entries_of(path: Path) -> set[str]:
     return {p.name for p in path.iterdir()}
-
-
-def program_cache_of(cache: Path) -> Path:
-    """The program cache the worker keeps beside a compilation cache (hds.utils.runtime)."""
-    return cache.with_name(cache.name + "-programs")
 
 
 def cache_size_mib(path: Path) -> float:
@@ -72,7 +68,7 @@ def measure(backend: str, overrides: list[str]) -> dict:
         new = sorted(entries_of(cache) - entries)
     finally:
         shutil.rmtree(cache, ignore_errors=True)
-        shutil.rmtree(program_cache_of(cache), ignore_errors=True)
+        shutil.rmtree(program_cache_beside(cache), ignore_errors=True)
     # A warm process that writes a new run_chunk entry missed the cache: its program differed
     # from the cold one's (e.g. a source file edited in between, which changes the HLO's
     # source locations).

@@ -69,7 +69,7 @@ def test_a_changed_config_closure_or_source_file_changes_the_key(tiny, tmp_path,
     # the same config, another env inside the closure (exact effects, as a plant's)
     env = make_env(cfg.env, sharpness=None)
     assert program_key(cfg, make_train_from_config(cfg, env).run_chunk) != key
-    monkeypatch.setattr(runtime, "_SOURCES", ["an edited source file"])
+    monkeypatch.setattr(runtime, "source_digest", lambda: "an edited source file")
     assert program_key(cfg, trainer.run_chunk) != key
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 import os
@@ -101,7 +102,6 @@ class _LoweredRuns:
 # hashed, nothing is cached (a key that can miss nothing, or no cache).
 log = logging.getLogger(__name__)
 _OFF = ("0", "off", "none", "false", "no")
-_SOURCES: list[str] = []
 
 
 def program_cache_dir() -> Path | None:
@@ -114,21 +114,23 @@ def program_cache_dir() -> Path | None:
     if setting:
         return Path(setting).expanduser()
     configured = jax.config.jax_compilation_cache_dir
-    if not configured:
-        return None
-    return Path(configured).with_name(Path(configured).name + "-programs")
+    return program_cache_beside(Path(configured)) if configured else None
 
 
+def program_cache_beside(compilation_cache: Path) -> Path:
+    """The program cache's default directory: beside the compilation cache, <its name>-programs."""
+    return compilation_cache.with_name(compilation_cache.name + "-programs")
+
+
+@functools.cache
 def source_digest() -> str:
     """A hash of every file of the hds package (code, configs, models): any edit misses."""
-    if not _SOURCES:
-        root = Path(__file__).resolve().parents[1]
-        h = hashlib.sha256()
-        for path in sorted(root.rglob("*")):
-            if path.is_file() and "__pycache__" not in path.parts:
-                h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes())
-        _SOURCES.append(h.hexdigest())
-    return _SOURCES[0]
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*")):
+        if path.is_file() and "__pycache__" not in path.parts:
+            h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes())
+    return h.hexdigest()
 
 
 def environment_digest() -> str:
@@ -184,7 +186,6 @@ def fingerprint(obj, h=None, _path: tuple = ()) -> str:
     `source_digest` and the libraries' versions). Raises Unhashable on anything else."""
     import dataclasses
     import enum
-    import functools
     import types
 
     top = h is None
@@ -197,13 +198,10 @@ def fingerprint(obj, h=None, _path: tuple = ()) -> str:
     def put(tag: str, data: bytes = b""):
         h.update(tag.encode() + b"\0" + data + b"\1")
 
-    def name_of(x) -> str:
-        return f"{getattr(x, '__module__', '?')}.{getattr(x, '__qualname__', repr(x))}"
-
     if obj is None or isinstance(obj, bool | int | float | complex | str | bytes):
         put(type(obj).__name__, repr(obj).encode())
     elif isinstance(obj, enum.Enum):
-        put("enum", f"{name_of(type(obj))}.{obj.name}".encode())
+        put("enum", f"{_name_of(type(obj))}.{obj.name}".encode())
     elif isinstance(obj, jax.core.Tracer):
         raise Unhashable("a traced value")
     elif isinstance(obj, np.ndarray | np.generic | jax.Array):
@@ -216,11 +214,11 @@ def fingerprint(obj, h=None, _path: tuple = ()) -> str:
             fingerprint(obj[k], h, path)
     elif isinstance(obj, list | tuple | set | frozenset):
         items = sorted(obj, key=repr) if isinstance(obj, set | frozenset) else obj
-        put(name_of(type(obj)), str(len(items)).encode())
+        put(_name_of(type(obj)), str(len(items)).encode())
         for x in items:
             fingerprint(x, h, path)
     elif isinstance(obj, type):
-        put("type", name_of(obj).encode())
+        put("type", _name_of(obj).encode())
         if not _covered(obj.__module__) and sys.modules.get(obj.__module__) is not None:
             fingerprint(sys.modules[obj.__module__], h, path)
     elif isinstance(obj, types.ModuleType):
@@ -232,10 +230,10 @@ def fingerprint(obj, h=None, _path: tuple = ()) -> str:
         for part in (obj.func, obj.args, obj.keywords):
             fingerprint(part, h, path)
     elif isinstance(obj, types.MethodType):
-        put("method", name_of(obj.__func__).encode())
+        put("method", _name_of(obj.__func__).encode())
         fingerprint(obj.__self__, h, path)
     elif isinstance(obj, types.FunctionType):
-        put("function", name_of(obj).encode() + _code_bytes(obj.__code__))
+        put("function", _name_of(obj).encode() + _code_bytes(obj.__code__))
         cells = [c.cell_contents for c in obj.__closure__ or ()]
         for part in (cells, obj.__defaults__, obj.__kwdefaults__):
             fingerprint(part, h, path)
@@ -248,7 +246,7 @@ def fingerprint(obj, h=None, _path: tuple = ()) -> str:
                 put("global", name.encode())
                 fingerprint(obj.__globals__[name], h, path)
     elif isinstance(obj, types.BuiltinFunctionType | np.ufunc):
-        put("builtin", name_of(obj).encode() + repr(obj).encode())
+        put("builtin", _name_of(obj).encode() + repr(obj).encode())
     elif type(obj).__name__ == "MjModel" and type(obj).__module__.startswith("mujoco"):
         import mujoco
 
@@ -256,13 +254,13 @@ def fingerprint(obj, h=None, _path: tuple = ()) -> str:
         mujoco.mj_saveModel(obj, None, buffer)
         put("mjmodel", buffer.tobytes())
     elif dataclasses.is_dataclass(obj):
-        put("dataclass", name_of(type(obj)).encode())
+        put("dataclass", _name_of(type(obj)).encode())
         for f in dataclasses.fields(obj):
             put("field", f.name.encode())
             fingerprint(getattr(obj, f.name), h, path)
     else:
         where = " > ".join(type(x).__name__ for x in path)
-        raise Unhashable(f"{name_of(type(obj))} (at {where})")
+        raise Unhashable(f"{_name_of(type(obj))} (at {where})")
     return h.hexdigest() if top else ""
 
 
@@ -338,7 +336,7 @@ def cached_lowering(fn, args: tuple, key: str, directory: Path):
             blob, out_tree = exported.serialize(), trees[-1]
             tree_blob = pickle.dumps(out_tree)
         except Exception as err:  # noqa: BLE001 - e.g. host callbacks: jit as before
-            log.warning("program cache: jax.export cannot carry %s (%s)", name_of_fn(fn), err)
+            log.warning("program cache: jax.export cannot carry %s (%s)", _name_of(fn), err)
             return None
         atomic_write_bytes(tree_path, tree_blob)
         atomic_write_bytes(path, blob)
@@ -346,8 +344,8 @@ def cached_lowering(fn, args: tuple, key: str, directory: Path):
     return _CachedLowered(lowered, out_tree)
 
 
-def name_of_fn(fn) -> str:
-    return getattr(fn, "__qualname__", repr(fn))
+def _name_of(x) -> str:
+    return f"{getattr(x, '__module__', '?')}.{getattr(x, '__qualname__', repr(x))}"
 
 
 class _CachedLowered:
