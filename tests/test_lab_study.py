@@ -10,7 +10,14 @@ import yaml
 
 from hds.real import lab
 
+# the study's tasks (the Makefile's LAB_TASKS); a Furuta task takes the Furuta family's configs
+TASKS = ["cartpole_balance", "cartpole_swingup", "furuta_balance", "furuta_swingup"]
 CONF = Path(__file__).resolve().parents[1] / "experiments" / "lab_study" / "conf" / "experiment"
+
+
+def _family(task: str) -> str:
+    """The suffix of a task's study configs, as the Makefile picks it."""
+    return "_furuta" if task.startswith("furuta") else ""
 
 
 @pytest.mark.parametrize("family", sorted(lab.FAMILIES))
@@ -39,9 +46,7 @@ def test_the_study_randomizes_over_the_family_s_own_distribution(family, config)
     assert stated == lab.randomization(family)
 
 
-@pytest.mark.parametrize(
-    "task", ["cartpole_balance", "cartpole_swingup", "furuta_balance", "furuta_swingup"]
-)
+@pytest.mark.parametrize("task", TASKS)
 def test_every_task_of_the_study_builds_its_system_on_the_study_s_backend(task):
     """`make study-lab`'s loop config for each task, composed as the Makefile composes it,
     gives a backend that can run the task's system (make_env's checks, made before anything
@@ -50,7 +55,7 @@ def test_every_task_of_the_study_builds_its_system_on_the_study_s_backend(task):
     from hds.config import compose
     from hds.envs import make_env
 
-    family = "_furuta" if task.startswith("furuta") else ""
+    family = _family(task)
     cfg = compose(
         [f"env={task}", f"+experiment=[lab_study_loop{family},lab_task_{task}]"],
         config_dirs=[CONF.parent],
@@ -69,16 +74,14 @@ def _swept_methods(config: str) -> list[str]:
         config = next(d for d in data["defaults"] if isinstance(d, str) and d.startswith("lab_"))
 
 
-@pytest.mark.parametrize(
-    "task", ["cartpole_balance", "cartpole_swingup", "furuta_balance", "furuta_swingup"]
-)
+@pytest.mark.parametrize("task", TASKS)
 def test_every_job_of_the_study_s_sweeps_composes(task):
     """Each job `make study-lab` sweeps (the per-draw and the shared sweep, with each of its
     methods) composes and passes validation: a job whose config is refused fails only once
     the sweep reaches it, possibly an hour into the study."""
     from hds.config import compose
 
-    family = "_furuta" if task.startswith("furuta") else ""
+    family = _family(task)
     jobs = [
         (config, method)
         for config in (f"lab_study{family}", f"lab_study{family}_shared")

@@ -753,7 +753,10 @@ class _Fitter:
         # the best fresh one by `_unidentifiable_explains_more`), and the best fresh one
         chosen[sorted(inside, key=lambda i: held[i])[:1] + outside[:SCREENED] + fresh[:1]] = True
         full = self.run(theta0, slots, delay, rows=chosen, z0=state.z)
-        pick = lambda a, b: np.where(chosen.reshape((-1,) + (1,) * (np.ndim(a) - 1)), a, b)  # noqa: E731
+
+        def pick(a, b):  # the refitted row where chosen, else the screen's
+            return np.where(chosen.reshape((-1,) + (1,) * (np.ndim(a) - 1)), a, b)
+
         return Batch(*(pick(a, b) for a, b in zip(full, screen, strict=True)))
 
     def state(self, selected, batch: Batch, i: int) -> State:
