@@ -54,19 +54,15 @@ INERTIAL = ["mass_scale", "com_scale", "inertia_scale"]
 # slowly (period 0.8 s) and its friction shows only over seconds: 10 ms samples, 3 s windows
 # every 0.5 s. The double is chaotic at large swings, but its recordings decay to small ones:
 # 10 ms samples, 1 s windows every 0.5 s (0.2 s windows showed no friction at all).
-# The double's initial states are estimated, not measured: the authors de-noised the velocities
-# offline (median filter, wavelets), which leaves them smooth errors the encoders' angles show
-# (the angle's change over 20 ms against the velocity's integral: 0.023 / 0.043 rad/s RMS on
-# the double's joints, 0.8% of their std; `remainder.py`) but the noise estimate, from high
-# time differences, cannot (0.1% / 0.3%). Measured, each 1 s window's wrong initial velocity
-# grows through the window and discovery counted it as law mismatch: 70% of what the friction
-# model left. The single's velocities carry the same error (0.7%), but its 3 s windows hold
-# four periods, whose friction and period dwarf it; estimated there, the window's free initial
-# phase and amplitude absorb part of both and the held-out error got worse (README: "What the
-# double's remainder is made of"), so it keeps its measured initial states.
+# Initial states: discovery's own rule (`initial_state=auto`). Both rigs' velocities were
+# de-noised offline and disagree with the encoders' angles beyond white noise
+# (`hds.discover.data.velocity_error`: 0.45% of their std on the single, 0.8-0.9% on the
+# double at 10 ms), so discovery runs with measured and with estimated initial states and
+# keeps the one its own held-out Y_id segments support (`choose_initial_states`); Y_vad plays
+# no part in it.
 DISCOVER = {
-    "single": {"dt": 0.01, "horizon": 300, "stride": 50, "initial_state": "measured"},
-    "double": {"dt": 0.01, "horizon": 100, "stride": 50, "initial_state": "estimated"},
+    "single": {"dt": 0.01, "horizon": 300, "stride": 50, "initial_state": "auto"},
+    "double": {"dt": 0.01, "horizon": 100, "stride": 50, "initial_state": "auto"},
 }
 DRAWS = {"single": 5, "double": 5}  # seeded draws of start (b)
 KS = (10, 100, 1000)  # k-step horizons, in 1 ms samples
@@ -150,6 +146,9 @@ def run_discovery(system: str, env, effects: list[str], label: str):
         "timing_s": {k: float(v) for k, v in result.timing.items()},
         "heldout_kstep_before": float(result.error("before").normalized),
         "heldout_kstep_after": float(result.error("after").normalized),
+        "initial_state": result.initial_state,
+        "initial_state_choice": result.initial_state_choice,
+        "velocity_error": [float(x) for x in result.data.velocity_error],
     }
 
 

@@ -5,10 +5,11 @@ windows. Every window set is padded to one length, so each compiled function see
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import jax.numpy as jnp
 import numpy as np
+from scipy import stats
 
 from hds.data.format import Dataset, split_episodes, validate
 
@@ -41,6 +42,9 @@ class Data:
     obs_names: tuple[str, ...]
     action_names: tuple[str, ...]
     source: dict  # set name -> (dataset name, episode indices in that dataset)
+    # [nq] each velocity's error beyond white noise, as a share of its std (`velocity_error`);
+    # empty where the record has no pairs of coordinates and velocities
+    velocity_error: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def arrays(self, name: str) -> tuple:
         w = self.windows[name]
@@ -69,6 +73,64 @@ def noise_level(obs: np.ndarray, order: int = 4) -> np.ndarray:
     d = np.diff(obs, n=order, axis=1).reshape(-1, obs.shape[-1])
     mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0) / 0.6745
     return mad / np.sqrt(math.comb(2 * order, order))
+
+
+SPANS = (1, 2, 4, 8, 16)  # samples over which `velocity_error` compares a change and a mean
+# `velocity_error` leaves out this share of the largest gaps: the few samples where the
+# velocity does not vary smoothly between samples (stick-slip, an action switching)
+KINKS = 0.05
+# ... and divides the rest's mean square by what that leaves of white noise's (a chi-square
+# of 1 degree below its 95% quantile keeps 76% of its mean): white noise is estimated whole
+_KEPT = float(stats.chi2(3).cdf(stats.chi2(1).ppf(1 - KINKS)) / (1 - KINKS))
+
+
+def velocity_error(
+    obs: np.ndarray, dt: float, nq: int, frames: int, angular: np.ndarray, noise: np.ndarray
+) -> np.ndarray:
+    """[nq] the error of each recorded velocity that white noise does not explain, as a share
+    of the velocity's std: how far it disagrees with its own coordinate's recorded change.
+
+    `noise_level` sees white noise only; a velocity smoothed or de-noised offline (a median
+    filter, wavelets), sampled late or biased carries a smooth error that its high time
+    differences do not show, and a measured initial state starts every window from it. The
+    coordinate's change is the reference: the simulator takes `frames` semi-implicit Euler
+    steps per sample, q[t+1] - q[t] = h (qd_1 + ... + qd_f), which for a velocity varying
+    linearly between the samples is dt ((1 - w) qd[t+1] + w qd[t]), w = (f - 1) / 2f. Over a
+    span of s samples the gap g = (q[t+s] - q[t]) / (s dt) minus the mean of those means is
+    zero on the simulator's own states up to the motion's jerk over the span, and white noise
+    alone gives it the variance 2 s_q^2 / (s dt)^2 + (w^2 + (1 - w)^2 + s - 1) s_v^2 / s^2
+    (s_q, s_v: `noise`). Returned: sqrt(mean g^2 - that) / std(qd) at the shortest span of
+    `SPANS` where the error beyond noise is at least the noise's own part (the closest to one
+    sample's error that the record can measure: a noisy coordinate needs a longer span), and
+    0 where no span shows it. The mean square leaves out the largest `KINKS` of the gaps
+    (where stick-slip or a switching action bends the velocity within a sample) and no more:
+    a smooth error gathers where the motion turns, which a median would drop. A record whose
+    coordinates and velocities differ in number (ball or free joints) gives an empty array.
+    """
+    if obs.shape[-1] != 2 * nq or obs.shape[1] < 2:
+        return np.zeros(0)
+    w = (frames - 1) / (2 * frames)
+    out = np.zeros(nq)
+    for i in range(nq):
+        q = np.unwrap(obs[..., i], axis=1) if angular[i] else obs[..., i]
+        v = obs[..., nq + i]
+        std = v.std()
+        if std == 0:
+            continue
+        mean = w * v[:, :-1] + (1 - w) * v[:, 1:]
+        total = np.concatenate([np.zeros((len(v), 1)), np.cumsum(mean, axis=1)], axis=1)
+        for s in (s for s in SPANS if s < obs.shape[1]):
+            gap = (q[:, s:] - q[:, :-s]) / (s * dt) - (total[:, s:] - total[:, :-s]) / s
+            white = (
+                2 * noise[i] ** 2 / (s * dt) ** 2
+                + (w**2 + (1 - w) ** 2 + s - 1) / s**2 * noise[nq + i] ** 2
+            )
+            squares = np.sort(gap.ravel() ** 2)
+            square = float(squares[: max(1, int(len(squares) * (1 - KINKS)))].mean()) / _KEPT
+            if square >= 2 * white:
+                out[i] = np.sqrt(square - white) / std
+                break
+    return out
 
 
 def check_size(dataset: Dataset, horizon: int, where: str = "dataset") -> None:
@@ -150,15 +212,19 @@ def prepare(
     ident_obs = dataset.obs[ident].reshape(-1, dataset.n_obs)
     std = ident_obs.std(axis=0)
     scale = np.maximum(std, 1e-6 * std.max() + 1e-12)
+    noise = noise_level(dataset.obs[ident])
     return Data(
         obs=jnp.asarray(obs, jnp.float32),
         acts=jnp.asarray(acts, jnp.float32),
         scale=jnp.asarray(scale, jnp.float32),
-        noise=noise_level(dataset.obs[ident]),
+        noise=noise,
         windows=windows,
         horizon=int(horizon),
         dt=dataset.dt,
         obs_names=tuple(sim.obs_names),
         action_names=tuple(sim.action_names),
         source=source,
+        velocity_error=velocity_error(
+            dataset.obs[ident], dataset.dt, sim.nq, sim.frames, np.asarray(sim.angular), noise
+        ),
     )

@@ -101,6 +101,9 @@ class Discovery:
     remainder: Location | None = None  # locate on what the named effects leave
     structured_unexplained: float = 0.0  # the unexplained share that features explain
     initial_state: str = "measured"  # how the fits started each window
+    # where the velocities' smooth error left the choice to the held-out episodes
+    # (`choose_initial_states`): the error, both modes' held-out errors, the mode chosen
+    initial_state_choice: dict = field(default_factory=dict)
     final: State | None = None  # the corrected model (theta, delays) of the named effects
     backend: str = ""  # the physics backend the fits ran on
     no_gap: bool = False  # the simulator already predicted the data (to min_improvement)
@@ -189,6 +192,8 @@ class Discovery:
             "noise_std": [float(x) for x in self.data.noise],
             "noise_floor_nrmse": self.noise_floor,
             "initial_state": self.initial_state,
+            "initial_state_choice": self.initial_state_choice,
+            "velocity_error": [float(x) for x in self.data.velocity_error],
             "backend": self.backend,
             "stopped": self.stopped,
             "horizon_steps": self.data.horizon,
@@ -243,6 +248,12 @@ def discover(
         cfg.seed,
         validation,
     )
+    relative_noise = data.noise / np.asarray(data.scale, dtype=np.float64)
+    estimate = cfg.initial_state == "estimated" or (
+        cfg.initial_state == "auto" and float(np.median(relative_noise)) > cfg.noise_threshold
+    )
+    if cfg.initial_state == "auto" and not estimate and smooth_velocity_error(data, cfg):
+        return choose_initial_states(dataset, env_cfg, cfg, validation, data.velocity_error)
     nominal, no_delay = model.nominal, np.zeros(len(model.sim.action_names), np.int32)
     before = compare(engine, data, nominal, no_delay)
     timing["compare"] = time.perf_counter() - start
@@ -259,10 +270,6 @@ def discover(
     progress("the gap located")
 
     t0 = time.perf_counter()
-    relative_noise = data.noise / np.asarray(data.scale, dtype=np.float64)
-    estimate = cfg.initial_state == "estimated" or (
-        cfg.initial_state == "auto" and float(np.median(relative_noise)) > cfg.noise_threshold
-    )
     log.info(
         "initial states %s (estimated noise: %s of each signal's std)",
         "estimated" if estimate else "measured",
@@ -360,6 +367,53 @@ def discover(
     result.warnings = warnings(result, cfg)
     timing["total"] = time.perf_counter() - start
     progress("done")
+    return result
+
+
+def smooth_velocity_error(data: Data, cfg: DiscoverConfig) -> bool:
+    """Whether some recorded velocity disagrees with its coordinate's recorded change by more
+    than noise_threshold of its std beyond white noise (`hds.discover.data.velocity_error`):
+    an error the white-noise estimate cannot see, which measured initial states carry into
+    every window."""
+    return bool(data.velocity_error.size) and float(data.velocity_error.max()) > (
+        cfg.noise_threshold
+    )
+
+
+def choose_initial_states(
+    dataset: Dataset, env_cfg, cfg: DiscoverConfig, validation, velocity_error
+) -> Discovery:
+    """Discovery with measured and with estimated initial states, the one its own held-out
+    episodes support. A smooth velocity error puts a measured state's error into every window,
+    which the fits then read as the laws' mismatch; estimated states take it out but are free
+    to absorb part of what the effects do within a window (a phase, an amplitude). Which costs
+    more depends on the windows and the effects, not on the record alone, so the held-out
+    episodes decide, as they decide every effect: each model predicts them from their measured
+    states (as it will be used), and the estimated states are kept only where they lower that
+    error by the selection margin (stop_margin); the measured start is the cheaper default."""
+    runs = {
+        mode: discover(dataset, env_cfg, dataclasses.replace(cfg, initial_state=mode), validation)
+        for mode in ("measured", "estimated")
+    }
+    error = {mode: float(r.error("after").normalized) for mode, r in runs.items()}
+    better = error["estimated"] < (1.0 - cfg.stop_margin) * error["measured"]
+    result = runs["estimated" if better else "measured"]
+    result.initial_state_choice = {
+        "velocity_error": [float(x) for x in velocity_error],
+        "heldout_error": error,
+        "chosen": result.initial_state,
+    }
+    log.info(
+        "initial states %s: the velocities' smooth error is %s of their std; held-out k-step "
+        "error with measured states %.4g, with estimated %.4g",
+        result.initial_state,
+        np.round(velocity_error, 4).tolist(),
+        error["measured"],
+        error["estimated"],
+    )
+    for mode, r in runs.items():
+        result.timing[f"initial_state_{mode}"] = r.timing.get("total", 0.0)
+    result.timing["total"] = sum(r.timing.get("total", 0.0) for r in runs.values())
     return result
 
 
