@@ -369,7 +369,10 @@ class DiscoverConfig:
     # effects (multiple shooting: unbiased under measurement noise, slower), or auto:
     # estimated when the median over variables of the estimated measurement noise exceeds
     # noise_threshold (share of a std): sensor noise shows on every channel, while the kinks
-    # of stick-slip friction raise only the velocities' estimates
+    # of stick-slip friction raise only the velocities' estimates; where instead a velocity
+    # disagrees with its coordinate's change by more than noise_threshold (a smooth error:
+    # de-noised offline, late, biased), both starts are run and the held-out episodes choose
+    # (hds.discover.workflow.choose_initial_states)
     initial_state: str = "auto"
     noise_threshold: float = 0.004
     unexplained_warning: float = 0.3  # report a likely missing out-of-library effect above this
