@@ -48,6 +48,13 @@ class CompileCount:
 DOWN = np.array([0.0, np.pi, 0.0, 0.0])  # cart centred, pole hanging, at rest
 
 
+def fourier(designer, coef):
+    """[T, n_act] a tanh Fourier series of the designer's harmonics (in [-1, 1])."""
+    t = np.arange(designer.steps) * designer.dt
+    phase = 2 * np.pi * t[:, None] * designer.frequencies[None, :]
+    return np.tanh(np.concatenate([np.sin(phase), np.cos(phase)], axis=1) @ coef.T)
+
+
 @pytest.fixture(scope="module")
 def analytic_cfg(cartpole_cfg):
     return dataclasses.replace(cartpole_cfg, backend="analytic", effects=[])
@@ -120,7 +127,8 @@ def test_noise_pull_matches_central_differences(small, analytic_cfg, residuals):
     )
     limits = limits_of(analytic_cfg, 0.5)
     coef = np.random.default_rng(1).normal(0.0, 0.6, (1, 6))
-    args = (theta, coef, [1.5], [0.0], np.zeros((1, 4)), DOWN, DOWN, limits.u_low, limits.u_high)
+    ff = 1.5 * fourier(small, coef)
+    args = (theta, ff, np.zeros((1, 4)), DOWN, DOWN, limits.u_low, limits.u_high)
     obs, u = small._rollout(*(jnp.asarray(a, jnp.float32) for a in args))
     noise = jnp.asarray([1e-3, 2e-3, 1e-2, 2e-2], jnp.float32)
     scale = jnp.asarray(np.asarray(obs).std(axis=0), jnp.float32)
@@ -157,7 +165,7 @@ def test_sensor_noise_from_the_model_residuals(small, analytic_cfg, residuals):
     for _ in range(96):  # saturating Fourier drives: the cart reverses within a few steps
         coef = rng.normal(0.0, 3.0, (1, 6))
         bounds = (limits.u_low, limits.u_high)
-        args = (theta, coef, [3.0], [0.0], np.zeros((1, 4)), DOWN, DOWN, *bounds)
+        args = (theta, 3.0 * fourier(small, coef), np.zeros((1, 4)), DOWN, DOWN, *bounds)
         obs, u = small._rollout(*(jnp.asarray(a, jnp.float32) for a in args))
         clean.append(np.asarray(obs, np.float64))
         controls.append(np.asarray(u, np.float64))
@@ -214,15 +222,20 @@ def test_design_keeps_every_limit(small, analytic_cfg):
     limits = limits_of(analytic_cfg, amplitude=0.5, max_speed=[0.4, 20.0], joint_margin=0.49)
     assert limits.q_high[0] == pytest.approx(0.2) and limits.u_high[0] == pytest.approx(1.5)
     estimate = {FRICTION: {"force": 20.0}}
-    design = small.design(estimate, DOWN, None, limits, iterations=4)
-    obs, u = design.trajectory, design.planned_controls
-    assert np.all(u <= limits.u_high + 1e-6) and np.all(u >= limits.u_low - 1e-6)
-    assert np.all(np.abs(obs[:, 2:]) <= limits.max_speed + 1e-6)
-    assert np.all(obs[:, :2] <= limits.q_high) and np.all(obs[:, :2] >= limits.q_low)
-    assert np.all(np.isfinite(design.predicted_se)) and np.all(design.predicted_se > 0)
-    assert design.limits.violation(obs, u) == {"control": 0.0, "joint": 0.0, "speed": 0.0}
-    # the open-loop swing was shrunk for the speed bound: it is not the whole bound
-    assert np.all(design.amplitude <= 0.5 * (limits.u_high - limits.u_low) + 1e-9)
+    for parameterisation in ("per_step", "fourier"):
+        design = small.design(
+            estimate, DOWN, None, limits, iterations=4, parameterisation=parameterisation
+        )
+        assert design.parameterisation == parameterisation
+        obs, u = design.trajectory, design.planned_controls
+        assert np.all(u <= limits.u_high + 1e-6) and np.all(u >= limits.u_low - 1e-6)
+        assert np.all(np.abs(obs[:, 2:]) <= limits.max_speed + 1e-6)
+        assert np.all(obs[:, :2] <= limits.q_high) and np.all(obs[:, :2] >= limits.q_low)
+        assert np.all(np.isfinite(design.predicted_se)) and np.all(design.predicted_se > 0)
+        assert design.limits.violation(obs, u) == {"control": 0.0, "joint": 0.0, "speed": 0.0}
+        # the open-loop swing was shrunk for the speed bound: it is not the whole bound
+        assert np.all(design.amplitude <= 0.5 * (limits.u_high - limits.u_low) + 1e-9)
+        assert np.abs(design.unit_feedforward()).max() <= 1.0 + 1e-6
 
     gain = lqr_gain(small, estimate, DOWN)
     assert gain.shape == (1, 4) and np.all(np.isfinite(gain))
@@ -250,6 +263,8 @@ def test_bad_input_fails_clearly(small, analytic_cfg):
         small.design(None, DOWN, None, limits_of(analytic_cfg), criterion="E")
     with pytest.raises(ValueError, match="relative half-width"):
         small.design(None, DOWN, None, limits_of(analytic_cfg), criterion={"gain": 0.03})
+    with pytest.raises(ValueError, match="parameterisation 'spline' is unknown"):
+        small.design(None, DOWN, None, limits_of(analytic_cfg), parameterisation="spline")
     with pytest.raises(ValueError, match="no candidate"):
         Designer(analytic_cfg, ["coulomb_friction@nowhere"], 0.04, 16, horizon=3)
     with pytest.raises(ValueError, match="amplitude"):

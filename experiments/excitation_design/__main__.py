@@ -170,7 +170,16 @@ def case_plant(spec, env_cfg, fit_cfg):
     return make_plant(real, env_cfg)
 
 
-def run_case(name, spec, repeats, log, criterion="asked"):
+def run_case(
+    name,
+    spec,
+    repeats,
+    log,
+    criterion="asked",
+    parameterisation="per_step",
+    iterations=(200, 100),
+    signals=SIGNALS,
+):
     env_cfg = env_config(
         OmegaConf.to_container(OmegaConf.load(CONF / "env" / f"{spec['env']}.yaml"))
     )
@@ -230,7 +239,7 @@ def run_case(name, spec, repeats, log, criterion="asked"):
         plant = NoisyPlant(plant_base, spec["noise"], 1000 + rep)
         q0 = np.tile(x0[: env.sim.nq], (sum(ROUNDS), 1))
         qd0 = np.zeros((sum(ROUNDS), env.sim.n_obs - env.sim.nq))
-        for signal in SIGNALS:
+        for signal in signals:
             ts = time.perf_counter()
             cum, ratios, fits, predicted = [], [], [], []
             applied_gap, all_ctrl, chosen, predicted_now, noise_est = 0.0, [], [], [], []
@@ -244,11 +253,12 @@ def run_case(name, spec, repeats, log, criterion="asked"):
                         x0,
                         noise,
                         limits,
-                        iterations=60 if r == 0 else 30,
+                        iterations=iterations[0] if r == 0 else iterations[1],
                         seed=rep,
                         start=design,
                         criterion=targets if criterion == "asked" else criterion,
                         rivals=standard(104729 * rep + r + 1, 1),
+                        parameterisation=parameterisation,
                     )
                     chosen.append(design.signal)
                     ctrl = np.repeat(design.controls()[None], n, axis=0)
@@ -354,6 +364,8 @@ def run_case(name, spec, repeats, log, criterion="asked"):
                 "model_ratio": model_ratio,
                 "sliding_share": sliding,
             }
+            if signal == "designed":
+                row["parameterisation"], row["iterations"] = parameterisation, list(iterations)
             rows.append(row)
             log(
                 f"{name} rep {rep} {signal}: ratio {np.round(noise_ratios, 3).tolist()} "
@@ -454,7 +466,7 @@ def summarise(results) -> tuple[str, dict]:
             )
         model_ratios.append(min(by[s] for s in SIGNALS if s != "designed") / by["designed"])
         # paired by repeat (same plant noise seed): best standard's time / designed's
-        reps = sorted({r["repeat"] for r in res["rows"]})
+        reps = sorted({r["repeat"] for r in res["rows"] if r["signal"] == "designed"})
         per = []
         for k in reps:
             rows = {r["signal"]: r for r in res["rows"] if r["repeat"] == k}
@@ -645,6 +657,22 @@ def main():
         help="the design's criterion: asked (the case's widths {parameter: relative "
         "half-width}, weighted A-optimal), D (determinant) or A (trace)",
     )
+    ap.add_argument(
+        "--parameterisation",
+        default="per_step",
+        choices=["per_step", "fourier"],
+        help="the designed arm's parameterisation (hds.discover.design.Designer.design)",
+    )
+    ap.add_argument(
+        "--iterations",
+        default="200,100",
+        help="the designed arm's Adam iterations: round 0, then each later round",
+    )
+    ap.add_argument(
+        "--signals",
+        default=",".join(SIGNALS),
+        help="the signals to run; the case's stored rows of the others are kept (results.json)",
+    )
     ap.add_argument("--out", default=str(HERE))
     ap.add_argument("--report", action="store_true", help="only rewrite the tables and figure")
     args = ap.parse_args()
@@ -673,8 +701,28 @@ def main():
         # (run the cases apart, e.g. on a loaded machine); --report tabulates them all
         done = out / "results.json"
         results = json.loads(done.read_text())["cases"] if done.is_file() else {}
+        signals = tuple(args.signals.split(","))
+        iterations = tuple(int(x) for x in args.iterations.split(","))
+        if not set(signals) <= set(SIGNALS) or len(iterations) != 2:
+            raise SystemExit(
+                f"--signals {args.signals!r} must name some of {list(SIGNALS)} and --iterations "
+                f"{args.iterations!r} two numbers (round 0, later rounds)"
+            )
         for c in args.cases.split(","):
-            results[c] = run_case(c, CASES[c], args.repeats, log, args.criterion)
+            new = run_case(
+                c,
+                CASES[c],
+                args.repeats,
+                log,
+                args.criterion,
+                args.parameterisation,
+                iterations,
+                signals,
+            )
+            if c in results and set(signals) != set(SIGNALS):  # keep the other signals' rows
+                kept = [r for r in results[c]["rows"] if r["signal"] not in signals]
+                new["rows"] = kept + new["rows"]
+            results[c] = new
             results[c]["criterion"] = args.criterion
             atomic_write_json(done, {"cases": results})
     table, summary = summarise(results)
