@@ -15,9 +15,11 @@ from hds.discover.design import (
     Designer,
     WindowFit,
     get_designer,
+    half_width,
     limits_of,
     lqr_gain,
     split_estimate,
+    typical_scale,
     with_mismatch,
 )
 
@@ -360,25 +362,47 @@ def test_with_mismatch_carries_the_fit_so_far():
     """The law mismatch measured on the fit so far, carried to the new record: nothing to
     carry before any data or without a mismatch; the scatter of the noise part scales the
     sensor prediction; the systematic part stays when every episode carries the same
-    information (it does not average away)."""
+    information (it does not average away). The fit so far's noise part is a typical draw of
+    its 4 clusters (typical_scale(4) of the sensor part where the episodes scatter as the
+    sensor noise alone)."""
     pred = np.array([0.02, 0.004])
     assert np.array_equal(with_mismatch(pred, 2, None, None, None, 0)[1], pred)
+    sensor = np.array([0.05, 0.01])
+    typical = sensor * typical_scale(4)
     # no mismatch: the noise part is the sensor part, the reported one the noise part
-    noise_now, full_now = with_mismatch(pred, 8, [0.05, 0.01], [0.05, 0.01], [0.05, 0.01], 4)
+    noise_now, full_now = with_mismatch(pred, 8, sensor, typical, typical, 4)
     assert np.allclose(noise_now, pred) and np.allclose(full_now, pred)
     # episodes scatter twice the sensor noise: the noise part twice the prediction
-    noise_now, _ = with_mismatch(pred, 8, [0.05, 0.01], [0.1, 0.02], [0.1, 0.02], 4)
+    noise_now, _ = with_mismatch(pred, 8, sensor, 2 * typical, 2 * typical, 4)
     assert np.allclose(noise_now, 2 * pred)
     # the same signal for twice the episodes: se / sqrt(2), a bias of 0.3 stays 0.3
     from scipy import stats
 
     se4 = np.array([0.1, 0.02])
     sensor4 = stats.t.ppf(0.975, 3) * se4 / 2
-    pred8 = stats.t.ppf(0.975, 7) * se4 / np.sqrt(8)
-    noise_now, full_now = with_mismatch(pred8, 8, sensor4, sensor4, sensor4 + 0.3, 4)
+    pred8 = half_width(se4, 8)
+    noise4 = sensor4 * typical_scale(4)
+    noise_now, full_now = with_mismatch(pred8, 8, sensor4, noise4, noise4 + 0.3, 4)
     assert np.allclose(full_now - noise_now, 0.3)
     with pytest.raises(ValueError, match="at least 2 episodes"):
         with_mismatch(pred, 8, pred, pred, pred, 1)
+
+
+def test_typical_scale_is_the_median_of_the_fit_s_standard_error():
+    """Episodes' gradients scattering with a known std, summing to zero at the fit: the noise
+    part's standard error of `confidence_intervals` (a sandwich over the episodes as clusters)
+    has its median at typical_scale(E) of the true one, well below it for few episodes."""
+    from hds.discover.fit import confidence_intervals
+
+    rng = np.random.default_rng(0)
+    for episodes in (2, 4, 8):
+        g = rng.normal(size=(4000, episodes, 1))
+        g -= g.mean(axis=1, keepdims=True)  # the fit's optimum: the gradients sum to zero
+        se = [confidence_intervals(np.ones(1), np.eye(1), ge).se[0] for ge in g]
+        true = np.sqrt(episodes)  # the sum of E unit gradients' std, over a unit curvature
+        assert np.median(se) / true == pytest.approx(typical_scale(episodes), rel=0.04)
+    assert typical_scale(2) < 0.7 and typical_scale(16) > 0.97
+    assert np.allclose(half_width([1.0], 16), 2.131 / 4 * typical_scale(16), rtol=1e-3)
 
 
 def test_excitation_key_is_checked():

@@ -27,7 +27,14 @@ from hds.config import env_config
 from hds.data import collect
 from hds.data.excitation import excitation
 from hds.discover.data import noise_level
-from hds.discover.design import WindowFit, get_designer, limits_of, with_mismatch
+from hds.discover.design import (
+    WindowFit,
+    get_designer,
+    half_width,
+    limits_of,
+    typical_scale,
+    with_mismatch,
+)
 from hds.discover.workflow import fit_backend, with_backend
 from hds.envs import make_env
 from hds.real import make_plant
@@ -269,8 +276,7 @@ def run_case(
                         se_all = designer.predicted_se_of(
                             estimate, np.concatenate([*all_ctrl, ctrl]), x0, noise
                         )
-                        t_all = stats.t.ppf(0.975, used + n - 1)
-                        predicted_now.append((t_all * se_all / np.sqrt(used + n)).tolist())
+                        predicted_now.append(half_width(se_all, used + n).tolist())
                     else:
                         predicted_now.append(design.predicted_half(n).tolist())
                     ds = collect(plant, task, q0[used : used + n], qd0[used : used + n], ctrl)
@@ -295,8 +301,7 @@ def run_case(
                     noise_est.append((noise / np.asarray(spec["noise"])).tolist())
                     # the rounds' designs together: precisions add, t over all episodes
                     prec = sum(n_ / se**2 for n_, se in infos)
-                    tq = stats.t.ppf(0.975, used - 1)
-                    predicted.append((tq / np.sqrt(prec)).tolist())
+                    predicted.append(half_width(np.sqrt(used / prec), used).tolist())
                     cum.append(used * steps * dt)
                     fits.append(fit)
             else:
@@ -366,6 +371,8 @@ def run_case(
             }
             if signal == "designed":
                 row["parameterisation"], row["iterations"] = parameterisation, list(iterations)
+                # the predictions are typical (median) widths: `half_width`'s typical_scale
+                row["typical"] = True
             rows.append(row)
             log(
                 f"{name} rep {rep} {signal}: ratio {np.round(noise_ratios, 3).tolist()} "
@@ -535,8 +542,15 @@ def summarise(results) -> tuple[str, dict]:
                 sensor = like = share = ""
                 if "sensor_half" in rows[0]:
                     sens = np.median([r["sensor_half"][j][i] for r in rows])
+                    # the sensor part on the record is no draw over episodes: like with like is
+                    # the prediction without its typical scale
                     like_v = np.median(
-                        [r["predicted_half_now"][j][i] / r["sensor_half"][j][i] for r in rows]
+                        [
+                            r["predicted_half_now"][j][i]
+                            / (typical_scale(int(n)) if r.get("typical") else 1.0)
+                            / r["sensor_half"][j][i]
+                            for r in rows
+                        ]
                     )
                     share_v = np.median(
                         [r["sensor_half"][j][i] / r["noise_half"][j][i] for r in rows]

@@ -196,11 +196,34 @@ class Design:
         return act
 
     def predicted_half(self, episodes: int, level: float = 0.95) -> np.ndarray:
-        """[M] half-widths of `level` intervals from `episodes` episodes of this design."""
-        if episodes < 2:
-            return np.full(len(self.keys), np.inf)
-        t = stats.t.ppf(0.5 + level / 2, episodes - 1)
-        return t * self.predicted_se / math.sqrt(episodes)
+        """[M] the median half-widths of the `level` intervals the fit reports from `episodes`
+        episodes of this design (`half_width`)."""
+        return half_width(self.predicted_se, episodes, level)
+
+
+def typical_scale(episodes: int) -> float:
+    """The median of the fit's standard error over the true one, from `episodes` episodes.
+    The fit's noise part is a sandwich with episodes as clusters (`confidence_intervals`): its
+    meat is the scatter of the episodes' gradients, which sum to zero at the fit, so each
+    variance is the true one times chi2_(E-1) / (E-1), and the standard error's median is
+    sqrt(median chi2_(E-1) / (E-1)) of the true: 0.67 at 2 episodes, 0.89 at 4, 0.95 at 8,
+    0.98 at 16. (Its mean, not its median, is the true variance: a width predicted without
+    this is the width of a typical record only for many episodes.)"""
+    if episodes < 2:
+        raise ValueError(f"episodes = {episodes}: a cluster-robust error needs at least 2")
+    k = episodes - 1
+    return math.sqrt(stats.chi2.median(k) / k)
+
+
+def half_width(se, episodes: int, level: float = 0.95) -> np.ndarray:
+    """[M] the median half-widths of the `level` intervals the fit reports from `episodes`
+    episodes whose per-episode standard errors are `se` [M]: the Student-t quantile over the
+    episodes x se / sqrt(E) x `typical_scale(E)`; inf below 2 episodes."""
+    se = np.asarray(se, np.float64)
+    if episodes < 2:
+        return np.full(se.shape, np.inf)
+    t = stats.t.ppf(0.5 + level / 2, episodes - 1)
+    return t * se / math.sqrt(episodes) * typical_scale(episodes)
 
 
 def _feedforward(coefficients, frequencies, dt, steps):
@@ -954,8 +977,9 @@ def with_mismatch(
     level: float = 0.95,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The fit's noise part and reported half-widths [M] for a record of `episodes` episodes
-    whose sensor-noise half-widths the design predicts (`predicted_half`, e.g. every round's
-    controls so far at the current estimate and noise), from what the fit of the
+    whose sensor-noise half-widths the design predicts (`predicted_half`, typical ones:
+    `half_width`, e.g. of every round's controls so far at the current estimate and noise),
+    from what the fit of the
     `episodes_before` episodes recorded so far measured: their sensor part on the record
     (`Designer.record_se` as a half-width), the fit's noise part (t x cluster-robust se) and
     its reported half-width (noise part plus law-mismatch part, `confidence_intervals`).
@@ -963,7 +987,8 @@ def with_mismatch(
     A law mismatch enters the fit's intervals twice, and the design's prediction (sensor
     noise on the model) holds neither: (1) where it differs between episodes the
     cluster-robust noise part counts it as scatter, so the noise part is the sensor part
-    times noise_half / sensor_half as measured so far; (2) its systematic part,
+    times noise_half / sensor_half as measured so far (that fit's noise part a typical draw
+    of E_before clusters: divided by `typical_scale(E_before)`); (2) its systematic part,
     sqrt(misfit (H^-1)_jj), does not average away: the misfit (a sum over the record) grows
     with the episodes while H^-1 shrinks as the predicted information grows, so it is carried
     from the fit so far as sqrt(E / E_before) x (predicted se / sensor se so far). The
@@ -979,10 +1004,13 @@ def with_mismatch(
         )
     sensor, noise, full = (np.asarray(x, np.float64) for x in (sensor_half, noise_half, half))
     with np.errstate(invalid="ignore", divide="ignore"):
-        scatter = np.where(sensor > 0, noise / sensor, 1.0)
-        # standard errors without the t quantiles, which differ between the two amounts
+        # the fit's noise part so far is a typical draw of E_before clusters (`typical_scale`)
+        # over the sensor part (the sandwich on the record, no draw): the scatter of the true
+        # errors over the sensor noise's is that over typical_scale(E_before)
+        scatter = np.where(sensor > 0, noise / sensor, 1.0) / typical_scale(episodes_before)
+        # standard errors without the t quantiles and typical scales of the two amounts
         t_before = stats.t.ppf(0.5 + level / 2, episodes_before - 1)
-        t_now = stats.t.ppf(0.5 + level / 2, episodes - 1)
+        t_now = stats.t.ppf(0.5 + level / 2, episodes - 1) * typical_scale(episodes)
         shrink = np.where(sensor > 0, (pred / t_now) / (sensor / t_before), 1.0)
     noise_now = pred * scatter
     bias = np.maximum(full - noise, 0.0) * math.sqrt(episodes / episodes_before) * shrink
