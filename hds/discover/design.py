@@ -27,13 +27,14 @@ So the excitation can be optimised before the plant is touched:
              check on the predicted trajectory after it: the feedforward amplitude is shrunk
              until the trajectory keeps every limit.
 
-`Design.predicted_half` are the 95% half-widths the recorded windows will give discovery's fit
-(measured initial states): the fit's estimator is linear in the noise near the optimum,
-theta_hat - theta = H^-1 J_s^T r_s(n), so its covariance H^-1 B B^T H^-1 (B = d(J_s^T r_s)/dn,
-through the simulator too) holds the windows' overlap exactly; E episodes divide it by E, and
-the half-width takes the t quantile over episodes, as `confidence_intervals` does. The law
-mismatch part of the fit's intervals (a plant whose laws are not the library's) is not
-predicted.
+`Design.predicted_half` are the typical 95% half-widths the recorded windows will give
+discovery's fit (measured initial states): the fit's estimator is linear in the noise near
+the optimum, theta_hat - theta = H^-1 J_s^T r_s(n), so its covariance H^-1 B B^T H^-1 (B =
+d(J_s^T r_s)/dn, through the simulator too) holds the windows' overlap exactly; E episodes
+divide it by E, and the half-width takes the t quantile over episodes, as
+`confidence_intervals` does, and the median of a cluster-robust standard error over E
+episodes (`typical_scale`). The law mismatch part of the fit's intervals (a plant whose laws
+are not the library's) is not predicted.
 
     from hds.discover.design import Designer
     designer = Designer(env_cfg, ["coulomb_friction@slider"], dt=0.04, steps=100)
