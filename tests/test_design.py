@@ -15,9 +15,11 @@ from hds.discover.design import (
     Designer,
     WindowFit,
     get_designer,
+    half_width,
     limits_of,
     lqr_gain,
     split_estimate,
+    typical_scale,
     with_mismatch,
 )
 
@@ -46,6 +48,13 @@ class CompileCount:
 
 
 DOWN = np.array([0.0, np.pi, 0.0, 0.0])  # cart centred, pole hanging, at rest
+
+
+def fourier(designer, coef):
+    """[T, n_act] a tanh Fourier series of the designer's harmonics (in [-1, 1])."""
+    t = np.arange(designer.steps) * designer.dt
+    phase = 2 * np.pi * t[:, None] * designer.frequencies[None, :]
+    return np.tanh(np.concatenate([np.sin(phase), np.cos(phase)], axis=1) @ coef.T)
 
 
 @pytest.fixture(scope="module")
@@ -120,7 +129,8 @@ def test_noise_pull_matches_central_differences(small, analytic_cfg, residuals):
     )
     limits = limits_of(analytic_cfg, 0.5)
     coef = np.random.default_rng(1).normal(0.0, 0.6, (1, 6))
-    args = (theta, coef, [1.5], [0.0], np.zeros((1, 4)), DOWN, DOWN, limits.u_low, limits.u_high)
+    ff = 1.5 * fourier(small, coef)
+    args = (theta, ff, np.zeros((1, 4)), DOWN, DOWN, limits.u_low, limits.u_high)
     obs, u = small._rollout(*(jnp.asarray(a, jnp.float32) for a in args))
     noise = jnp.asarray([1e-3, 2e-3, 1e-2, 2e-2], jnp.float32)
     scale = jnp.asarray(np.asarray(obs).std(axis=0), jnp.float32)
@@ -157,7 +167,7 @@ def test_sensor_noise_from_the_model_residuals(small, analytic_cfg, residuals):
     for _ in range(96):  # saturating Fourier drives: the cart reverses within a few steps
         coef = rng.normal(0.0, 3.0, (1, 6))
         bounds = (limits.u_low, limits.u_high)
-        args = (theta, coef, [3.0], [0.0], np.zeros((1, 4)), DOWN, DOWN, *bounds)
+        args = (theta, 3.0 * fourier(small, coef), np.zeros((1, 4)), DOWN, DOWN, *bounds)
         obs, u = small._rollout(*(jnp.asarray(a, jnp.float32) for a in args))
         clean.append(np.asarray(obs, np.float64))
         controls.append(np.asarray(u, np.float64))
@@ -214,15 +224,20 @@ def test_design_keeps_every_limit(small, analytic_cfg):
     limits = limits_of(analytic_cfg, amplitude=0.5, max_speed=[0.4, 20.0], joint_margin=0.49)
     assert limits.q_high[0] == pytest.approx(0.2) and limits.u_high[0] == pytest.approx(1.5)
     estimate = {FRICTION: {"force": 20.0}}
-    design = small.design(estimate, DOWN, None, limits, iterations=4)
-    obs, u = design.trajectory, design.planned_controls
-    assert np.all(u <= limits.u_high + 1e-6) and np.all(u >= limits.u_low - 1e-6)
-    assert np.all(np.abs(obs[:, 2:]) <= limits.max_speed + 1e-6)
-    assert np.all(obs[:, :2] <= limits.q_high) and np.all(obs[:, :2] >= limits.q_low)
-    assert np.all(np.isfinite(design.predicted_se)) and np.all(design.predicted_se > 0)
-    assert design.limits.violation(obs, u) == {"control": 0.0, "joint": 0.0, "speed": 0.0}
-    # the open-loop swing was shrunk for the speed bound: it is not the whole bound
-    assert np.all(design.amplitude <= 0.5 * (limits.u_high - limits.u_low) + 1e-9)
+    for parameterisation in ("per_step", "fourier"):
+        design = small.design(
+            estimate, DOWN, None, limits, iterations=4, parameterisation=parameterisation
+        )
+        assert design.parameterisation == parameterisation
+        obs, u = design.trajectory, design.planned_controls
+        assert np.all(u <= limits.u_high + 1e-6) and np.all(u >= limits.u_low - 1e-6)
+        assert np.all(np.abs(obs[:, 2:]) <= limits.max_speed + 1e-6)
+        assert np.all(obs[:, :2] <= limits.q_high) and np.all(obs[:, :2] >= limits.q_low)
+        assert np.all(np.isfinite(design.predicted_se)) and np.all(design.predicted_se > 0)
+        assert design.limits.violation(obs, u) == {"control": 0.0, "joint": 0.0, "speed": 0.0}
+        # the open-loop swing was shrunk for the speed bound: it is not the whole bound
+        assert np.all(design.amplitude <= 0.5 * (limits.u_high - limits.u_low) + 1e-9)
+        assert np.abs(design.unit_feedforward()).max() <= 1.0 + 1e-6
 
     gain = lqr_gain(small, estimate, DOWN)
     assert gain.shape == (1, 4) and np.all(np.isfinite(gain))
@@ -250,6 +265,8 @@ def test_bad_input_fails_clearly(small, analytic_cfg):
         small.design(None, DOWN, None, limits_of(analytic_cfg), criterion="E")
     with pytest.raises(ValueError, match="relative half-width"):
         small.design(None, DOWN, None, limits_of(analytic_cfg), criterion={"gain": 0.03})
+    with pytest.raises(ValueError, match="parameterisation 'spline' is unknown"):
+        small.design(None, DOWN, None, limits_of(analytic_cfg), parameterisation="spline")
     with pytest.raises(ValueError, match="no candidate"):
         Designer(analytic_cfg, ["coulomb_friction@nowhere"], 0.04, 16, horizon=3)
     with pytest.raises(ValueError, match="amplitude"):
@@ -345,25 +362,47 @@ def test_with_mismatch_carries_the_fit_so_far():
     """The law mismatch measured on the fit so far, carried to the new record: nothing to
     carry before any data or without a mismatch; the scatter of the noise part scales the
     sensor prediction; the systematic part stays when every episode carries the same
-    information (it does not average away)."""
+    information (it does not average away). The fit so far's noise part is a typical draw of
+    its 4 clusters (typical_scale(4) of the sensor part where the episodes scatter as the
+    sensor noise alone)."""
     pred = np.array([0.02, 0.004])
     assert np.array_equal(with_mismatch(pred, 2, None, None, None, 0)[1], pred)
+    sensor = np.array([0.05, 0.01])
+    typical = sensor * typical_scale(4)
     # no mismatch: the noise part is the sensor part, the reported one the noise part
-    noise_now, full_now = with_mismatch(pred, 8, [0.05, 0.01], [0.05, 0.01], [0.05, 0.01], 4)
+    noise_now, full_now = with_mismatch(pred, 8, sensor, typical, typical, 4)
     assert np.allclose(noise_now, pred) and np.allclose(full_now, pred)
     # episodes scatter twice the sensor noise: the noise part twice the prediction
-    noise_now, _ = with_mismatch(pred, 8, [0.05, 0.01], [0.1, 0.02], [0.1, 0.02], 4)
+    noise_now, _ = with_mismatch(pred, 8, sensor, 2 * typical, 2 * typical, 4)
     assert np.allclose(noise_now, 2 * pred)
     # the same signal for twice the episodes: se / sqrt(2), a bias of 0.3 stays 0.3
     from scipy import stats
 
     se4 = np.array([0.1, 0.02])
     sensor4 = stats.t.ppf(0.975, 3) * se4 / 2
-    pred8 = stats.t.ppf(0.975, 7) * se4 / np.sqrt(8)
-    noise_now, full_now = with_mismatch(pred8, 8, sensor4, sensor4, sensor4 + 0.3, 4)
+    pred8 = half_width(se4, 8)
+    noise4 = sensor4 * typical_scale(4)
+    noise_now, full_now = with_mismatch(pred8, 8, sensor4, noise4, noise4 + 0.3, 4)
     assert np.allclose(full_now - noise_now, 0.3)
     with pytest.raises(ValueError, match="at least 2 episodes"):
         with_mismatch(pred, 8, pred, pred, pred, 1)
+
+
+def test_typical_scale_is_the_median_of_the_fit_s_standard_error():
+    """Episodes' gradients scattering with a known std, summing to zero at the fit: the noise
+    part's standard error of `confidence_intervals` (a sandwich over the episodes as clusters)
+    has its median at typical_scale(E) of the true one, well below it for few episodes."""
+    from hds.discover.fit import confidence_intervals
+
+    rng = np.random.default_rng(0)
+    for episodes in (2, 4, 8):
+        g = rng.normal(size=(4000, episodes, 1))
+        g -= g.mean(axis=1, keepdims=True)  # the fit's optimum: the gradients sum to zero
+        se = [confidence_intervals(np.ones(1), np.eye(1), ge).se[0] for ge in g]
+        true = np.sqrt(episodes)  # the sum of E unit gradients' std, over a unit curvature
+        assert np.median(se) / true == pytest.approx(typical_scale(episodes), rel=0.04)
+    assert typical_scale(2) < 0.7 and typical_scale(16) > 0.97
+    assert np.allclose(half_width([1.0], 16), 2.131 / 4 * typical_scale(16), rtol=1e-3)
 
 
 def test_excitation_key_is_checked():

@@ -27,7 +27,14 @@ from hds.config import env_config
 from hds.data import collect
 from hds.data.excitation import excitation
 from hds.discover.data import noise_level
-from hds.discover.design import WindowFit, get_designer, limits_of, with_mismatch
+from hds.discover.design import (
+    WindowFit,
+    get_designer,
+    half_width,
+    limits_of,
+    typical_scale,
+    with_mismatch,
+)
 from hds.discover.workflow import fit_backend, with_backend
 from hds.envs import make_env
 from hds.real import make_plant
@@ -170,7 +177,16 @@ def case_plant(spec, env_cfg, fit_cfg):
     return make_plant(real, env_cfg)
 
 
-def run_case(name, spec, repeats, log, criterion="asked"):
+def run_case(
+    name,
+    spec,
+    repeats,
+    log,
+    criterion="asked",
+    parameterisation="per_step",
+    iterations=(200, 100),
+    signals=SIGNALS,
+):
     env_cfg = env_config(
         OmegaConf.to_container(OmegaConf.load(CONF / "env" / f"{spec['env']}.yaml"))
     )
@@ -230,7 +246,7 @@ def run_case(name, spec, repeats, log, criterion="asked"):
         plant = NoisyPlant(plant_base, spec["noise"], 1000 + rep)
         q0 = np.tile(x0[: env.sim.nq], (sum(ROUNDS), 1))
         qd0 = np.zeros((sum(ROUNDS), env.sim.n_obs - env.sim.nq))
-        for signal in SIGNALS:
+        for signal in signals:
             ts = time.perf_counter()
             cum, ratios, fits, predicted = [], [], [], []
             applied_gap, all_ctrl, chosen, predicted_now, noise_est = 0.0, [], [], [], []
@@ -244,11 +260,12 @@ def run_case(name, spec, repeats, log, criterion="asked"):
                         x0,
                         noise,
                         limits,
-                        iterations=60 if r == 0 else 30,
+                        iterations=iterations[0] if r == 0 else iterations[1],
                         seed=rep,
                         start=design,
                         criterion=targets if criterion == "asked" else criterion,
                         rivals=standard(104729 * rep + r + 1, 1),
+                        parameterisation=parameterisation,
                     )
                     chosen.append(design.signal)
                     ctrl = np.repeat(design.controls()[None], n, axis=0)
@@ -259,8 +276,7 @@ def run_case(name, spec, repeats, log, criterion="asked"):
                         se_all = designer.predicted_se_of(
                             estimate, np.concatenate([*all_ctrl, ctrl]), x0, noise
                         )
-                        t_all = stats.t.ppf(0.975, used + n - 1)
-                        predicted_now.append((t_all * se_all / np.sqrt(used + n)).tolist())
+                        predicted_now.append(half_width(se_all, used + n).tolist())
                     else:
                         predicted_now.append(design.predicted_half(n).tolist())
                     ds = collect(plant, task, q0[used : used + n], qd0[used : used + n], ctrl)
@@ -285,8 +301,7 @@ def run_case(name, spec, repeats, log, criterion="asked"):
                     noise_est.append((noise / np.asarray(spec["noise"])).tolist())
                     # the rounds' designs together: precisions add, t over all episodes
                     prec = sum(n_ / se**2 for n_, se in infos)
-                    tq = stats.t.ppf(0.975, used - 1)
-                    predicted.append((tq / np.sqrt(prec)).tolist())
+                    predicted.append(half_width(np.sqrt(used / prec), used).tolist())
                     cum.append(used * steps * dt)
                     fits.append(fit)
             else:
@@ -354,6 +369,10 @@ def run_case(name, spec, repeats, log, criterion="asked"):
                 "model_ratio": model_ratio,
                 "sliding_share": sliding,
             }
+            if signal == "designed":
+                row["parameterisation"], row["iterations"] = parameterisation, list(iterations)
+                # the predictions are typical (median) widths: `half_width`'s typical_scale
+                row["typical"] = True
             rows.append(row)
             log(
                 f"{name} rep {rep} {signal}: ratio {np.round(noise_ratios, 3).tolist()} "
@@ -454,7 +473,7 @@ def summarise(results) -> tuple[str, dict]:
             )
         model_ratios.append(min(by[s] for s in SIGNALS if s != "designed") / by["designed"])
         # paired by repeat (same plant noise seed): best standard's time / designed's
-        reps = sorted({r["repeat"] for r in res["rows"]})
+        reps = sorted({r["repeat"] for r in res["rows"] if r["signal"] == "designed"})
         per = []
         for k in reps:
             rows = {r["signal"]: r for r in res["rows"] if r["repeat"] == k}
@@ -523,8 +542,15 @@ def summarise(results) -> tuple[str, dict]:
                 sensor = like = share = ""
                 if "sensor_half" in rows[0]:
                     sens = np.median([r["sensor_half"][j][i] for r in rows])
+                    # the sensor part on the record is no draw over episodes: like with like is
+                    # the prediction without its typical scale
                     like_v = np.median(
-                        [r["predicted_half_now"][j][i] / r["sensor_half"][j][i] for r in rows]
+                        [
+                            r["predicted_half_now"][j][i]
+                            / (typical_scale(int(n)) if r.get("typical") else 1.0)
+                            / r["sensor_half"][j][i]
+                            for r in rows
+                        ]
                     )
                     share_v = np.median(
                         [r["sensor_half"][j][i] / r["noise_half"][j][i] for r in rows]
@@ -645,6 +671,22 @@ def main():
         help="the design's criterion: asked (the case's widths {parameter: relative "
         "half-width}, weighted A-optimal), D (determinant) or A (trace)",
     )
+    ap.add_argument(
+        "--parameterisation",
+        default="per_step",
+        choices=["per_step", "fourier"],
+        help="the designed arm's parameterisation (hds.discover.design.Designer.design)",
+    )
+    ap.add_argument(
+        "--iterations",
+        default="200,100",
+        help="the designed arm's Adam iterations: round 0, then each later round",
+    )
+    ap.add_argument(
+        "--signals",
+        default=",".join(SIGNALS),
+        help="the signals to run; the case's stored rows of the others are kept (results.json)",
+    )
     ap.add_argument("--out", default=str(HERE))
     ap.add_argument("--report", action="store_true", help="only rewrite the tables and figure")
     args = ap.parse_args()
@@ -673,8 +715,28 @@ def main():
         # (run the cases apart, e.g. on a loaded machine); --report tabulates them all
         done = out / "results.json"
         results = json.loads(done.read_text())["cases"] if done.is_file() else {}
+        signals = tuple(args.signals.split(","))
+        iterations = tuple(int(x) for x in args.iterations.split(","))
+        if not set(signals) <= set(SIGNALS) or len(iterations) != 2:
+            raise SystemExit(
+                f"--signals {args.signals!r} must name some of {list(SIGNALS)} and --iterations "
+                f"{args.iterations!r} two numbers (round 0, later rounds)"
+            )
         for c in args.cases.split(","):
-            results[c] = run_case(c, CASES[c], args.repeats, log, args.criterion)
+            new = run_case(
+                c,
+                CASES[c],
+                args.repeats,
+                log,
+                args.criterion,
+                args.parameterisation,
+                iterations,
+                signals,
+            )
+            if c in results and set(signals) != set(SIGNALS):  # keep the other signals' rows
+                kept = [r for r in results[c]["rows"] if r["signal"] not in signals]
+                new["rows"] = kept + new["rows"]
+            results[c] = new
             results[c]["criterion"] = args.criterion
             atomic_write_json(done, {"cases": results})
     table, summary = summarise(results)

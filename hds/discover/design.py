@@ -8,10 +8,11 @@ mode through the simulator whose candidates' parameters are traced inputs (`Mode
 So the excitation can be optimised before the plant is touched:
 
   controls   u(t) = clip(u_ff(t) - K (x(t) - x_ref), mid +- amplitude x half range)
-             u_ff(t) = mid + amplitude x half range x tanh(sum_h a_h sin(2 pi f_h t)
-                                                          + b_h cos(2 pi f_h t))
-             f_h = h f_max / H, h = 1..H (a Fourier series squashed by tanh: smooth, bounded
-             by construction, free to saturate into the bang-bang a friction likes); K a
+             u_ff(t) = mid + amplitude x half range x w(t), w(t) in [-1, 1] either
+             per step (default, `parameterisation="per_step"`): every step's w a free
+             variable, projected back into [-1, 1] after each Adam update; or
+             `"fourier"`: w(t) = tanh(sum_h a_h sin(2 pi f_h t) + b_h cos(2 pi f_h t)),
+             f_h = h f_max / H, h = 1..H (smooth, a subset of the per-step signals); K a
              stabilising feedback (LQR, `lqr_gain`, or a policy's linearisation) for a system
              that cannot be excited open loop, zero by default
   information  I = sum over windows of J_w^T Sigma^-1 J_w, J_w = d(window's prediction)/d theta
@@ -22,16 +23,18 @@ So the excitation can be optimised before the plant is touched:
              parameter's variance (I^-1)_jj
   limits     the actuators' range (scaled by the amplitude bound), the joints' range (minus a
              margin) and a speed bound per joint, as penalties during the optimisation (Adam on
-             the coefficients) and as a check on the predicted trajectory after it: the feed-
-             forward amplitude is shrunk until the trajectory keeps every limit.
+             w or the coefficients; the best iterate that keeps them on the model) and as a
+             check on the predicted trajectory after it: the feedforward amplitude is shrunk
+             until the trajectory keeps every limit.
 
-`Design.predicted_half` are the 95% half-widths the recorded windows will give discovery's fit
-(measured initial states): the fit's estimator is linear in the noise near the optimum,
-theta_hat - theta = H^-1 J_s^T r_s(n), so its covariance H^-1 B B^T H^-1 (B = d(J_s^T r_s)/dn,
-through the simulator too) holds the windows' overlap exactly; E episodes divide it by E, and
-the half-width takes the t quantile over episodes, as `confidence_intervals` does. The law
-mismatch part of the fit's intervals (a plant whose laws are not the library's) is not
-predicted.
+`Design.predicted_half` are the typical 95% half-widths the recorded windows will give
+discovery's fit (measured initial states): the fit's estimator is linear in the noise near
+the optimum, theta_hat - theta = H^-1 J_s^T r_s(n), so its covariance H^-1 B B^T H^-1 (B =
+d(J_s^T r_s)/dn, through the simulator too) holds the windows' overlap exactly; E episodes
+divide it by E, and the half-width takes the t quantile over episodes, as
+`confidence_intervals` does, and the median of a cluster-robust standard error over E
+episodes (`typical_scale`). The law mismatch part of the fit's intervals (a plant whose laws
+are not the library's) is not predicted.
 
     from hds.discover.design import Designer
     designer = Designer(env_cfg, ["coulomb_friction@slider"], dt=0.04, steps=100)
@@ -59,6 +62,13 @@ from hds.envs.system import load_spec
 log = logging.getLogger("hds")
 
 CRITERIA = ("D", "A")
+PARAMETERISATIONS = ("per_step", "fourier")
+# Adam's iterations and step per parameterisation. On the cart-pole at the true values
+# (experiments/excitation_design), best standard signal's plant time over the design's: 60
+# Fourier iterations 1.6-2.4x, 400 2.1-3.7x; per step from one start, 300 iterations at a
+# step of 0.05: 2.5-2.7x, at 0.2: 2.9-3.2x (1000: 3.3-4.3x; two effects 1.7-2.5x, 1000: 3.3x)
+ITERATIONS = {"per_step": 300, "fourier": 60}
+LEARNING_RATE = {"per_step": 0.2, "fourier": 0.1}
 PENALTY = 1e3  # weight of a limit's squared violation (in units of the limit) against the criterion
 RIDGE = 1e-9  # relative ridge on the information: a parameter no window sees stays finite
 EIVAL_FLOOR = 1e-12
@@ -127,7 +137,7 @@ def limits_of(
 class Design:
     """A designed excitation and what it is predicted to give."""
 
-    coefficients: np.ndarray  # [n_act, 2H] Fourier coefficients (sine, then cosine)
+    coefficients: np.ndarray | None  # [n_act, 2H] Fourier coefficients (sine, then cosine)
     amplitude: np.ndarray  # [n_act] the feedforward's half swing (after any shrinking)
     middle: np.ndarray  # [n_act]
     frequencies: np.ndarray  # [H] Hz
@@ -146,13 +156,24 @@ class Design:
     # "designed", or the name of the rival signal the model predicted better (`design`'s
     # rivals): then planned_controls are that signal's, applied open loop
     signal: str = "designed"
+    # [T, n_act] the per-step feedforward w in [-1, 1] (parameterisation "per_step"; None: the
+    # Fourier series of `coefficients`)
+    waveform: np.ndarray | None = None
+
+    @property
+    def parameterisation(self) -> str:
+        return "fourier" if self.waveform is None else "per_step"
+
+    def unit_feedforward(self) -> np.ndarray:
+        """[T, n_act] w(t) in [-1, 1]: the feedforward before its swing and middle."""
+        if self.waveform is not None:
+            return np.asarray(self.waveform, np.float64)
+        wave = _feedforward(self.coefficients, self.frequencies, self.dt, self.steps)
+        return np.asarray(wave, np.float64)
 
     def feedforward(self) -> np.ndarray:
         """[T, n_act] the feedforward u_ff."""
-        return np.asarray(
-            _feedforward(self.coefficients, self.frequencies, self.dt, self.steps) * self.amplitude
-            + self.middle
-        )
+        return self.unit_feedforward() * self.amplitude + self.middle
 
     def controls(self) -> np.ndarray:
         """[T, n_act] the controls to apply open loop: the planned ones (with feedback, those
@@ -176,11 +197,34 @@ class Design:
         return act
 
     def predicted_half(self, episodes: int, level: float = 0.95) -> np.ndarray:
-        """[M] half-widths of `level` intervals from `episodes` episodes of this design."""
-        if episodes < 2:
-            return np.full(len(self.keys), np.inf)
-        t = stats.t.ppf(0.5 + level / 2, episodes - 1)
-        return t * self.predicted_se / math.sqrt(episodes)
+        """[M] the median half-widths of the `level` intervals the fit reports from `episodes`
+        episodes of this design (`half_width`)."""
+        return half_width(self.predicted_se, episodes, level)
+
+
+def typical_scale(episodes: int) -> float:
+    """The median of the fit's standard error over the true one, from `episodes` episodes.
+    The fit's noise part is a sandwich with episodes as clusters (`confidence_intervals`): its
+    meat is the scatter of the episodes' gradients, which sum to zero at the fit, so each
+    variance is the true one times chi2_(E-1) / (E-1), and the standard error's median is
+    sqrt(median chi2_(E-1) / (E-1)) of the true: 0.67 at 2 episodes, 0.89 at 4, 0.95 at 8,
+    0.98 at 16. (Its mean, not its median, is the true variance: a width predicted without
+    this is the width of a typical record only for many episodes.)"""
+    if episodes < 2:
+        raise ValueError(f"episodes = {episodes}: a cluster-robust error needs at least 2")
+    k = episodes - 1
+    return math.sqrt(stats.chi2.median(k) / k)
+
+
+def half_width(se, episodes: int, level: float = 0.95) -> np.ndarray:
+    """[M] the median half-widths of the `level` intervals the fit reports from `episodes`
+    episodes whose per-episode standard errors are `se` [M]: the Student-t quantile over the
+    episodes x se / sqrt(E) x `typical_scale(E)`; inf below 2 episodes."""
+    se = np.asarray(se, np.float64)
+    if episodes < 2:
+        return np.full(se.shape, np.inf)
+    t = stats.t.ppf(0.5 + level / 2, episodes - 1)
+    return t * se / math.sqrt(episodes) * typical_scale(episodes)
 
 
 def _feedforward(coefficients, frequencies, dt, steps):
@@ -298,10 +342,10 @@ class Designer:
 
     # -- the simulator pieces (traced) --------------------------------------------------------
 
-    def _rollout_fn(self, theta, coefficients, amplitude, middle, gain, x_ref, x0, low, high):
-        """The trajectory the model predicts, [T+1, n_obs], and its controls [T, n_act]."""
+    def _rollout_fn(self, theta, ff, gain, x_ref, x0, low, high):
+        """The trajectory the model predicts, [T+1, n_obs], and its controls [T, n_act], of
+        the feedforward ff [T, n_act] with the feedback gain about x_ref, clipped to low..high."""
         sim, params = self.sim, self.model.params(theta)
-        ff = _feedforward(coefficients, self.frequencies, self.dt, self.steps) * amplitude + middle
         state = sim.init(x0[: sim.nq], x0[sim.nq :], params)
 
         def step(state, u_ff):
@@ -454,12 +498,10 @@ class Designer:
         b = b.at[starts[:, None] + 1 + jnp.arange(k)[None, :]].add(into_target)
         return h, jnp.moveaxis(b, -1, 0).reshape(m, -1)
 
-    def _parts(self, theta, c, amplitude, middle, gain, x_ref, x0s, low, high, noise):
+    def _parts(self, theta, ff, gain, x_ref, x0s, low, high, noise):
         """Per episode on average over the initial states x0s [S, n_obs]: H [M, M] and
         B B^T [M, M] of the fit's estimator; and the trajectories [S, T+1, n_obs], [S, T, n_act]."""
-        obs, u = jax.vmap(
-            lambda x0: self._rollout_fn(theta, c, amplitude, middle, gain, x_ref, x0, low, high)
-        )(x0s)
+        obs, u = jax.vmap(lambda x0: self._rollout_fn(theta, ff, gain, x_ref, x0, low, high))(x0s)
         flat = obs.reshape(-1, obs.shape[-1])
         std = flat.std(axis=0)
         scale = jnp.maximum(std, 1e-6 * std.max() + 1e-12)  # as the fit's `prepare` does
@@ -587,25 +629,86 @@ class Designer:
 
     def trajectory(self, theta, design: Design, x0s) -> tuple[np.ndarray, np.ndarray]:
         """The predicted trajectories [S, T+1, n_obs] and controls [S, T, n_act] from x0s."""
-        obs, u = jax.vmap(self._rollout, in_axes=(None,) * 6 + (0, None, None))(
+        obs, u = jax.vmap(self._rollout, in_axes=(None,) * 4 + (0, None, None))(
             *_f32(*_rollout_args(theta, design, x0s))
         )
         return np.asarray(obs, np.float64), np.asarray(u, np.float64)
 
     # -- the design -----------------------------------------------------------------------
 
-    def _objective(self, c, theta, noise, ref, pick, amplitude, middle, gain, x_ref, x0s, lim):
-        h, meat, obs, _ = self._parts(
-            theta, c, amplitude, middle, gain, x_ref, x0s, lim[0], lim[1], noise
+    def _objective(self, wave, theta, noise, ref, pick, amplitude, middle, gain, x_ref, x0s, lim):
+        """The criterion plus the limits' penalty of the feedforward middle + amplitude x wave
+        (wave [T, n_act] in [-1, 1]); also the criterion alone and the trajectories and
+        controls [S, ...], to keep the best iterate that keeps the limits."""
+        h, meat, obs, u = self._parts(
+            theta, middle + amplitude * wave, gain, x_ref, x0s, lim[0], lim[1], noise
         )
-        return _traced_criterion(h, meat, ref, pick) + PENALTY * _penalty(obs, lim) / x0s.shape[0]
-
-    def _objective_open(self, v, theta, noise, ref, pick, amplitude, middle, x0, lim):
-        """The criterion and limit penalty of the open-loop controls middle + amplitude v
-        (v [T, n_act] in [-1, 1]); also the trajectory, to check the limits."""
-        h, meat, obs = self._parts_open(theta, middle + amplitude * v, x0, noise)
         value = _traced_criterion(h, meat, ref, pick)
-        return value + PENALTY * _penalty(obs, lim), (value, obs)
+        return value + PENALTY * _penalty(obs, lim) / x0s.shape[0], (value, obs, u)
+
+    def _optimiser(self, parameterisation: str, learning_rate: float):
+        """Adam and its compiled step for a parameterisation at a learning rate: per step, the
+        variables are w itself, projected back into [-1, 1] after every update; Fourier, the
+        coefficients, w their series through tanh. Every estimate, noise, limit, feedback and
+        initial state is a traced argument, so each later design reuses the program."""
+        key = (parameterisation, float(learning_rate))
+        if key not in self._steps:
+            optimiser = optax.adam(learning_rate)
+            if parameterisation == "fourier":
+
+                def wave(c):
+                    return _feedforward(c, self.frequencies, self.dt, self.steps)
+
+                def project(c):
+                    return c
+            else:
+
+                def wave(v):
+                    return v
+
+                def project(v):
+                    return jnp.clip(v, -1.0, 1.0)
+
+            def step(p, opt_state, *args):
+                (total, (value, obs, u)), grad = jax.value_and_grad(
+                    lambda p: self._objective(wave(p), *args), has_aux=True
+                )(p)
+                updates, opt_state = optimiser.update(jnp.nan_to_num(grad), opt_state)
+                p_new = project(optax.apply_updates(p, updates))
+                return p_new, opt_state, total, value, obs, u
+
+            self._steps[key] = (optimiser, jax.jit(step))
+        return self._steps[key]
+
+    def _adam(self, parameterisation, learning_rate, p0, iterations, args, limits: Limits):
+        """Adam from p0. Returns the best iterate that keeps the joints' and speed limits on
+        the model's trajectories (None if none did) and its criterion, the best iterate by the
+        penalised objective (the fallback, shrunk by `finish`), and the criterion per
+        iteration. The values are the iterate's before its update."""
+        optimiser, step = self._optimiser(parameterisation, learning_rate)
+        p = jnp.asarray(p0, jnp.float32)
+        opt_state = optimiser.init(p)
+        kept, kept_value, fallback, fallback_total, history = None, np.inf, p, np.inf, []
+        for _ in range(int(iterations)):
+            p_new, opt_state, total, value, obs, u = step(p, opt_state, *args)
+            value, total = float(value), float(total)
+            history.append(value)
+            if np.isfinite(total) and total < fallback_total:
+                fallback, fallback_total = p, total
+            if np.isfinite(value) and value < kept_value:
+                # the controls are clipped to the bound by construction; check what is not
+                bad = limits.violation(np.asarray(obs, np.float64), np.asarray(u, np.float64))
+                if max(bad["joint"], bad["speed"]) <= 0:
+                    kept, kept_value = p, value
+            p = p_new
+        return kept, kept_value, fallback, history
+
+    def _first_value(self, parameterisation, learning_rate, p0, args) -> float:
+        """The penalised objective at p0 (one step of the compiled optimiser: no other program)."""
+        optimiser, step = self._optimiser(parameterisation, learning_rate)
+        p = jnp.asarray(p0, jnp.float32)
+        total = float(step(p, optimiser.init(p), *args)[2])
+        return total if np.isfinite(total) else np.inf
 
     def design(
         self,
@@ -614,13 +717,14 @@ class Designer:
         noise,
         limits: Limits,
         criterion: str = "D",
-        iterations: int = 60,
-        learning_rate: float = 0.1,
+        iterations: int | None = None,
+        learning_rate: float | None = None,
         gain=None,
         x_ref=None,
         seed: int = 0,
         start: Design | None = None,
         rivals: dict | None = None,
+        parameterisation: str = "per_step",
     ) -> Design:
         """Optimise the excitation at `estimate` ({key: {param: value}}; missing: the
         simulator's own value) for episodes from the initial state x0 [n_obs] (or the
@@ -631,7 +735,19 @@ class Designer:
         `rivals` {name: controls [T, n_act]} open-loop signals of the same bound (random
         steps, a PRBS): where the model predicts one of them better by the criterion (and it
         keeps the limits), the Design carries its controls and its name in `signal`, so a
-        design is never worse, on the model, than the standard signals it was offered."""
+        design is never worse, on the model, than the standard signals it was offered.
+
+        `parameterisation`: "per_step" (default) makes every step's feedforward a variable
+        in the bound, optimised from the best on the model (the penalised criterion) of:
+        `start`'s signal, each rival within the bound, and a random smooth wave (a tanh
+        Fourier series of `seed`); "fourier" optimises a tanh Fourier series's coefficients
+        (from `start`'s, else random ones). `iterations` and `learning_rate` default per
+        parameterisation (ITERATIONS, LEARNING_RATE)."""
+        if parameterisation not in PARAMETERISATIONS:
+            raise ValueError(
+                f"parameterisation {parameterisation!r} is unknown: choose one of "
+                f"{list(PARAMETERISATIONS)}"
+            )
         sim = self.sim
         x0s = np.atleast_2d(np.asarray(x0, np.float64))
         if x0s.ndim != 2 or x0s.shape[1] != sim.n_obs:
@@ -640,6 +756,10 @@ class Designer:
                 f"[S, {sim.n_obs}]"
             )
         pick = _pick(criterion, self.labels)
+        iterations = ITERATIONS[parameterisation] if iterations is None else int(iterations)
+        learning_rate = float(learning_rate or LEARNING_RATE[parameterisation])
+        if iterations < 1:
+            raise ValueError(f"iterations = {iterations} must be at least 1")
         theta = self.theta(estimate)
         ref = self.reference(theta)
         middle = 0.5 * (limits.u_low + limits.u_high)
@@ -650,35 +770,58 @@ class Designer:
                 f"gain has shape {gain.shape}; it must be [n_act, n_obs] = {[sim.n_act, sim.n_obs]}"
             )
         x_ref = x0s[0] if x_ref is None else np.asarray(x_ref, np.float64)
-        n_coef = 2 * len(self.frequencies)
-        if start is not None:
-            c0 = np.asarray(start.coefficients, np.float64)
-        else:
-            rng = np.random.default_rng(seed)
-            c0 = rng.normal(0.0, 1.0 / math.sqrt(len(self.frequencies)), (sim.n_act, n_coef))
+        rng = np.random.default_rng(seed)
+        c_random = rng.normal(
+            0.0, 1.0 / math.sqrt(len(self.frequencies)), (sim.n_act, 2 * len(self.frequencies))
+        )
+        wave_random = np.asarray(
+            _feedforward(c_random, self.frequencies, self.dt, self.steps), np.float64
+        )
         lim = (limits.u_low, limits.u_high, limits.q_low, limits.q_high, limits.max_speed)
         if noise is None:
             obs, _ = self._rollout(
-                *_f32(theta, c0, amplitude, middle, gain, x_ref, x0s[0], *lim[:2])
+                *_f32(theta, middle + amplitude * wave_random, gain, x_ref, x0s[0], *lim[:2])
             )
-            noise = 0.01 * np.maximum(np.asarray(obs).std(axis=0), 1e-6)
+            noise = 0.01 * np.maximum(np.asarray(obs).std(axis=0), 1e-9)
         noise = np.maximum(np.asarray(noise, np.float64), 1e-9)
-        statics = _f32(theta, noise, ref, amplitude, middle, gain, x_ref, x0s)
-        lim32 = _f32(*lim)
         pick32 = None if pick is None else jnp.asarray(pick, jnp.float32)
-        optimiser, step = self._optimiser(float(learning_rate))
-        c = jnp.asarray(c0, jnp.float32)
-        opt_state = optimiser.init(c)
-        history, best, best_value = [], c, np.inf
-        for _ in range(int(iterations)):
-            c_new, opt_state, value = step(c, opt_state, *statics[:3], pick32, *statics[3:], lim32)
-            value = float(value)
-            history.append(value)
-            if np.isfinite(value) and value < best_value:  # the value is c's, before the step
-                best, best_value = c, value
-            c = c_new
+        args = (
+            *_f32(theta, noise, ref),
+            pick32,
+            *_f32(amplitude, middle, gain, x_ref, x0s),
+            _f32(*lim),
+        )
+        if parameterisation == "fourier":
+            has = start is not None and start.coefficients is not None
+            p0 = np.asarray(start.coefficients, np.float64) if has else c_random
+        else:
+            # the starts, in units of this design's bound: a last design's own signal (a rival
+            # it recorded, or its feedforward with the swing it kept), the rivals, a smooth one
+            starts = {"random": wave_random}
+            if start is not None:
+                last = start.planned_controls if start.signal != "designed" else None
+                last = start.feedforward() if last is None else last
+                starts["start"] = last
+            for name, u in (rivals or {}).items():
+                starts[f"rival {name}"] = np.asarray(u, np.float64)
+            for name in [k for k in starts if k != "random"]:
+                u = np.asarray(starts[name], np.float64)
+                if u.shape != (self.steps, sim.n_act):
+                    raise ValueError(
+                        f"{name} has shape {u.shape}; give [{self.steps}, {sim.n_act}]"
+                    )
+                starts[name] = np.clip((u - middle) / np.maximum(amplitude, 1e-12), -1.0, 1.0)
+            scores = {
+                k: self._first_value(parameterisation, learning_rate, w, args)
+                for k, w in starts.items()
+            }
+            p0 = starts[min(scores, key=scores.get)]
+        kept, _, fallback, history = self._adam(
+            parameterisation, learning_rate, p0, iterations, args, limits
+        )
+        best = np.asarray(fallback if kept is None else kept, np.float64)
         design = Design(
-            coefficients=np.asarray(best, np.float64),
+            coefficients=best if parameterisation == "fourier" else None,
             amplitude=amplitude,
             middle=middle,
             frequencies=self.frequencies,
@@ -694,6 +837,7 @@ class Designer:
             planned_controls=np.zeros((self.steps, sim.n_act)),
             criterion=str(criterion),
             history=history,
+            waveform=best if parameterisation == "per_step" else None,
         )
         design = self.finish(design, theta, x0s, noise)
         if rivals:
@@ -776,25 +920,22 @@ class Designer:
         for r in range(int(restarts)):
             inits[f"random {r}"] = np.clip(rng.normal(0.0, 0.5, (self.steps, sim.n_act)), -1, 1)
         lim = (limits.u_low, limits.u_high, limits.q_low, limits.q_high, limits.max_speed)
-        statics = _f32(theta, noise, ref)
         pick32 = None if pick is None else jnp.asarray(pick, jnp.float32)
-        rest = (*_f32(amplitude, middle, x0), _f32(*lim))
-        optimiser, step = self._optimiser_open(float(learning_rate))
+        gain = np.zeros((sim.n_act, sim.n_obs))  # open loop
+        args = (
+            *_f32(theta, noise, ref),
+            pick32,
+            *_f32(amplitude, middle, gain, x0, x0[None]),
+            _f32(*lim),
+        )
         best = {"value": np.inf}
         for name, v0 in inits.items():
-            v = jnp.asarray(v0, jnp.float32)
-            opt_state, history = optimiser.init(v), []
-            for _ in range(int(iterations)):
-                v_new, opt_state, value, obs = step(v, opt_state, *statics, pick32, *rest)
-                value = float(value)
-                history.append(value)
-                u = middle + amplitude * np.asarray(v, np.float64)
-                bad = limits.violation(np.asarray(obs, np.float64), u)
-                if np.isfinite(value) and max(bad.values()) <= 0 and value < best["value"]:
-                    best = {"value": value, "controls": u, "start": name}
-                v = v_new
-            if best.get("start") == name:
-                best["history"] = history
+            kept, value, _, history = self._adam(
+                "per_step", float(learning_rate), v0, iterations, args, limits
+            )
+            if kept is not None and value < best["value"]:
+                u = middle + amplitude * np.asarray(kept, np.float64)
+                best = {"value": value, "controls": u, "start": name, "history": history}
         if "controls" not in best:
             raise ValueError(
                 "no per-step excitation kept the limits from this initial state: it starts "
@@ -804,36 +945,6 @@ class Designer:
         best["trajectory"] = np.asarray(obs, np.float64)
         best["predicted_se"] = np.sqrt(np.maximum(np.diag(_covariance(h, meat)), 0.0))
         return best
-
-    def _optimiser_open(self, learning_rate: float):
-        """Adam on per-step controls v in [-1, 1], projected back after every update."""
-        key = ("open", learning_rate)
-        if key not in self._steps:
-            optimiser = optax.adam(learning_rate)
-
-            def step(v, opt_state, *args):
-                (_, (value, obs)), grad = jax.value_and_grad(self._objective_open, has_aux=True)(
-                    v, *args
-                )
-                updates, opt_state = optimiser.update(jnp.nan_to_num(grad), opt_state)
-                return jnp.clip(optax.apply_updates(v, updates), -1.0, 1.0), opt_state, value, obs
-
-            self._steps[key] = (optimiser, jax.jit(step))
-        return self._steps[key]
-
-    def _optimiser(self, learning_rate: float):
-        """Adam and its compiled step at this learning rate: every estimate, noise, limit and
-        initial state is a traced argument, so each later design reuses the program."""
-        if learning_rate not in self._steps:
-            optimiser = optax.adam(learning_rate)
-
-            def step(c, opt_state, *args):
-                value, grad = jax.value_and_grad(self._objective)(c, *args)
-                updates, opt_state = optimiser.update(jnp.nan_to_num(grad), opt_state)
-                return optax.apply_updates(c, updates), opt_state, value
-
-            self._steps[learning_rate] = (optimiser, jax.jit(step))
-        return self._steps[learning_rate]
 
     def finish(self, design: Design, theta, x0s, noise, shrink: float = 0.8, tries: int = 30):
         """Shrink the feedforward's swing until the predicted trajectories keep every limit,
@@ -867,8 +978,9 @@ def with_mismatch(
     level: float = 0.95,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The fit's noise part and reported half-widths [M] for a record of `episodes` episodes
-    whose sensor-noise half-widths the design predicts (`predicted_half`, e.g. every round's
-    controls so far at the current estimate and noise), from what the fit of the
+    whose sensor-noise half-widths the design predicts (`predicted_half`, typical ones:
+    `half_width`, e.g. of every round's controls so far at the current estimate and noise),
+    from what the fit of the
     `episodes_before` episodes recorded so far measured: their sensor part on the record
     (`Designer.record_se` as a half-width), the fit's noise part (t x cluster-robust se) and
     its reported half-width (noise part plus law-mismatch part, `confidence_intervals`).
@@ -876,7 +988,8 @@ def with_mismatch(
     A law mismatch enters the fit's intervals twice, and the design's prediction (sensor
     noise on the model) holds neither: (1) where it differs between episodes the
     cluster-robust noise part counts it as scatter, so the noise part is the sensor part
-    times noise_half / sensor_half as measured so far; (2) its systematic part,
+    times noise_half / sensor_half as measured so far (that fit's noise part a typical draw
+    of E_before clusters: divided by `typical_scale(E_before)`); (2) its systematic part,
     sqrt(misfit (H^-1)_jj), does not average away: the misfit (a sum over the record) grows
     with the episodes while H^-1 shrinks as the predicted information grows, so it is carried
     from the fit so far as sqrt(E / E_before) x (predicted se / sensor se so far). The
@@ -892,10 +1005,13 @@ def with_mismatch(
         )
     sensor, noise, full = (np.asarray(x, np.float64) for x in (sensor_half, noise_half, half))
     with np.errstate(invalid="ignore", divide="ignore"):
-        scatter = np.where(sensor > 0, noise / sensor, 1.0)
-        # standard errors without the t quantiles, which differ between the two amounts
+        # the fit's noise part so far is a typical draw of E_before clusters (`typical_scale`)
+        # over the sensor part (the sandwich on the record, no draw): the scatter of the true
+        # errors over the sensor noise's is that over typical_scale(E_before)
+        scatter = np.where(sensor > 0, noise / sensor, 1.0) / typical_scale(episodes_before)
+        # standard errors without the t quantiles and typical scales of the two amounts
         t_before = stats.t.ppf(0.5 + level / 2, episodes_before - 1)
-        t_now = stats.t.ppf(0.5 + level / 2, episodes - 1)
+        t_now = stats.t.ppf(0.5 + level / 2, episodes - 1) * typical_scale(episodes)
         shrink = np.where(sensor > 0, (pred / t_now) / (sensor / t_before), 1.0)
     noise_now = pred * scatter
     bias = np.maximum(full - noise, 0.0) * math.sqrt(episodes / episodes_before) * shrink
@@ -906,9 +1022,7 @@ def _rollout_args(theta, design: Design, x0s) -> tuple:
     """The arguments of a design's compiled rollout, in its order (x0s the batched one)."""
     return (
         theta,
-        design.coefficients,
-        design.amplitude,
-        design.middle,
+        design.feedforward(),
         design.gain,
         design.x_ref,
         x0s,
