@@ -886,6 +886,7 @@ def test_a_fit_with_estimated_states_reaches_one_optimum_from_two_starts(plants,
     the same optimum: the same force to a fraction of its standard error, the same error
     (to the states' remaining gains).
     The record and the program are discovery's round 1 on it (nothing new compiles)."""
+    from hds.discover import explain
     from hds.discover.data import prepare
     from hds.discover.explain import State, _batch, _slot_width
     from hds.discover.fit import get_engine
@@ -933,6 +934,15 @@ def test_a_fit_with_estimated_states_reaches_one_optimum_from_two_starts(plants,
     plain = engine.fit(theta0, slots, delay, ident, CFG.iterations, False, rows=1)
     assert measured[0][0, slot] == pytest.approx(plain[0][0, slot], rel=1e-4)
     assert abs(measured[0][0, slot] - force) > 0.1 * se[0]  # the noisy states bias it
+    # a round's screen takes its first SCREEN_STEPS steps only, and the point it stops at is
+    # not linearized again: the error it reports is still the one of the theta it returns
+    steps = explain.SCREEN_STEPS
+    screen = engine.fit(theta0, slots, delay, ident, steps, False, 1, zero, True, True)
+    assert 0 < screen[4][0] <= steps
+    at = engine.errors(screen[0][:1], delay[:1], ident)[0] ** 2
+    assert screen[1][0] == pytest.approx(at, rel=1e-5)
+    start = engine.errors(theta0[:1], delay[:1], ident)[0] ** 2
+    assert screen[1][0] < start  # the steps it took lowered the error
 
 
 @pytest.mark.slow  # a noisy record: initial states estimated, discovery's slow path
