@@ -886,7 +886,6 @@ def test_a_fit_with_estimated_states_reaches_one_optimum_from_two_starts(plants,
     the same optimum: the same force to a fraction of its standard error, the same error
     (to the states' remaining gains).
     The record and the program are discovery's round 1 on it (nothing new compiles)."""
-    from hds.discover import explain
     from hds.discover.data import prepare
     from hds.discover.explain import State, _batch, _slot_width
     from hds.discover.fit import get_engine
@@ -934,15 +933,16 @@ def test_a_fit_with_estimated_states_reaches_one_optimum_from_two_starts(plants,
     plain = engine.fit(theta0, slots, delay, ident, CFG.iterations, False, rows=1)
     assert measured[0][0, slot] == pytest.approx(plain[0][0, slot], rel=1e-4)
     assert abs(measured[0][0, slot] - force) > 0.1 * se[0]  # the noisy states bias it
-    # a round's screen takes its first SCREEN_STEPS steps only, and the point it stops at is
-    # not linearized again: the error it reports is still the one of the theta it returns
-    steps = explain.SCREEN_STEPS
-    screen = engine.fit(theta0, slots, delay, ident, steps, False, 1, zero, True, True)
-    assert 0 < screen[4][0] <= steps
-    at = engine.errors(screen[0][:1], delay[:1], ident)[0] ** 2
-    assert screen[1][0] == pytest.approx(at, rel=1e-5)
-    start = engine.errors(theta0[:1], delay[:1], ident)[0] ** 2
-    assert screen[1][0] < start  # the steps it took lowered the error
+    # a screen does not linearize the point it stops at (nothing uses its H and G): the
+    # error it reports is still the one of the theta it returns, whether it stops
+    # converged or at its iteration budget
+    at = engine.errors(measured[0][:1], delay[:1], ident)[0] ** 2
+    assert measured[1][0] == pytest.approx(at, rel=1e-5)
+    cut = engine.fit(theta0, slots, delay, ident, 2, False, 1, zero, True, True)
+    assert cut[4][0] == 2
+    at = engine.errors(cut[0][:1], delay[:1], ident)[0] ** 2
+    assert cut[1][0] == pytest.approx(at, rel=1e-5)
+    assert at < engine.errors(theta0[:1], delay[:1], ident)[0] ** 2  # its steps lowered it
 
 
 @pytest.mark.slow  # a noisy record: initial states estimated, discovery's slow path

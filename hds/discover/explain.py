@@ -665,10 +665,6 @@ def _indistinct(model, state: State, min_scale_change: float) -> np.ndarray:
 # (`_Fitter.__call__`): the best by the screen's held-out error, and the runner-up, where
 # the two rankings may differ in order (experiments/discovery_speed)
 SCREENED = 2
-# Levenberg-Marquardt steps of a screen's fits: a screen ranks the candidates, and the first
-# steps from the current model show what each adds (experiments/discovery_speed: the rows
-# chosen were those of screens run to convergence on the noisy record and the lab draws)
-SCREEN_STEPS = 2
 
 
 class Batch(NamedTuple):
@@ -719,7 +715,7 @@ class _Fitter:
             slots,
             delay,
             self.ident,
-            min(self.cfg.iterations, SCREEN_STEPS) if hold else self.cfg.iterations,
+            self.cfg.iterations,
             self.estimate and not hold,
             rows,
             z0,
@@ -733,8 +729,7 @@ class _Fitter:
     def __call__(self, state: State, banned=()) -> Batch:
         """Every candidate added to `state`, fitted. With initial states estimated, a
         round screens first: each candidate's fit with the windows' states held at the
-        current model's (theta alone, a third of the tangents, no state blocks; its first
-        SCREEN_STEPS steps: a ranking needs no converged fit), then the
+        current model's (theta alone, a third of the tangents, no state blocks), then the
         rows selection decides on are fitted again with the states estimated: the best
         SCREENED candidates not yet selected (by held-out error, which measured states give
         either way; the best of them not `banned` among them), and the best refit of the
