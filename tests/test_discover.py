@@ -933,6 +933,16 @@ def test_a_fit_with_estimated_states_reaches_one_optimum_from_two_starts(plants,
     plain = engine.fit(theta0, slots, delay, ident, CFG.iterations, False, rows=1)
     assert measured[0][0, slot] == pytest.approx(plain[0][0, slot], rel=1e-4)
     assert abs(measured[0][0, slot] - force) > 0.1 * se[0]  # the noisy states bias it
+    # a screen does not linearize the point it stops at (nothing uses its H and G): the
+    # error it reports is still the one of the theta it returns, whether it stops
+    # converged or at its iteration budget
+    at = engine.errors(measured[0][:1], delay[:1], ident)[0] ** 2
+    assert measured[1][0] == pytest.approx(at, rel=1e-5)
+    cut = engine.fit(theta0, slots, delay, ident, 2, False, 1, zero, True, True)
+    assert cut[4][0] == 2
+    at = engine.errors(cut[0][:1], delay[:1], ident)[0] ** 2
+    assert cut[1][0] == pytest.approx(at, rel=1e-5)
+    assert at < engine.errors(theta0[:1], delay[:1], ident)[0] ** 2  # its steps lowered it
 
 
 @pytest.mark.slow  # a noisy record: initial states estimated, discovery's slow path

@@ -189,9 +189,32 @@ class Engine:
             dtheta = solve(a, g.sum(0))
             trial = jnp.where(first, theta, jnp.clip(theta + dtheta @ basis, lower, upper))
             loss = jnp.sum(per_window(r, z)) if estimate else jnp.sum(r * r)  # as before
+
+            def judged(trial_loss, better):
+                """The step's relative gain, the next damping, and whether theta stood
+                still or the gain was small (converged)."""
+                gain = (loss - trial_loss) / jnp.maximum(loss, 1e-30)
+                lam_new = jnp.where(
+                    first, lam, jnp.where(better, jnp.maximum(lam * 0.3, 1e-9), lam * 5)
+                )
+                still = jnp.all(jnp.abs(trial - theta) <= 1e-7 * (jnp.abs(theta) + 1e-3))
+                small = (gain < TOLERANCE) | (loss - trial_loss < ABS_TOLERANCE * r.size)
+                return gain, lam_new, still, small
+
+            def ends(better, lam_new, small, stalled):
+                """Whether the fit stops after this step: converged, stalled, damped out or
+                nothing to fit (the iteration cap is the loop's `cond`)."""
+                converged = ~first & ((better & small) | stalled)
+                return converged | (lam_new > LAMBDA_MAX) | ~jnp.any(valid)
+
             if estimate:
                 z_step = states(dtheta)
-                both_r = jax.vmap(res, in_axes=(None, 0))(trial, jnp.stack([z_step, z]))
+                # (none at the start: it is linearized whatever its error)
+                both_r = jax.lax.cond(
+                    first,
+                    lambda: jnp.zeros((2, *r.shape), r.dtype),
+                    lambda: jax.vmap(res, in_axes=(None, 0))(trial, jnp.stack([z_step, z])),
+                )
                 moved, kept = per_window(both_r[0], z_step), per_window(both_r[1], z)
                 took = moved < kept  # False for NaN
                 z_trial = jnp.where(first, z, jnp.where(took[:, None], z_step, z))
@@ -202,11 +225,25 @@ class Engine:
                 )
             elif hold:  # a screen: a refused step costs a forward pass, not a linearization
                 z_trial, took = z, jnp.zeros(windows, bool)
-                r_t = res(trial, z)
+                # (the first "step" is the start, whose linearization gives its residuals)
+                r_t = jax.lax.cond(first, lambda: r, lambda: res(trial, z))
                 trial_loss = jnp.sum(r_t * r_t)
                 better = first | (trial_loss < loss)  # False for NaN
+                # ... and so does the last accepted one: a screen only ranks (its H and G,
+                # left at its last linearization, are never used), so the point it stops at
+                # is linearized only where another step follows
+                _, lam_next, still_next, small_next = judged(trial_loss, better)
+                last = ends(better, lam_next, small_next, still_next) | (it >= iterations)
                 r_new, jt_new, jz_new = jax.lax.cond(
-                    better, lambda: linear(trial, z), lambda: (r, jt, jz)
+                    better & ~last,
+                    lambda: linear(trial, z),
+                    lambda: (
+                        jax.lax.cond(
+                            first, lambda: res(trial, z), lambda: jnp.where(better, r_t, r)
+                        ),
+                        jt,
+                        jz,
+                    ),
                 )
             else:  # the trial's linearization gives its error, and the next Jacobian if kept
                 z_trial, took = z, jnp.zeros(windows, bool)
@@ -216,15 +253,12 @@ class Engine:
                 r_new, jt_new, jz_new = (
                     jnp.where(better, new, old) for new, old in ((r_t, r), (jt_t, jt), (jz_t, jz))
                 )
-            gain = (loss - trial_loss) / jnp.maximum(loss, 1e-30)
-            lam = jnp.where(first, lam, jnp.where(better, jnp.maximum(lam * 0.3, 1e-9), lam * 5))
+            gain, lam_next, still, small = judged(trial_loss, better)
             lam_z = jnp.where(
                 first | ~better,
                 lam_z,
                 jnp.clip(jnp.where(took, lam_z * 0.3, lam_z * 5), 1e-9, 1e9),
             )
-            still = jnp.all(jnp.abs(trial - theta) <= 1e-7 * (jnp.abs(theta) + 1e-3))
-            small = (gain < TOLERANCE) | (loss - trial_loss < ABS_TOLERANCE * r.size)
             if estimate:
                 # with states estimated, z may still move (by less and less, window by window)
                 # while theta has settled: done when a full Gauss-Newton step (states
@@ -262,7 +296,8 @@ class Engine:
                 stalled = jnp.all(~free | ~(jnp.abs(newton) > SETTLED * se)) & (gain < SLOW)
             else:
                 stalled = still
-            done = (~first & ((better & small) | stalled)) | (lam > LAMBDA_MAX) | ~jnp.any(valid)
+            lam = lam_next
+            done = ends(better, lam, small, stalled)
             pick = lambda new, old: jnp.where(better, new, old)  # noqa: E731
             return (
                 pick(trial, theta),
