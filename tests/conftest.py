@@ -125,6 +125,24 @@ def trained(*args, **kwargs):
     return training.params, training.history
 
 
+def train_in_chunks(cfg, trainer):
+    """(state, metrics [runs, epochs]) of the runs of cfg, trained by `trainer` as
+    hds.experiment.train trains them: init, then run_chunk over the chunks of epochs, with its
+    compiled programs (on a CPU one run's, run by run). On a shared budget those are the
+    programs of every other training of these shapes in the suite (the persistent cache's),
+    where a jit of the whole training (`jax.jit(trainer.train)`) compiles a program of its own."""
+    import numpy as np
+
+    from hds.experiment import batch_hparams, compiled_programs
+
+    init, run_chunk, keys, hparams = compiled_programs(cfg, trainer, batch_hparams(cfg, trainer))
+    state, chunks = init(keys, hparams), []
+    for _ in range(cfg.algo.epochs // trainer.chunk):
+        state, metrics = run_chunk(state, hparams)
+        chunks.append(metrics)
+    return state, jax.tree.map(lambda *m: np.concatenate(m, axis=1), *chunks)
+
+
 def wandb_records(run_dir: Path) -> dict[str, list]:
     """Every record of every offline W&B run below run_dir ({run directory name: records}),
     read back from its `run-<id>.wandb` file: protobuf records in leveldb's log format (32 KiB
