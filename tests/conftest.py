@@ -74,9 +74,10 @@ SHARED = ROOT.parent / "shared"
 # it has two tests left, and a long file taken late leaves the other worker idle at the end.
 # Cost: CPU s of the file alone from an empty cache (2-core AMD EPYC, loaded, 2026-11-27;
 # experiments/test_suite_time/README.md): discover 158, sweeps 146, api 117, dynamics 104,
-# train 82, envs 68, robustness 61, tree 55, analytic 42, plants 38, loop 37, lab 37, improve 30,
-# design 27, cli 27, data 20, regress 18, lab_study 15, pictures 11, multiarm 10, sysid 9. A new
-# file not listed runs after these: add it where its cost puts it.
+# train 82, envs 68, robustness 61, tree 55, config 43, analytic 42, plants 38, loop 37, lab 37,
+# improve 30, design 27, cli 27, data 20, regress 18, lab_study 15, effects 13, pictures 11,
+# multiarm 10, sysid 9; the rest below 10 or not measured. A new file not listed runs after
+# these: add it where its cost puts it.
 LONGEST_FIRST = (
     "test_discover.py",
     "test_sweeps.py",
@@ -86,6 +87,7 @@ LONGEST_FIRST = (
     "test_envs.py",
     "test_robustness.py",
     "test_tree.py",
+    "test_config.py",
     "test_analytic.py",
     "test_plants.py",
     "test_loop.py",
@@ -94,12 +96,11 @@ LONGEST_FIRST = (
     "test_design.py",
     "test_cli.py",
     "test_program_cache.py",
-    "test_config.py",
     "test_bench.py",
-    "test_effects.py",
     "test_data.py",
     "test_regress.py",
     "test_lab_study.py",
+    "test_effects.py",
     "test_dr.py",
     "test_simulators.py",
     "test_pictures.py",
