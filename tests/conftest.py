@@ -75,9 +75,10 @@ SHARED = ROOT.parent / "shared"
 # Cost: CPU s of the file alone from an empty cache (2-core AMD EPYC, loaded, 2026-11-27;
 # experiments/test_suite_time/README.md): discover 158, sweeps 146, api 117, dynamics 104,
 # train 82, envs 68, robustness 61, tree 55, config 43, analytic 42, plants 38, loop 37, lab 37,
-# program_cache 31, improve 30, design 27, cli 27, data 20, regress 18, lab_study 15, effects 13,
-# pictures 11, multiarm 10, story 10, sysid 9; the rest below 10 or not measured. A new file
-# not listed runs after these: add it where its cost puts it.
+# program_cache 31, improve 30, design 27, cli 27, data 20, regress 18, lab_study 15, bench 15,
+# install 13, effects 13, pictures 11, multiarm 10, story 10, sysid 9, dr 8, simulators 8; the
+# rest below 6 or not measured. A new file not listed runs after these: add it where its cost
+# puts it.
 LONGEST_FIRST = (
     "test_discover.py",
     "test_sweeps.py",
@@ -96,22 +97,23 @@ LONGEST_FIRST = (
     "test_improve.py",
     "test_design.py",
     "test_cli.py",
-    "test_bench.py",
     "test_data.py",
     "test_regress.py",
     "test_lab_study.py",
+    "test_bench.py",
+    "test_install.py",
     "test_effects.py",
-    "test_dr.py",
-    "test_simulators.py",
     "test_pictures.py",
     "test_multiarm.py",
     "test_story.py",
     "test_sysid.py",
-    "test_results.py",
-    "test_continuation.py",
+    "test_dr.py",
+    "test_simulators.py",
     "test_layers.py",
     "test_optuna.py",
+    "test_results.py",
     "test_docs.py",
+    "test_continuation.py",
 )
 
 
