@@ -77,7 +77,7 @@ SHARED = ROOT.parent / "shared"
 # train 82, envs 68, robustness 61, tree 55, config 43, analytic 42, plants 38, loop 37, lab 37,
 # program_cache 31, improve 30, design 27, cli 27, data 20, regress 18, lab_study 15, bench 15,
 # install 13, effects 13, pictures 11, multiarm 10, story 10, sysid 9, dr 8, simulators 8; the
-# rest below 6 or not measured. A new file not listed runs after these: add it where its cost
+# rest below 6. A new file not listed runs after these: add it where its cost
 # puts it.
 LONGEST_FIRST = (
     "test_discover.py",
