@@ -69,16 +69,51 @@ SHARED = ROOT.parent / "shared"
 
 
 # make test runs on two workers, a file each at a time (--dist loadfile), in collection order
-# (--no-loadscope-reorder: xdist would put the files with most tests first). The files that
-# take longest (cold run, 2026-11-24: 209, 202, 144, 137, 125 and 92 s of 1201) start first,
-# so the workers finish together instead of one idling while the other runs a long file.
+# (--no-loadscope-reorder: xdist would put the files with most tests first). Every file is ranked
+# by its cost, longest first, so the workers finish together: a worker takes the next file when
+# it has two tests left, and a long file taken late leaves the other worker idle at the end.
+# Cost: CPU s of the file alone from an empty cache (2-core AMD EPYC, loaded, 2026-11-27;
+# experiments/test_suite_time/README.md): discover 158, sweeps 146, api 117, dynamics 104,
+# train 82, envs 68, robustness 61, tree 55, config 43, analytic 42, plants 38, loop 37, lab 37,
+# program_cache 31, improve 30, design 27, cli 27, data 20, regress 18, lab_study 15, bench 15,
+# install 13, effects 13, pictures 11, multiarm 10, story 10, sysid 9, dr 8, simulators 8; the
+# rest below 6. A new file not listed runs after these: add it where its cost
+# puts it.
 LONGEST_FIRST = (
-    "test_sweeps.py",
-    "test_train.py",
-    "test_api.py",
     "test_discover.py",
-    "test_envs.py",
+    "test_sweeps.py",
+    "test_api.py",
     "test_dynamics.py",
+    "test_train.py",
+    "test_envs.py",
+    "test_robustness.py",
+    "test_tree.py",
+    "test_config.py",
+    "test_analytic.py",
+    "test_plants.py",
+    "test_loop.py",
+    "test_lab.py",
+    "test_program_cache.py",
+    "test_improve.py",
+    "test_design.py",
+    "test_cli.py",
+    "test_data.py",
+    "test_regress.py",
+    "test_lab_study.py",
+    "test_bench.py",
+    "test_install.py",
+    "test_effects.py",
+    "test_pictures.py",
+    "test_multiarm.py",
+    "test_story.py",
+    "test_sysid.py",
+    "test_dr.py",
+    "test_simulators.py",
+    "test_layers.py",
+    "test_optuna.py",
+    "test_results.py",
+    "test_docs.py",
+    "test_continuation.py",
 )
 
 
@@ -123,6 +158,24 @@ def trained(*args, **kwargs):
 
     training = train_batch(*args, **kwargs)
     return training.params, training.history
+
+
+def train_in_chunks(cfg, trainer):
+    """(state, metrics [runs, epochs]) of the runs of cfg, trained by `trainer` as
+    hds.experiment.train trains them: init, then run_chunk over the chunks of epochs, with its
+    compiled programs (on a CPU one run's, run by run). On a shared budget those are the
+    programs of every other training of these shapes in the suite (the persistent cache's),
+    where a jit of the whole training (`jax.jit(trainer.train)`) compiles a program of its own."""
+    import numpy as np
+
+    from hds.experiment import batch_hparams, compiled_programs
+
+    init, run_chunk, keys, hparams = compiled_programs(cfg, trainer, batch_hparams(cfg, trainer))
+    state, chunks = init(keys, hparams), []
+    for _ in range(cfg.algo.epochs // trainer.chunk):
+        state, metrics = run_chunk(state, hparams)
+        chunks.append(metrics)
+    return state, jax.tree.map(lambda *m: np.concatenate(m, axis=1), *chunks)
 
 
 def wandb_records(run_dir: Path) -> dict[str, list]:

@@ -42,7 +42,9 @@ def friction_env():
 @pytest.fixture(scope="module")
 def batch(cartpole_env):
     keys = jax.random.split(jax.random.PRNGKey(0), 8)
-    states = jax.vmap(cartpole_env.reset)(keys)
+    # one compiled program: brax's reset run eagerly compiles each of its ops on its own
+    # (~200 small programs, twice the CPU time)
+    states = jax.jit(jax.vmap(cartpole_env.reset))(keys)
     actions = jax.random.uniform(jax.random.PRNGKey(1), (8, T, 1), minval=-1, maxval=1)
     return states, actions
 
@@ -127,14 +129,19 @@ def test_missing_mjcf_is_a_clear_error(cartpole_cfg):
 
 
 def _ten_steps(env) -> np.ndarray:
-    """Observations of 10 steps (0.4 s) of a constant push from a tilted, moving start."""
-    state = env.sim.init(jnp.array([0.1, 0.2]), jnp.array([0.0, 0.3]), env.params)
+    """Observations of 10 steps (0.4 s) of a constant push from a tilted, moving start (the
+    start computed in the same program: run eagerly, brax compiles each of its ops apart)."""
 
-    def step(s, _):
-        s = env.step(s, jnp.array([0.5]), env.params)
-        return s, env.observe(s, env.params)
+    def ten_steps(params):
+        state = env.sim.init(jnp.array([0.1, 0.2]), jnp.array([0.0, 0.3]), params)
 
-    return np.asarray(jax.jit(lambda s: jax.lax.scan(step, s, None, length=10))(state)[1])
+        def step(s, _):
+            s = env.step(s, jnp.array([0.5]), params)
+            return s, env.observe(s, params)
+
+        return jax.lax.scan(step, state, None, length=10)[1]
+
+    return np.asarray(jax.jit(ten_steps)(env.params))
 
 
 # Largest difference from brax's generalized backend over those 10 steps, per observation

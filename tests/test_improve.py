@@ -104,10 +104,11 @@ def test_gauss_newton_step_matches_a_direct_solve():
     state = jnp.array([0.5, -0.3])
     actions = jax.random.normal(jax.random.PRNGKey(5), (T, 1))
     cost = lambda a: -open_loop_return(ENGINE, None, TASK, state, a.reshape(T, 1))  # noqa: E731
-    H = gauss_newton_matrix(ENGINE, None, TASK, state, actions)
-    exact = jax.hessian(cost)(actions.reshape(-1))
+    # each in one compiled program (run eagerly, every op of the rollout compiles on its own)
+    H = jax.jit(lambda a: gauss_newton_matrix(ENGINE, None, TASK, state, a))(actions)
+    exact = jax.jit(jax.hessian(cost))(actions.reshape(-1))
     np.testing.assert_allclose(H, exact, rtol=1e-4, atol=1e-6)
-    g = -jax.grad(cost)(actions.reshape(-1))
+    g = -jax.jit(jax.grad(cost))(actions.reshape(-1))
     damping = 1e-2
     step = gauss_newton_step(H, g, damping)
     lam = damping * np.mean(np.diag(exact)) + 1e-6

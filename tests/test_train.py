@@ -28,26 +28,10 @@ from hds.algo.pods import (
 from hds.envs import make_env
 from hds.gap import Evaluator
 from hds.networks import make_policy
-from tests.conftest import FAST, ROOT, make_config, trained
+from tests.conftest import FAST, ROOT, make_config, train_in_chunks, trained
 
 # conftest.FAST: conf/debug/fast.yaml, the tests' budget where the policy must learn
 TINY = FAST
-
-
-def train_in_chunks(cfg, trainer):
-    """(state, metrics [runs, epochs]) of the runs of cfg, trained as hds.experiment.train
-    trains them: init, then run_chunk over the chunks of epochs, with its compiled programs
-    (on a CPU one run's, run by run). Those are the programs of every other training of these
-    shapes in the suite (the persistent cache's), where a jit of the whole training compiled
-    a program of its own."""
-    from hds.experiment import batch_hparams, compiled_programs
-
-    init, run_chunk, keys, hparams = compiled_programs(cfg, trainer, batch_hparams(cfg, trainer))
-    state, chunks = init(keys, hparams), []
-    for _ in range(cfg.algo.epochs // trainer.chunk):
-        state, metrics = run_chunk(state, hparams)
-        chunks.append(metrics)
-    return state, jax.tree.map(lambda *m: np.concatenate(m, axis=1), *chunks)
 
 
 @pytest.fixture(scope="module")
@@ -118,13 +102,10 @@ def test_closed_loop_improvement_trains_and_never_accepts_worse(setup):
     policy's return rises."""
     from hds.algo.rollout import perturbed_rollout, policy_rollout
 
-    cfg, env, *_ = setup
-    closed_cfg = make_config(*TINY, "algo.improve_in=closed_loop", "algo.epochs=30")
+    cfg, env, *_, keys, _, _ = setup
+    closed_cfg = make_config(*TINY, "seeds=2", "algo.improve_in=closed_loop", "algo.epochs=30")
     trainer = make_train_from_config(closed_cfg, env)
-    keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(2))
-    state, metrics = jax.jit(jax.vmap(trainer.train, in_axes=(0, None)))(
-        keys, trainer.default_hparams
-    )
+    state, metrics = train_in_chunks(closed_cfg, trainer)
     assert np.all(np.asarray(metrics["improved_return"]) >= np.asarray(metrics["return"]) - 1e-3)
     evaluator = Evaluator(env, trainer.policy, plant=None, episodes=16)
     before = jax.vmap(trainer.init, in_axes=(0, None))(keys, trainer.default_hparams).policy
@@ -197,7 +178,7 @@ class PoisonedEnv:
 def test_a_nan_gradient_is_skipped_and_counted(setup):
     cfg, env = setup[0], setup[1]
     trainer = make_train_from_config(cfg, PoisonedEnv(env))
-    state, metrics = jax.jit(trainer.train)(jax.random.PRNGKey(0), trainer.default_hparams)
+    state, metrics = train_in_chunks(cfg, trainer)
     skipped = np.asarray(metrics["skipped"])
     assert np.all(skipped > 0) and np.all(skipped < cfg.algo.rollouts)
     assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(state.policy))
