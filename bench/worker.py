@@ -89,7 +89,8 @@ def train(spec: dict) -> dict:
         if vmapped == 1:  # as hds.run: one run's program, called on each run (RunByRun), kept
             # in the program cache beside the compilation cache (hds.experiment's key)
             key = program_key(cfg, trainer.run_chunk)
-            init, chunk = RunByRun(trainer.init), RunByRun(trainer.run_chunk, key=key)
+            init = RunByRun(trainer.init, key=program_key(cfg, trainer.init))
+            chunk = RunByRun(trainer.run_chunk, key=key)
         else:
             init = jax.jit(over_runs(trainer.init, vmapped, seeds))
             chunk = jax.jit(over_runs(trainer.run_chunk, vmapped, seeds))

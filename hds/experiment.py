@@ -228,7 +228,8 @@ def compiled_programs(cfg: Config, trainer: Trainer, hparams):
     vmapped = runs_vmapped(cfg.vmap_runs, len(runs))
     if vmapped == 1:  # one run's program, whatever the batch: compiled once (RunByRun)
         chunk = RunByRun(trainer.run_chunk, key=program_key(cfg, trainer.run_chunk))
-        return RunByRun(trainer.init), chunk, keys, hparams
+        init = RunByRun(trainer.init, key=program_key(cfg, trainer.init))
+        return init, chunk, keys, hparams
     if vmapped == len(runs):  # a loop over the runs cannot be split across devices
         keys, hparams = _shard((keys, hparams))
     init = jax.jit(over_runs(trainer.init, vmapped, len(runs)))
