@@ -137,18 +137,25 @@ def source_digest() -> str:
     return h.hexdigest()
 
 
+@functools.cache
+def _versions() -> tuple[str, ...]:
+    """The versioned libraries' versions (importlib.metadata reads are ~10 ms each: once)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = []
+    for name in _VERSIONED:
+        try:
+            out.append(f"{name}={version(name)}")
+        except PackageNotFoundError:
+            out.append(f"{name}=none")
+    return tuple(out)
+
+
 def environment_digest() -> str:
     """The libraries' versions, the backend and jax's settings (those that are not cache or log
     settings): a program is reused only where all are the same."""
-    from importlib.metadata import PackageNotFoundError, version
-
     parts = [jax.default_backend(), str(jax.devices()[0].device_kind), str(jax.device_count())]
-    parts.append(sys.version)
-    for name in _VERSIONED:
-        try:
-            parts.append(f"{name}={version(name)}")
-        except PackageNotFoundError:
-            parts.append(f"{name}=none")
+    parts += [sys.version, *_versions()]
     settings = {k: v for k, v in jax.config.values.items() if "cache" not in k and "log" not in k}
     parts.append(repr(sorted(settings.items(), key=lambda kv: kv[0])))
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()
