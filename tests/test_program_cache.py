@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from hds.envs import make_env
-from hds.experiment import batch_hparams, compiled_programs
+from hds.experiment import batch_hparams, compiled_programs, trainer_program_key
 from hds.utils import runtime
 from hds.utils.runtime import RunByRun, Unhashable, fingerprint, program_key
 from tests.conftest import TINY, make_config
@@ -208,3 +208,19 @@ def test_a_corrupt_system_cache_entry_is_built_again_not_a_crash(tmp_path, monke
     hit, calls = build_counted(monkeypatch)  # rewritten whole
     assert calls == 0
     assert_same_system(built, hit)
+
+
+def test_the_trainer_key_ignores_the_logger_and_nothing_that_changes_a_result(
+    tiny, tmp_path, monkeypatch
+):
+    """make run names each sweep's W&B group after its new directory: a second make run
+    must find the first one's programs; a setting that changes the program must not."""
+    cfg, trainer = tiny
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path))
+    key = trainer_program_key(cfg, trainer.run_chunk)
+    assert key is not None
+    grouped = make_config(*TINY, "logger.group=multiruns/another/2026-11-27_22-30-00")
+    assert trainer_program_key(grouped, trainer.run_chunk) == key
+    other = make_config(*TINY, "algo.learning_rate=2e-3")
+    assert trainer_program_key(other, trainer.run_chunk) != key
+    assert trainer_program_key(cfg, trainer.init) != key
