@@ -32,7 +32,8 @@ import re  # noqa: E402
 import sys  # noqa: E402
 
 from bench.common import best_of, block, compose, peak_rss_mb, timed  # noqa: E402
-from hds.utils.runtime import RunByRun, over_runs, program_key, runs_vmapped  # noqa: E402
+from hds.experiment import trainer_program_key  # noqa: E402
+from hds.utils.runtime import RunByRun, over_runs, runs_vmapped  # noqa: E402
 
 
 def memory_analysis(compiled) -> dict | None:
@@ -88,8 +89,9 @@ def train(spec: dict) -> dict:
     if spec.get("program", "train") == "chunk":
         if vmapped == 1:  # as hds.run: one run's program, called on each run (RunByRun), kept
             # in the program cache beside the compilation cache (hds.experiment's key)
-            key = program_key(cfg, trainer.run_chunk)
-            init, chunk = RunByRun(trainer.init), RunByRun(trainer.run_chunk, key=key)
+            key = trainer_program_key(cfg, trainer.run_chunk)
+            init = RunByRun(trainer.init, key=trainer_program_key(cfg, trainer.init))
+            chunk = RunByRun(trainer.run_chunk, key=key)
         else:
             init = jax.jit(over_runs(trainer.init, vmapped, seeds))
             chunk = jax.jit(over_runs(trainer.run_chunk, vmapped, seeds))

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from hds import plots, policy_store, simulators
+from hds import plots, policy_store, rundir, simulators
 from hds.algo.pods import Trainer, make_train_from_config
 from hds.animate import animate_episodes
 from hds.checkpoint import Checkpoints
@@ -220,6 +220,14 @@ def batch_hparams(cfg: Config, trainer: Trainer, effects=None) -> dict:
     return hparams
 
 
+def trainer_program_key(cfg: Config, fn) -> str | None:
+    """The program cache's key of the trainer's `fn` (init, run_chunk) under `cfg`, without the
+    keys that change no result (hds.rundir.IGNORED): the logger's W&B group names the sweep's
+    directory, new in every `make run`, so with it no later run reused a program."""
+    kept = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}
+    return program_key({k: v for k, v in kept.items() if k not in rundir.IGNORED}, fn)
+
+
 def compiled_programs(cfg: Config, trainer: Trainer, hparams):
     """The batch's jitted `init(keys, hparams)` and `run_chunk(state, hparams)`, mapped over the
     runs as `cfg.vmap_runs` says, and the runs' keys (sharded where the batch is vmapped)."""
@@ -227,8 +235,9 @@ def compiled_programs(cfg: Config, trainer: Trainer, hparams):
     keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray([r["seed"] for r in runs]))
     vmapped = runs_vmapped(cfg.vmap_runs, len(runs))
     if vmapped == 1:  # one run's program, whatever the batch: compiled once (RunByRun)
-        chunk = RunByRun(trainer.run_chunk, key=program_key(cfg, trainer.run_chunk))
-        return RunByRun(trainer.init), chunk, keys, hparams
+        chunk = RunByRun(trainer.run_chunk, key=trainer_program_key(cfg, trainer.run_chunk))
+        init = RunByRun(trainer.init, key=trainer_program_key(cfg, trainer.init))
+        return init, chunk, keys, hparams
     if vmapped == len(runs):  # a loop over the runs cannot be split across devices
         keys, hparams = _shard((keys, hparams))
     init = jax.jit(over_runs(trainer.init, vmapped, len(runs)))

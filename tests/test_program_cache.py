@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from hds.envs import make_env
-from hds.experiment import batch_hparams, compiled_programs
+from hds.experiment import batch_hparams, compiled_programs, trainer_program_key
 from hds.utils import runtime
 from hds.utils.runtime import RunByRun, Unhashable, fingerprint, program_key
 from tests.conftest import TINY, make_config
@@ -42,7 +42,8 @@ def test_a_hit_skips_tracing_and_gives_the_numbers_of_jit_to_the_last_digit(
     plain = chunk_outputs(RunByRun(trainer.run_chunk), trainer, cfg)  # no key: jax.jit
     miss = chunk_outputs(RunByRun(trainer.run_chunk, key=key), trainer, cfg)
     entries = sorted(p.name for p in tmp_path.iterdir())
-    assert len(entries) == 2  # the serialized program and its output structure
+    # init's and the chunk's serialized programs, each with its output structure
+    assert len(entries) == 4
 
     traced = []
 
@@ -122,3 +123,104 @@ def test_a_changed_global_of_a_function_outside_hds_changes_its_fingerprint(tmp_
         sys.modules.pop("user_effect", None)
     assert first == again
     assert first != edited
+
+
+def test_init_from_the_program_cache_gives_the_numbers_of_jit_to_the_last_digit(
+    tiny, tmp_path, monkeypatch
+):
+    cfg, trainer = tiny
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path))
+    hparams = batch_hparams(cfg, trainer)
+    _, _, keys, hparams = compiled_programs(cfg, trainer, hparams)
+    key = program_key(cfg, trainer.init)
+    assert key is not None and key != program_key(cfg, trainer.run_chunk)
+    plain = RunByRun(trainer.init)(keys, hparams)  # no key: jax.jit
+    miss = RunByRun(trainer.init, key=key)(keys, hparams)
+    assert len(list(tmp_path.glob("*.jaxexport"))) == 1
+
+    def never(*args):  # a hit deserializes init's program: it is not traced
+        raise AssertionError("traced on a hit")
+
+    hit = RunByRun(never, key=key)(keys, hparams)
+    for a, b, c in zip(*map(jax.tree.leaves, (plain, miss, hit)), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        np.testing.assert_array_equal(np.asarray(b), np.asarray(c))
+
+
+# --- brax's System (hds.envs.system.brax_system), kept by cached_build ------------------------
+def build_counted(monkeypatch, **kwargs):
+    """make_simulator's System and how many times brax's load_model built one."""
+    from brax.io import mjcf
+
+    from hds.envs.system import make_simulator
+
+    calls = []
+    real = mjcf.load_model
+    monkeypatch.setattr(mjcf, "load_model", lambda m: calls.append(m) or real(m))
+    sim, _ = make_simulator("cartpole.xml", backend="analytic", **kwargs)
+    monkeypatch.setattr(mjcf, "load_model", real)
+    return sim.sys, len(calls)
+
+
+def assert_same_system(a, b):
+    leaves_a, leaves_b = jax.tree.leaves(a), jax.tree.leaves(b)
+    assert len(leaves_a) == len(leaves_b)
+    for x, y in zip(leaves_a, leaves_b, strict=True):
+        assert type(x) is type(y) and x.dtype == y.dtype
+        assert getattr(x, "weak_type", None) == getattr(y, "weak_type", None)
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    # every field, static ones and the MuJoCo model's binary included
+    assert fingerprint(a) == fingerprint(b)
+
+
+def test_a_cached_brax_system_is_the_built_one_to_the_last_digit(tmp_path, monkeypatch):
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path))
+    built, calls = build_counted(monkeypatch)
+    assert calls == 1 and len(list(tmp_path.glob("*.brax_system.pickle"))) == 1
+    hit, calls = build_counted(monkeypatch)
+    assert calls == 0  # unpickled, not built
+    assert_same_system(built, hit)
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", "off")
+    plain, calls = build_counted(monkeypatch)
+    assert calls == 1 and len(list(tmp_path.iterdir())) == 1
+    assert_same_system(plain, hit)
+
+
+def test_a_changed_model_or_source_file_misses_the_system_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path))
+    build_counted(monkeypatch)
+    other, calls = build_counted(monkeypatch, timestep=0.005)  # another MuJoCo model
+    assert calls == 1 and np.float32(other.opt.timestep) == np.float32(0.005)
+    monkeypatch.setattr(runtime, "source_digest", lambda: "an edited source file")
+    _, calls = build_counted(monkeypatch)
+    assert calls == 1
+    assert len(list(tmp_path.glob("*.brax_system.pickle"))) == 3
+
+
+def test_a_corrupt_system_cache_entry_is_built_again_not_a_crash(tmp_path, monkeypatch):
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path))
+    built, _ = build_counted(monkeypatch)
+    (entry,) = tmp_path.glob("*.brax_system.pickle")
+    entry.write_bytes(entry.read_bytes()[:100])  # cut short, as a full disk might leave it
+    again, calls = build_counted(monkeypatch)
+    assert calls == 1
+    assert_same_system(built, again)
+    hit, calls = build_counted(monkeypatch)  # rewritten whole
+    assert calls == 0
+    assert_same_system(built, hit)
+
+
+def test_the_trainer_key_ignores_the_logger_and_nothing_that_changes_a_result(
+    tiny, tmp_path, monkeypatch
+):
+    """make run names each sweep's W&B group after its new directory: a second make run
+    must find the first one's programs; a setting that changes the program must not."""
+    cfg, trainer = tiny
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path))
+    key = trainer_program_key(cfg, trainer.run_chunk)
+    assert key is not None
+    grouped = make_config(*TINY, "logger.group=multiruns/another/2026-11-27_22-30-00")
+    assert trainer_program_key(grouped, trainer.run_chunk) == key
+    other = make_config(*TINY, "algo.learning_rate=2e-3")
+    assert trainer_program_key(other, trainer.run_chunk) != key
+    assert trainer_program_key(cfg, trainer.init) != key

@@ -15,6 +15,7 @@ from flax import struct
 
 from hds.effects import EffectParams, EffectSet, place
 from hds.utils.quiet import quiet_brax
+from hds.utils.runtime import cached_build
 
 ASSETS = Path(__file__).parent / "assets"
 BACKENDS = ("generalized", "spring", "positional", "mjx", "analytic", "tree")
@@ -209,6 +210,22 @@ class Simulator:
         return self.effects.observe(params, jnp.concatenate([state.q, state.qd]))
 
 
+def brax_system(model: mujoco.MjModel):
+    """brax's System of a compiled MuJoCo model (`mjcf.load_model`), kept in the program cache
+    under the model's binary (hds.utils.runtime.cached_build: with every hds source file and the
+    versions of brax, mujoco and jax in the key): a later process unpickles it, where
+    load_model's copies into jax arrays took ~0.7 s of a second process's start."""
+    with quiet_brax():  # brax prints on import, which unpickling a System also does
+        from brax.io import mjcf
+
+    def build():
+        with quiet_brax():
+            return mjcf.load_model(model)
+
+    # the key is taken before load_model, which edits its argument
+    return cached_build("brax_system", build, model)
+
+
 def make_simulator(
     xml: str,
     backend: str = "generalized",
@@ -235,10 +252,7 @@ def make_simulator(
             ctrllimited=0,
             gear=[1, 0, 0, 0, 0, 0],
         )
-    with quiet_brax():
-        from brax.io import mjcf
-
-        sys = mjcf.load_model(spec.compile())  # load_model edits its argument: a fresh model
+    sys = brax_system(spec.compile())
     if backend == "mjx":  # the default solver loop is a while_loop, which reverse mode rejects
         sys = sys.tree_replace({"opt.iterations": 1})
     if backend in _OWN_BACKENDS:  # refuse unsupported models here, once

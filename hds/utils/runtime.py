@@ -69,9 +69,13 @@ class RunByRun:
     def __init__(self, fn, compiled=None, key: str | None = None):
         self.fn, self.key = fn, key
         self.program = compiled if compiled is not None else jax.jit(fn)
+        self._from_cache = compiled is None and key is not None
 
     def __call__(self, *args):
         host = jax.tree.map(np.asarray, args)  # one run's slice is a view, not an eager op
+        if self._from_cache:  # called without lower(): the first call reads the program cache
+            self._from_cache = False
+            self.program = self.lower(*host).compile().program
         runs = jax.tree.leaves(host)[0].shape[0]
         outs = [self.program(*jax.tree.map(lambda x, i=i: x[i], host)) for i in range(runs)]
         return jax.tree.map(lambda *xs: jax.device_put(np.stack(xs)), *outs)
@@ -133,18 +137,25 @@ def source_digest() -> str:
     return h.hexdigest()
 
 
+@functools.cache
+def _versions() -> tuple[str, ...]:
+    """The versioned libraries' versions (importlib.metadata reads are ~10 ms each: once)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = []
+    for name in _VERSIONED:
+        try:
+            out.append(f"{name}={version(name)}")
+        except PackageNotFoundError:
+            out.append(f"{name}=none")
+    return tuple(out)
+
+
 def environment_digest() -> str:
     """The libraries' versions, the backend and jax's settings (those that are not cache or log
     settings): a program is reused only where all are the same."""
-    from importlib.metadata import PackageNotFoundError, version
-
     parts = [jax.default_backend(), str(jax.devices()[0].device_kind), str(jax.device_count())]
-    parts.append(sys.version)
-    for name in _VERSIONED:
-        try:
-            parts.append(f"{name}={version(name)}")
-        except PackageNotFoundError:
-            parts.append(f"{name}=none")
+    parts += [sys.version, *_versions()]
     settings = {k: v for k, v in jax.config.values.items() if "cache" not in k and "log" not in k}
     parts.append(repr(sorted(settings.items(), key=lambda kv: kv[0])))
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()
@@ -299,11 +310,54 @@ def program_key(*parts) -> str | None:
     if program_cache_dir() is None:
         return None
     try:
-        content = fingerprint(parts)
+        return content_key(*parts)
     except Unhashable as err:
         log.info("program cache: not used, the program closes over %s", err)
         return None
+
+
+def content_key(*parts) -> str:
+    """The one key scheme of everything kept across processes: the content of `parts`
+    (`fingerprint`), every hds source file, the libraries' versions, the backend and jax's
+    settings. Raises Unhashable where a part cannot be hashed."""
+    content = fingerprint(parts)
     return hashlib.sha256(f"{content}{source_digest()}{environment_digest()}".encode()).hexdigest()
+
+
+def cached_build(kind: str, build, *parts):
+    """`build()`'s result, kept pickled in the program cache's directory under `kind` and the
+    `content_key` of `parts` (everything the result is built from, deterministically): a later
+    process with the same key unpickles it instead of building. Where the cache is off, a part
+    cannot be hashed, or the result cannot be pickled, it is built as before; an unreadable
+    entry is built again and rewritten."""
+    import pickle
+
+    from hds.utils.io import atomic_write_bytes
+
+    directory = program_cache_dir()
+    if directory is None:
+        return build()
+    try:
+        path = directory / f"{content_key(kind, *parts)}.{kind}.pickle"
+    except Unhashable as err:
+        log.info("program cache: %s not kept, it is built from %s", kind, err)
+        return build()
+    if path.is_file():
+        try:
+            return pickle.loads(path.read_bytes())
+        except Exception as err:  # noqa: BLE001 - a damaged entry is built again
+            log.warning("program cache: %s unreadable (%s); building again", path.name, err)
+    value = build()
+    try:
+        blob = pickle.dumps(value)
+    except Exception as err:  # noqa: BLE001 - nothing is kept; the result is the same
+        log.info("program cache: %s not kept, it cannot be pickled (%s)", kind, err)
+        return value
+    try:
+        atomic_write_bytes(path, blob)
+    except OSError as err:  # a read-only cache: this process's result stands
+        log.warning("program cache: %s not written (%s)", path.name, err)
+    return value
 
 
 def cached_lowering(fn, args: tuple, key: str, directory: Path):
