@@ -119,14 +119,23 @@ def invalid_jobs(argv: list[str], config_name: str = "config", loop: bool = Fals
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
-    from hds.config import Config, cli_overrides, compose
+    from hds.config import Config, cli_overrides, compose, sets_multirun
     from hds.data.budget import check_planned
 
     multirun = bool({"-m", "--multirun"} & set(argv))
     config_name = _flag_value(argv, ("--config-name", "-cn")) or config_name
     config_dir = _flag_value(argv, ("--config-dir", "-cd"))
+    overrides = OverridesParser.create().parse_overrides(cli_overrides(argv))
+    if not multirun and any(o.is_sweep_override() for o in overrides):
+        # an experiment may make itself a multirun (hydra.mode: MULTIRUN): then a sweep is one
+        single = [o.input_line for o in overrides if not o.is_sweep_override()]
+        dirs = [config_dir] if config_dir else []
+        try:
+            multirun = sets_multirun(single, config_name, dirs)
+        except (*cli.USER_ERRORS, HydraException) as err:
+            return [cli.describe(err)]
     fixed, swept = [], []
-    for override in OverridesParser.create().parse_overrides(cli_overrides(argv)):
+    for override in overrides:
         if override.key_or_group.startswith("hydra"):
             continue  # Hydra's own settings: no job's configuration
         key = override.get_key_element()

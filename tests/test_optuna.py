@@ -45,15 +45,29 @@ def test_the_optuna_experiment_composes_a_maximizing_search():
         compose(["objective=return"])
 
 
+def test_a_sweep_in_an_experiment_that_is_a_multirun_needs_no_dash_m():
+    """+experiment=optuna sets hydra.mode: MULTIRUN, so a sweep on its command line is its
+    search space, not a forgotten -m; a choice() with a value out of range is refused before
+    any trial, as the basic sweeper's values are; without such an experiment, -m is asked for."""
+    from hds.commands import invalid_jobs
+
+    assert invalid_jobs(["+experiment=optuna", "noise.decay=choice(0.5,0.9)"]) == []
+    refused = invalid_jobs(["+experiment=optuna", "noise.decay=choice(0.5,2.0)"])
+    assert "noise.decay = 2.0 is out of range" in refused[0] and "none launched" in refused[-1]
+    assert "add -m" in invalid_jobs(["method=pods_cl", "noise.decay=0.5,0.9"])[0]
+
+
 @pytest.mark.slow  # three trials of a tiny run: ~1 min on 2 cores
 def test_three_optuna_trials_maximize_the_returned_real_return(tmp_path):
-    """Three trials (one with an out-of-range decay, which fails before anything compiles):
-    the study's best is the best finished trial's mean real return, the failed trial is
-    recorded and the study goes on, and hds.report lists the finished trials, best first."""
+    """Three trials of a decay drawn from an interval reaching out of range (a trial drawn
+    past 1 fails in its job, before anything compiles; a choice() of values is checked before
+    any trial, as the basic sweeper's values are): the study's best is the best finished
+    trial's mean real return, the failed trial is recorded and the study goes on, and
+    hds.report lists the finished trials, best first."""
     out = tmp_path / "study"
     hds_run(
         "+experiment=optuna", "debug=fast", "seeds=2", "logger=none",
-        "hydra.sweeper.n_trials=3", "noise.decay=choice(0.5,2.0)", f"hydra.sweep.dir={out}",
+        "hydra.sweeper.n_trials=3", "noise.decay=interval(0.2,1.2)", f"hydra.sweep.dir={out}",
     )  # fmt: skip
     study = yaml.safe_load((out / "optimization_results.yaml").read_text())
     trials, failed = {}, []
@@ -61,12 +75,13 @@ def test_three_optuna_trials_maximize_the_returned_real_return(tmp_path):
         overrides = yaml.safe_load((job / ".hydra" / "overrides.yaml").read_text())
         sampled = dict(o.split("=", 1) for o in overrides)
         if (job / "failed.txt").is_file():
-            assert "noise.decay = 2.0 is out of range" in (job / "failed.txt").read_text()
+            assert float(sampled["noise.decay"]) > 1.0
+            assert "is out of range: it must lie in [0.0, 1.0]" in (job / "failed.txt").read_text()
             failed.append(job.name)
             continue
         rows = json.loads((job / "summary.json").read_text())["rows"]
         assert {r["seed"] for r in rows} == {0, 1} and {r["method"] for r in rows} == {"pods_cl"}
-        assert float(sampled["noise.decay"]) == 0.5
+        assert 0.2 <= float(sampled["noise.decay"]) <= 1.0
         step = float(sampled["algo.step_size"])
         trials[job.name] = (step, np.mean([r["real_return"] for r in rows]))
     assert len(trials) + len(failed) == 3 and trials and failed  # TPE's seed 0 draws both
@@ -76,7 +91,7 @@ def test_three_optuna_trials_maximize_the_returned_real_return(tmp_path):
     assert all(0.005 <= s <= 0.2 for s, _ in trials.values())
     # the report: the study's best, and a row per finished trial, best first
     proc = subprocess.run(
-        [sys.executable, "-m", "hds.report", str(out)], cwd=ROOT, env=ENV, capture_output=True
+        [sys.executable, "-m", "hds.report", f"dir={out}"], cwd=ROOT, env=ENV, capture_output=True
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     report = (out / "report.md").read_text()

@@ -21,6 +21,7 @@ from hds.config.composition import (
     env_config,
     load_config,
     schema_of,
+    sets_multirun,
 )
 from hds.config.schemas import (
     SEED_MAX,
@@ -86,6 +87,7 @@ __all__ = [
     "register",
     "run_label",
     "schema_of",
+    "sets_multirun",
     "validate",
 ]
 

@@ -63,6 +63,22 @@ def compose(overrides=(), config_name: str = "config", check_memory: bool = True
     return validate(composed, check_memory)
 
 
+def sets_multirun(overrides=(), config_name: str = "config", config_dirs=()) -> bool:
+    """Whether the config that `overrides` (none of them a sweep) compose asks Hydra for a
+    multirun itself (`hydra.mode: MULTIRUN`, as `+experiment=optuna` sets it), so that a
+    sweep on its command line needs no -m."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    search = [f"file://{Path(d).resolve()}" for d in config_dirs]
+    extra = [f"hydra.searchpath=[{','.join(search)}]"] if search else []
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        composed = hydra_compose(
+            config_name, overrides=[*extra, *overrides], return_hydra_config=True
+        )
+    return str(composed.hydra.mode).endswith("MULTIRUN")
+
+
 def env_config(env: dict) -> EnvConfig:
     """A checked EnvConfig from a plain dict (e.g. the env gap discovery corrected)."""
     cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(EnvConfig), env))
