@@ -52,30 +52,29 @@ def compose(overrides=(), config_name: str = "config", check_memory: bool = True
 
     config_dirs: further folders searched for config options, as `--config-dir` adds them
     (a study's experiments beside the study)."""
+    check_override_keys(overrides, schema_of(config_name), config_groups())
+    return validate(_hydra_compose(overrides, config_name, config_dirs), check_memory)
+
+
+def _hydra_compose(overrides, config_name: str, config_dirs, with_hydra: bool = False):
+    """Hydra's composition from hds/conf, with `config_dirs` on its search path (as
+    `--config-dir` adds them); `with_hydra`: Hydra's own node (`hydra.*`) too."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
-    check_override_keys(overrides, schema_of(config_name), config_groups())
     search = [f"file://{Path(d).resolve()}" for d in config_dirs]
     extra = [f"hydra.searchpath=[{','.join(search)}]"] if search else []
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        composed = hydra_compose(config_name, overrides=[*extra, *overrides])
-    return validate(composed, check_memory)
+        return hydra_compose(
+            config_name, overrides=[*extra, *overrides], return_hydra_config=with_hydra
+        )
 
 
 def sets_multirun(overrides=(), config_name: str = "config", config_dirs=()) -> bool:
     """Whether the config that `overrides` (none of them a sweep) compose asks Hydra for a
     multirun itself (`hydra.mode: MULTIRUN`, as `+experiment=optuna` sets it), so that a
     sweep on its command line needs no -m."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-
-    search = [f"file://{Path(d).resolve()}" for d in config_dirs]
-    extra = [f"hydra.searchpath=[{','.join(search)}]"] if search else []
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        composed = hydra_compose(
-            config_name, overrides=[*extra, *overrides], return_hydra_config=True
-        )
+    composed = _hydra_compose(overrides, config_name, config_dirs, with_hydra=True)
     return str(composed.hydra.mode).endswith("MULTIRUN")
 
 
