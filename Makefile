@@ -66,8 +66,8 @@ bench: $(STAMP)
 	$(BIN)/python -m bench.run
 
 lint: $(STAMP)
-	$(BIN)/ruff check hds tests bench
-	$(BIN)/ruff format --check hds tests bench
+	$(BIN)/ruff check hds tests bench experiments
+	$(BIN)/ruff format --check hds tests bench experiments
 
 sweep: $(STAMP)
 	$(BIN)/python -m hds.run -m +experiment=sim2real_friction real.friction_gap=0,0.5,1,2

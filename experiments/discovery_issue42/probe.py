@@ -1,15 +1,19 @@
 """Issue 42 probes: discovery on C MuJoCo cart-pole records with a hinge spring, rail friction
 + hinge damping, and rail friction + gain + delay (records as tests/test_discover.py makes them).
 
-    PYTHONPATH=$PWD python experiments/discovery_issue42/probe.py spring 2,5,20 wide 2,5 t3 20,5 two three
+    PYTHONPATH=$PWD python experiments/discovery_issue42/probe.py \
+        spring 2,5,20 wide 2,5 t3 20,5 two three
 """
 
-import sys, time, dataclasses
+import dataclasses
+import sys
+import time
 
 sys.path.insert(0, "tests")  # the tests' record helpers
 import numpy as np
-from conftest import make_config, ROOT
-from test_discover import record, effect, Plants, CFG
+from conftest import make_config
+from test_discover import CFG, Plants, effect, record
+
 from hds.discover import discover
 from hds.envs import make_env
 from hds.real.mujoco_plant import MujocoPlant
@@ -109,9 +113,10 @@ if "noisy" in which:
             )
             show(f"{tag} noise {nz} seed {seed}", res)
 if "wide" in which:
+    from test_discover import E, T
+
     from hds.data import collect, random_steps
     from hds.envs.system import load_spec
-    from test_discover import E, T
 
     for k in [float(x) for x in (sys.argv[sys.argv.index("wide") + 1]).split(",")]:
         spec = load_spec(env_cfg.xml)
