@@ -49,5 +49,5 @@ def permutation(key: jax.Array, n: int) -> jax.Array:
         return (key, order[stable_argsort(jax.random.bits(subkey, (n,), jnp.uint32))]), None
 
     # the rounds as one traced body, not unrolled copies of the sort (two at n = 5,000): the
-    # same integers, half the program (issue 43)
+    # same integers, one copy of the sort in the program (issue 43)
     return jax.lax.scan(sort_round, (key, jnp.arange(n)), None, length=rounds)[0][1]
