@@ -41,9 +41,13 @@ def permutation(key: jax.Array, n: int) -> jax.Array:
     """`jax.random.permutation(key, n)`: its rounds of sorts by fresh random keys (enough
     rounds that all n elements' keys are distinct in one of them, with high probability),
     each key drawn as jax draws it (tests/test_regress.py checks that the two agree)."""
-    order = jnp.arange(n)
     rounds = int(np.ceil(3 * np.log(max(1, n)) / np.log(np.iinfo(np.uint32).max)))
-    for _ in range(rounds):
+
+    def sort_round(carry, _):
+        key, order = carry
         key, subkey = jax.random.split(key)
-        order = order[stable_argsort(jax.random.bits(subkey, (n,), jnp.uint32))]
-    return order
+        return (key, order[stable_argsort(jax.random.bits(subkey, (n,), jnp.uint32))]), None
+
+    # the rounds as one traced body, not unrolled copies of the sort (two at n = 5,000): the
+    # same integers, one copy of the sort in the program (issue 43)
+    return jax.lax.scan(sort_round, (key, jnp.arange(n)), None, length=rounds)[0][1]
