@@ -1166,7 +1166,15 @@ class Designer:
 
 
 def calibrated(
-    designer: Designer, mismatch: Mismatch, theta, obs, u, noise, noise_half, level: float = 0.95
+    designer: Designer,
+    mismatch: Mismatch,
+    theta,
+    obs,
+    u,
+    noise,
+    noise_half,
+    level: float = 0.95,
+    min_episodes: int = 4,
 ) -> Mismatch:
     """`mismatch` scaled so that, on the records it was estimated from (obs [E, T+1, n_obs],
     u [E, T, n_act], the fit's theta and sensor noise), the sandwich of the sensor noise and
@@ -1176,11 +1184,13 @@ def calibrated(
     mismatch persists over steps (a friction's error while sliding one way), so its windows'
     residuals grow faster and the fit's scatter is larger than a white one of the same step
     size gives: one factor over the parameters (their relative variances pooled) takes that
-    up. The factor is a ratio of variances: at 2 episodes the fit's noise part is a single
-    draw, and so is it."""
+    up. The factor is a ratio of variances with the fit's noise part's degrees of freedom
+    (E - 1): below `min_episodes` episodes (2: a single draw, a factor anywhere from nil to
+    several times) the mismatch is returned as estimated (factor 1), the one-step residuals'
+    size being the better measure then."""
     episodes = len(obs)
-    if episodes < 2:
-        raise ValueError(f"{episodes} episode(s): the fit's noise part needs at least 2")
+    if episodes < min_episodes:
+        return dataclasses.replace(mismatch, scale=1.0)
     sensor = designer.record_se(theta, obs, u, noise) ** 2
     white = designer.record_se(theta, obs, u, noise, mismatch.scaled(1.0 / mismatch.scale)) ** 2
     t = stats.t.ppf(0.5 + level / 2, episodes - 1)
