@@ -33,8 +33,10 @@ the optimum, theta_hat - theta = H^-1 J_s^T r_s(n), so its covariance H^-1 B B^T
 d(J_s^T r_s)/dn, through the simulator too) holds the windows' overlap exactly; E episodes
 divide it by E, and the half-width takes the t quantile over episodes, as
 `confidence_intervals` does, and the median of a cluster-robust standard error over E
-episodes (`typical_scale`). The law mismatch part of the fit's intervals (a plant whose laws
-are not the library's) is not predicted.
+episodes (`typical_scale`). A law mismatch (a plant whose laws are not the library's) enters
+as a disturbance of each step whose state-dependent variance is measured on the records so far
+(`Designer.mismatch`, `Mismatch`, `calibrated` to the fit's noise part): its pull joins B, so
+the criterion and the prediction hold it (`mismatch=`; None: sensor noise alone).
 
     from hds.discover.design import Designer
     designer = Designer(env_cfg, ["coulomb_friction@slider"], dt=0.04, steps=100)
