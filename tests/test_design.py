@@ -291,6 +291,12 @@ def test_mismatch_pull_matches_the_disturbed_records(small, analytic_cfg, residu
     sensor_only = np.diag(inv @ b_small[:, :n_sensor] @ b_small[:, :n_sensor].T @ inv)
     np.testing.assert_allclose(shift.var(axis=0) / with_mis, 1.0, atol=0.2)
     assert np.all(with_mis > 2.0 * sensor_only)  # the mismatch widens the intervals
+    # the public prediction of the same record holds it: the design's standard errors
+    estimate = {FRICTION: {"force": 30.0}, "actuator_gain@slide": {"gain": 0.9}}
+    se_mis = small.predicted_se_of(estimate, np.asarray(u)[None], DOWN, noise, mismatch)
+    se_sensor = small.predicted_se_of(estimate, np.asarray(u)[None], DOWN, noise)
+    np.testing.assert_allclose(se_mis**2, with_mis / 0.01**2, rtol=0.02)
+    np.testing.assert_allclose(se_sensor**2, sensor_only / 0.01**2, rtol=0.02)
 
 
 def test_mismatch_estimate_recovers_an_injected_disturbance(small, analytic_cfg, disturbed):
