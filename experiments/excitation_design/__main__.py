@@ -6,6 +6,7 @@ against those the fit achieved. Writes results.json, results.md and width_vs_tim
   --cases friction80,friction_gain,friction80_own_laws   --repeats 5
   (furuta: XLA_FLAGS=--xla_cpu_use_fusion_emitters=false ... --cases furuta)
   --criterion asked (default: the case's asked widths, weighted A-optimal) | D | A
+  --mismatch none (default) | calibrated | raw: the law mismatch the design's criterion holds
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from hds.data.excitation import excitation
 from hds.discover.data import noise_level
 from hds.discover.design import (
     WindowFit,
+    calibrated,
     get_designer,
     half_width,
     limits_of,
@@ -186,6 +188,7 @@ def run_case(
     parameterisation="per_step",
     iterations=(200, 100),
     signals=SIGNALS,
+    mismatch="none",
 ):
     env_cfg = env_config(
         OmegaConf.to_container(OmegaConf.load(CONF / "env" / f"{spec['env']}.yaml"))
@@ -254,6 +257,10 @@ def run_case(
             if signal == "designed":
                 obs, acts, estimate, noise, design, infos = [], [], None, None, None, []
                 used = 0
+                # the law mismatch measured so far (Designer.mismatch, calibrated to the fit's
+                # noise part); none before the first record
+                mis = {"raw": None, "calibrated": None}
+                pred_mis, pred_mis_raw, mis_scale, mis_size = [], [], [], []
                 for r, n in enumerate(ROUNDS):
                     design = designer.design(
                         estimate,
@@ -266,6 +273,7 @@ def run_case(
                         criterion=targets if criterion == "asked" else criterion,
                         rivals=standard(104729 * rep + r + 1, 1),
                         parameterisation=parameterisation,
+                        mismatch=mis.get(mismatch),
                     )
                     chosen.append(design.signal)
                     ctrl = np.repeat(design.controls()[None], n, axis=0)
@@ -273,12 +281,19 @@ def run_case(
                     # so far at the current estimate and noise (the first round's assumed
                     # noise and nominal parameters replaced once data exist)
                     if estimate is not None:
-                        se_all = designer.predicted_se_of(
-                            estimate, np.concatenate([*all_ctrl, ctrl]), x0, noise
-                        )
+                        u_so_far = np.concatenate([*all_ctrl, ctrl])
+                        se_all = designer.predicted_se_of(estimate, u_so_far, x0, noise)
                         predicted_now.append(half_width(se_all, used + n).tolist())
+                        # the same with the mismatch measured so far (raw and calibrated)
+                        for key_, out_ in (("calibrated", pred_mis), ("raw", pred_mis_raw)):
+                            se_m = designer.predicted_se_of(
+                                estimate, u_so_far, x0, noise, mismatch=mis[key_]
+                            )
+                            out_.append(half_width(se_m, used + n).tolist())
                     else:
                         predicted_now.append(design.predicted_half(n).tolist())
+                        pred_mis.append(predicted_now[-1])
+                        pred_mis_raw.append(predicted_now[-1])
                     ds = collect(plant, task, q0[used : used + n], qd0[used : used + n], ctrl)
                     # the controls the plant applied are the designed ones (open loop, within
                     # the bound: nothing clips or distorts them on the way)
@@ -299,6 +314,14 @@ def run_case(
                     noise = fit["noise"]
                     noise_diff.append((noise_level(o) / np.asarray(spec["noise"])).tolist())
                     noise_est.append((noise / np.asarray(spec["noise"])).tolist())
+                    mis["raw"] = designer.mismatch(fit["theta"], o, a, noise)
+                    mis["calibrated"] = calibrated(
+                        designer, mis["raw"], fit["theta"], o, a, noise, fit["noise_half"]
+                    )
+                    mis_scale.append(mis["calibrated"].scale)
+                    # its size: the mean variance over the record, per signal, over the noise's
+                    var = mis["raw"].variance(o[:, :-1], a).reshape(-1, o.shape[-1]).mean(0)
+                    mis_size.append((np.sqrt(var) / np.maximum(noise, 1e-12)).tolist())
                     # the rounds' designs together: precisions add, t over all episodes
                     prec = sum(n_ / se**2 for n_, se in infos)
                     predicted.append(half_width(np.sqrt(used / prec), used).tolist())
@@ -371,6 +394,11 @@ def run_case(
             }
             if signal == "designed":
                 row["parameterisation"], row["iterations"] = parameterisation, list(iterations)
+                row["mismatch"] = mismatch  # which mismatch model the design's criterion held
+                row["predicted_half_now_mismatch"] = pred_mis
+                row["predicted_half_now_mismatch_raw"] = pred_mis_raw
+                row["mismatch_scale"] = mis_scale  # the calibration factor per round's fit
+                row["mismatch_std_over_noise"] = mis_size
                 # the predictions are typical (median) widths: `half_width`'s typical_scale
                 row["typical"] = True
             rows.append(row)
@@ -506,11 +534,15 @@ def summarise(results) -> tuple[str, dict]:
         "current estimate and noise, / achieved | that x the last fit's residual / noise, "
         "/ achieved | achieved sensor part (the record) | every round at the current "
         "estimate and noise, / sensor part | sensor part / noise part | with the mismatch "
-        "carried from the fit so far, / achieved noise part | that, / achieved reported |"
+        "carried from the fit so far, / achieved noise part | that, / achieved reported | "
+        "with the mismatch model (calibrated), / achieved noise part | that plus the carried "
+        "law-mismatch part, / achieved reported | the mismatch model uncalibrated, / achieved "
+        "noise part | that, / achieved reported |"
     )
-    lines.append("| --- " * 14 + "|")
+    lines.append("| --- " * 18 + "|")
     errors, errors_inflated, errors_now, errors_like = [], [], [], []
     errors_carried, errors_carried_full = [], []
+    model_errors = {"calibrated": ([], []), "raw": ([], [])}
     for case, res in results.items():
         rows = [r for r in res["rows"] if r["signal"] == "designed"]
         for i, label in enumerate(res["labels"]):
@@ -581,10 +613,41 @@ def summarise(results) -> tuple[str, dict]:
                     errors_carried_full.append(cf)
                     mark = "" if j else " (noise only)"
                     carried, carried_full = f"{cn:.2f}{mark}", f"{cf:.2f}{mark}"
+                modelled = []
+                for kind, key_ in (
+                    ("calibrated", "predicted_half_now_mismatch"),
+                    ("raw", "predicted_half_now_mismatch_raw"),
+                ):
+                    if key_ not in rows[0]:
+                        modelled += ["", ""]
+                        continue
+                    # the noise part predicted with the mismatch measured so far; the reported
+                    # width adds the law-mismatch part carried from the fit so far (with_mismatch)
+                    mn, mf = [], []
+                    for r in rows:
+                        before = (
+                            (r["sensor_half"][j - 1], r["noise_half"][j - 1], r["half"][j - 1])
+                            if j
+                            else (None, None, None)
+                        )
+                        pn, pf = with_mismatch(
+                            r["predicted_half_now"][j],
+                            int(n),
+                            *before,
+                            int(np.cumsum(ROUNDS)[j - 1]) if j else 0,
+                            noise_predicted=r[key_][j],
+                        )
+                        mn.append(pn[i] / r["noise_half"][j][i])
+                        mf.append(pf[i] / r["half"][j][i])
+                    mn, mf = float(np.median(mn)), float(np.median(mf))
+                    model_errors[kind][0].append(mn)
+                    model_errors[kind][1].append(mf)
+                    mark = "" if j else " (noise only)"
+                    modelled += [f"{mn:.2f}{mark}", f"{mf:.2f}{mark}"]
                 lines.append(
                     f"| {case} | {label} | {n} | {pred:.3g} | {noise:.3g} | {full:.3g} | "
                     f"{pred / noise:.2f} | {now} | {inflated} | {sensor} | {like} | {share} | "
-                    f"{carried} | {carried_full} |"
+                    f"{carried} | {carried_full} | " + " | ".join(modelled) + " |"
                 )
     summary["predicted_over_achieved"] = [float(x) for x in errors]
     lines.append("")
@@ -625,12 +688,37 @@ def summarise(results) -> tuple[str, dict]:
             "The same, noise part plus law-mismatch part, against the achieved reported "
             "half-width: {:.0%} of {} cells within 30%.",
         ),
+        (
+            "share_within_30pct_mismatch_model",
+            model_errors["calibrated"][0],
+            "With the mismatch model measured so far (`Designer.mismatch`, `calibrated`; round "
+            "0: the sensor part alone), against the achieved noise part: {:.0%} of {} cells "
+            "within 30%.",
+        ),
+        (
+            "share_within_30pct_mismatch_model_reported",
+            model_errors["calibrated"][1],
+            "The same plus the carried law-mismatch part, against the achieved reported "
+            "half-width: {:.0%} of {} cells within 30%.",
+        ),
+        (
+            "share_within_30pct_mismatch_raw",
+            model_errors["raw"][0],
+            "The mismatch model uncalibrated (a white disturbance of the one-step residuals' "
+            "size), against the achieved noise part: {:.0%} of {} cells within 30%.",
+        ),
+        (
+            "share_within_30pct_mismatch_raw_reported",
+            model_errors["raw"][1],
+            "The same, against the achieved reported half-width: {:.0%} of {} cells within 30%.",
+        ),
     ]
     for k, (key, errs, sentence) in enumerate(shares):
         if k == 0 or errs:
             within = float(np.mean(np.abs(np.asarray(errs) - 1) <= 0.3))
             summary[key] = within
             lines.append(sentence.format(within, len(errs)))
+            summary[key + "_count"] = [int(np.sum(np.abs(np.asarray(errs) - 1) <= 0.3)), len(errs)]
     return "\n".join(lines), summary
 
 
@@ -687,6 +775,15 @@ def main():
         default=",".join(SIGNALS),
         help="the signals to run; the case's stored rows of the others are kept (results.json)",
     )
+    ap.add_argument(
+        "--mismatch",
+        default="none",
+        choices=["calibrated", "raw", "none"],
+        help="the law mismatch the designed arm's criterion holds from round 1 on: the model "
+        "measured so far (Designer.mismatch) calibrated to the fit's noise part, uncalibrated, "
+        "or none (sensor noise alone: the default, the better on the measurement, README); "
+        "the predictions with the mismatch model are recorded for every choice",
+    )
     ap.add_argument("--out", default=str(HERE))
     ap.add_argument("--report", action="store_true", help="only rewrite the tables and figure")
     args = ap.parse_args()
@@ -732,6 +829,7 @@ def main():
                 args.parameterisation,
                 iterations,
                 signals,
+                args.mismatch,
             )
             if c in results and set(signals) != set(SIGNALS):  # keep the other signals' rows
                 kept = [r for r in results[c]["rows"] if r["signal"] not in signals]

@@ -33,8 +33,10 @@ the optimum, theta_hat - theta = H^-1 J_s^T r_s(n), so its covariance H^-1 B B^T
 d(J_s^T r_s)/dn, through the simulator too) holds the windows' overlap exactly; E episodes
 divide it by E, and the half-width takes the t quantile over episodes, as
 `confidence_intervals` does, and the median of a cluster-robust standard error over E
-episodes (`typical_scale`). The law mismatch part of the fit's intervals (a plant whose laws
-are not the library's) is not predicted.
+episodes (`typical_scale`). A law mismatch (a plant whose laws are not the library's) enters
+as a disturbance of each step whose state-dependent variance is measured on the records so far
+(`Designer.mismatch`, `Mismatch`, `calibrated` to the fit's noise part): its pull joins B, so
+the criterion and the prediction hold it (`mismatch=`; None: sensor noise alone).
 
     from hds.discover.design import Designer
     designer = Designer(env_cfg, ["coulomb_friction@slider"], dt=0.04, steps=100)
@@ -44,6 +46,7 @@ are not the library's) is not predicted.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
@@ -131,6 +134,67 @@ def limits_of(
         if (speed <= 0).any():
             raise ValueError(f"max_speed = {max_speed} must be positive (per joint)")
     return Limits(mid - half, mid + half, q_low, q_high, speed)
+
+
+@dataclass(frozen=True)
+class Mismatch:
+    """A law mismatch modelled as a disturbance of each step, x_(t+1) = f(x_t, u_t) + d_t, white
+    between steps, of variance var_o(x, u) = features(x, u) . coef_o per observed signal o
+    (`Designer.mismatch` estimates it from the fit's one-step residuals). The features say
+    where laws differ: everywhere (1), near a joint's rest (exp(-(v / rest_speed)^2) and the
+    same four times wider: a smoothed friction against a plant's stiction or soft constraint),
+    with the speed ((v / speed_scale)^2: a damping law) and with the drive (((u - mid) / half)^2:
+    a gain or a motor law). `scale` multiplies every variance (`calibrated`: as the fit's noise
+    part sees it)."""
+
+    coef: np.ndarray  # [n_obs, F] the variance per unit feature, per observed signal
+    rest_speed: np.ndarray  # [nv] a joint's speed within which it counts as at rest
+    speed_scale: np.ndarray  # [nv]
+    u_mid: np.ndarray  # [n_act]
+    u_half: np.ndarray  # [n_act]
+    scale: float = 1.0
+
+    def arrays(self) -> tuple:
+        """The traced form (`_mismatch_std`): the coefficients with `scale` applied."""
+        return _f32(
+            self.coef * self.scale, self.rest_speed, self.speed_scale, self.u_mid, self.u_half
+        )
+
+    def variance(self, obs, u) -> np.ndarray:
+        """[..., n_obs] the disturbance's variance at the states obs [..., n_obs] and controls
+        u [..., n_act] (obs the state a step starts from)."""
+        nq = obs.shape[-1] - len(self.rest_speed)
+        f = _mismatch_features(
+            np.asarray(obs, np.float64),
+            np.asarray(u, np.float64),
+            nq,
+            self.rest_speed,
+            self.speed_scale,
+            self.u_mid,
+            self.u_half,
+        )
+        return np.asarray(f, np.float64) @ (self.coef * self.scale).T
+
+    def scaled(self, factor: float) -> Mismatch:
+        return dataclasses.replace(self, scale=self.scale * float(factor))
+
+
+def _mismatch_features(obs, u, nq, rest_speed, speed_scale, u_mid, u_half):
+    """[..., F] the mismatch model's features (`Mismatch`) at states obs and controls u;
+    numpy or traced."""
+    xp = jnp if isinstance(obs, jax.Array) else np
+    v = obs[..., nq:]
+    z = v / rest_speed
+    return xp.concatenate(
+        [
+            xp.ones(v.shape[:-1] + (1,), v.dtype),
+            xp.exp(-(z**2)),
+            xp.exp(-((z / 4.0) ** 2)),
+            (v / speed_scale) ** 2,
+            ((u - u_mid) / u_half) ** 2,
+        ],
+        axis=-1,
+    )
 
 
 @dataclass
@@ -449,6 +513,64 @@ class Designer:
             return solve(~slow), int(np.sum(~slow))
         return sigma, len(res)
 
+    def mismatch(self, theta, obs, u, noise) -> Mismatch:
+        """The law mismatch on records obs [E, T+1, n_obs] of controls u [E, T, n_act] at theta
+        (the fit's estimate) beside the sensor noise of std `noise` [n_obs] (`sensor_noise`):
+        what the model's one-step residuals hold beyond the noise, as a disturbance of each
+        step whose variance depends on the state and the drive (`Mismatch`).
+
+        From a measured state the one-step residual is r_t = A_t n_t - n_(t+1) - d_t, so
+        E[r_t,o^2] = sum_p A_t,op^2 s_p + s_o + var_o(x_t, u_t): the excess of each squared
+        residual over the noise's share is regressed on the features (non-negative least
+        squares per signal, the mean of the squares: what the fit's quadratic loss sees,
+        the large residuals of a friction's reversals included). A disturbance spread alike
+        over every step of a signal is, by its variance, indistinguishable from that signal's
+        sensor noise (`sensor_noise`'s robust scale counts it there); one confined to some
+        states (a joint near rest, a fast or a hard-driven one) is what this separates."""
+        obs, u = np.asarray(obs, np.float64), np.asarray(u, np.float64)
+        if obs.ndim != 3 or u.shape[:2] != (obs.shape[0], obs.shape[1] - 1):
+            raise ValueError(
+                f"obs {obs.shape} and u {u.shape} do not match: give the records' observations "
+                "[E, T+1, n_obs] and the controls applied between them [E, T, n_act]"
+            )
+        noise = np.maximum(np.asarray(noise, np.float64), 0.0)
+        theta32 = jnp.asarray(theta, jnp.float32)
+        res, sens = [], []
+        for o, a in zip(obs, u, strict=True):
+            r, jac = self._one_step(theta32, *_f32(o, a))
+            res.append(np.asarray(r, np.float64))
+            sens.append(np.asarray(jac, np.float64) ** 2)
+        res, sens = np.concatenate(res), np.concatenate(sens)
+        excess = res**2 - (sens @ noise**2 + noise**2)  # [N, n_obs]
+        nq = self.sim.nq
+        states = obs[:, :-1].reshape(-1, obs.shape[-1])
+        speed = states[:, nq:]
+        rest = 1.0 / self.sim.sharpness + 3.0 * noise[nq:]
+        speed_scale = np.maximum(speed.std(axis=0), rest)
+        ctrl = np.asarray(self.sim.ctrl_range, np.float64)
+        mid, half = ctrl.mean(1), np.maximum(0.5 * (ctrl[:, 1] - ctrl[:, 0]), 1e-12)
+        feats = _mismatch_features(
+            states, u.reshape(-1, u.shape[-1]), nq, rest, speed_scale, mid, half
+        )
+        # each feature in units of its mean, so the least squares is conditioned alike
+        size = np.maximum(feats.mean(axis=0), 1e-12)
+        coef = np.stack([scipy.optimize.nnls(feats / size, e)[0] / size for e in excess.T])
+        return Mismatch(coef, rest, speed_scale, mid, half)
+
+    def _mis(self, mismatch: Mismatch | None) -> tuple:
+        """The traced mismatch arguments: `mismatch`'s, or none (zero variance), so a design
+        with and one without share one program."""
+        if mismatch is None:
+            nv, n_act = self.sim.n_obs - self.sim.nq, self.sim.n_act
+            n_feat = 1 + 3 * nv + n_act
+            return _f32(np.zeros((self.sim.n_obs, n_feat)), *np.ones((2, nv)), *np.ones((2, n_act)))
+        if mismatch.coef.shape[0] != self.sim.n_obs:
+            raise ValueError(
+                f"mismatch has {mismatch.coef.shape[0]} signals; this simulator observes "
+                f"{self.sim.n_obs}: estimate it with this designer (`Designer.mismatch`)"
+            )
+        return mismatch.arrays()
+
     def information(self, theta, obs, u, noise) -> np.ndarray:
         """[M, M] Fisher information of one episode's windows about the fitted parameters
         (their own units), white measurement noise of std `noise` [n_obs]."""
@@ -461,7 +583,7 @@ class Designer:
         j = np.asarray(j, np.float64)
         return j.T @ j
 
-    def _sandwich_fn(self, theta, obs, u, noise, scale):
+    def _sandwich_fn(self, theta, obs, u, noise, scale, mis=None):
         """H [M, M] and B [M, (T+1) n_obs] of the fit's linearised estimator on one episode
         (windows weighted by 1 / scale, as the fit's normalized residuals are) under white
         measurement noise of std `noise`: the estimate moves by H^-1 B n for noise n.
@@ -473,7 +595,15 @@ class Designer:
         Jacobian per window, over the parameters and the initial state together, so the
         design's gradient is a second derivative of the simulator, not a third (a reverse
         derivative of J^T r through the windows was one order more and twice the program;
-        on the Furuta it overflowed the stack of XLA's compiler)."""
+        on the Furuta it overflowed the stack of XLA's compiler).
+
+        `mis` (`Mismatch.arrays`): a law mismatch, a white disturbance d_t of each step of
+        state-dependent std, adds columns to B: it enters the windows' targets
+        y_(s+1+i) = ... + sum_(j<=i) Phi(s+1+i <- s+1+j) d_(s+j), Phi the model's state
+        transition, so d_t pulls the fit's gradient by -sum over the windows holding it of
+        L_j = sum_(i>=j) Phi^T w J_i, accumulated backwards through the one-step Jacobians
+        A_t (L_j = w J_j + A_(s+1+j)^T L_(j+1)): no more derivatives of the simulator than
+        the sensor noise's."""
         model, k, m = self.model, self.horizon, len(self.slots)
         weight = 1.0 / scale
         slots = jnp.asarray(self.slots)
@@ -496,23 +626,61 @@ class Designer:
         b = jnp.zeros((obs.shape[0], obs.shape[1], m), jt.dtype)
         b = b.at[starts].add(jnp.swapaxes(into_start, 1, 2))
         b = b.at[starts[:, None] + 1 + jnp.arange(k)[None, :]].add(into_target)
-        return h, jnp.moveaxis(b, -1, 0).reshape(m, -1)
+        b = jnp.moveaxis(b, -1, 0).reshape(m, -1)
+        if mis is None:
+            return h, b
+        return h, jnp.concatenate([b, self._disturbance_pull(theta, obs, u, jt, weight, mis)], 1)
 
-    def _parts(self, theta, ff, gain, x_ref, x0s, low, high, noise):
+    def _disturbance_pull(self, theta, obs, u, jt, weight, mis):
+        """[M, T n_obs] the fit's gradient's pull by a unit of each step's disturbance times
+        its std (`_sandwich_fn`); jt [W, k, n_obs, M] the windows' weighted sensitivities."""
+        model, k, n_obs = self.model, self.horizon, obs.shape[-1]
+        params = model.params(theta)
+        empty = jnp.zeros((0, u.shape[-1]), u.dtype)
+        std = _mismatch_std(obs[:-1], u, self.sim.nq, mis)  # [T, n_obs]
+
+        def one_step(x, ut):
+            return model.window(params, x, empty, ut[None])[0]
+
+        a = jax.vmap(jax.jacfwd(one_step))(obs[:-1], u)  # [T, n_obs, n_obs]: A_t
+        a = jnp.concatenate([a, jnp.zeros((1, n_obs, n_obs), a.dtype)])  # the last unused
+        wjt = jt * weight[None, None, :, None]  # d(fit's gradient) / d(target), sign aside
+        starts = jnp.asarray(self.starts)
+
+        def adjoint(s, wj):
+            a_next = jax.lax.dynamic_slice_in_dim(a, s + 1, k)  # A_(s+1+j), j = 0..k-1
+
+            def back(later, xs):
+                wj_j, a_j = xs
+                now = wj_j + a_j.T @ later
+                return now, now
+
+            return jax.lax.scan(back, jnp.zeros_like(wj[0]), (wj, a_next), reverse=True)[1]
+
+        pulls = jax.vmap(adjoint)(starts, wjt)  # [W, k, n_obs, M]
+        at = starts[:, None] + jnp.arange(k)[None, :]  # the disturbance's step s + j
+        bp = jnp.zeros((obs.shape[0] - 1, n_obs, pulls.shape[-1]), pulls.dtype)
+        bp = bp.at[at].add(-pulls * std[at][..., None])
+        return jnp.moveaxis(bp, -1, 0).reshape(pulls.shape[-1], -1)
+
+    def _parts(self, theta, ff, gain, x_ref, x0s, low, high, noise, mis):
         """Per episode on average over the initial states x0s [S, n_obs]: H [M, M] and
-        B B^T [M, M] of the fit's estimator; and the trajectories [S, T+1, n_obs], [S, T, n_act]."""
+        B B^T [M, M] of the fit's estimator (sensor noise and the law mismatch `mis`); and the
+        trajectories [S, T+1, n_obs], [S, T, n_act]."""
         obs, u = jax.vmap(lambda x0: self._rollout_fn(theta, ff, gain, x_ref, x0, low, high))(x0s)
         flat = obs.reshape(-1, obs.shape[-1])
         std = flat.std(axis=0)
         scale = jnp.maximum(std, 1e-6 * std.max() + 1e-12)  # as the fit's `prepare` does
-        h, b = jax.vmap(lambda o, a: self._sandwich_fn(theta, o, a, noise, scale))(obs, u)
+        h, b = jax.vmap(lambda o, a: self._sandwich_fn(theta, o, a, noise, scale, mis))(obs, u)
         meat = jnp.einsum("smp,snp->smn", b, b)
         return h.mean(0), meat.mean(0), obs, u
 
-    def predicted_se(self, theta, design: Design, x0s, noise) -> np.ndarray:
+    def predicted_se(self, theta, design: Design, x0s, noise, mismatch=None) -> np.ndarray:
         """[M] one episode's standard errors of discovery's fit (measured initial states) of a
-        record of this design from the initial states x0s [S, n_obs] (averaged over them)."""
-        h, meat = self._predict(*_f32(*_rollout_args(theta, design, x0s), noise))
+        record of this design from the initial states x0s [S, n_obs] (averaged over them),
+        under the sensor noise and the law mismatch `mismatch` (a `Mismatch`; None: none)."""
+        mis = self._mis(mismatch)
+        h, meat = self._predict(*_f32(*_rollout_args(theta, design, x0s), noise), mis)
         return np.sqrt(np.maximum(np.diag(_covariance(h, meat)), 0.0))
 
     def _open_rollout(self, theta, u, x0):
@@ -532,22 +700,25 @@ class Designer:
         theta = jnp.asarray(self.theta(estimate), jnp.float32)
         return np.asarray(self._rollout_open(theta, *_f32(controls, x0)), np.float64)
 
-    def _parts_open(self, theta, u, x0, noise, scale=None):
+    def _parts_open(self, theta, u, x0, noise, scale=None, mis=None):
         """H and B B^T of one episode of the open-loop controls u [T, n_act] from x0, its
         residuals over `scale` (None: the episode's own std, a record of it repeated)."""
         obs = self._open_rollout(theta, u, x0)
         if scale is None:
             std = obs.std(axis=0)
             scale = jnp.maximum(std, 1e-6 * std.max() + 1e-12)
-        h, b = self._sandwich_fn(theta, obs, u, noise, scale)
+        h, b = self._sandwich_fn(theta, obs, u, noise, scale, mis)
         return h, b @ b.T, obs
 
-    def predicted_se_of(self, estimate: dict | None, controls, x0, noise) -> np.ndarray:
+    def predicted_se_of(
+        self, estimate: dict | None, controls, x0, noise, mismatch=None
+    ) -> np.ndarray:
         """[M] one episode's standard errors of the fit on each of the open-loop records
         controls [E, T, n_act] from x0 [n_obs] (any signal: random steps, a PRBS, a design's
         controls), pooled over them as the fit's sandwich pools episodes (each weighted by
         the signals' std over all of them, as the fit weighs them); what a standard signal
-        is predicted to give, on the same model and noise as a design's prediction."""
+        is predicted to give, on the same model and noise as a design's prediction (and the
+        law mismatch `mismatch`, a `Mismatch`; None: sensor noise alone)."""
         u = np.asarray(controls, np.float64)
         if u.ndim != 3 or u.shape[1:] != (self.steps, self.sim.n_act):
             raise ValueError(
@@ -555,12 +726,13 @@ class Designer:
             )
         theta = jnp.asarray(self.theta(estimate), jnp.float32)
         x0, noise = _f32(x0, np.maximum(np.asarray(noise, np.float64), 1e-9))
+        mis = self._mis(mismatch)
         obs = np.concatenate([np.asarray(self._rollout_open(theta, *_f32(ue), x0)) for ue in u])
         std = obs.std(axis=0)
         scale = jnp.asarray(np.maximum(std, 1e-6 * std.max() + 1e-12), jnp.float32)
         h = meat = 0.0
         for ue in u:
-            he, me, _ = self._predict_open(theta, *_f32(ue), x0, noise, scale)
+            he, me, _ = self._predict_open(theta, *_f32(ue), x0, noise, scale, mis)
             h, meat = h + np.asarray(he, np.float64), meat + np.asarray(me, np.float64)
         return np.sqrt(np.maximum(np.diag(_covariance(h / len(u), meat / len(u))), 0.0))
 
@@ -593,18 +765,19 @@ class Designer:
             total += float(self._noise_loss(args[0], *_f32(o, a), *args[1:]))
         return total / (len(obs) * len(self.starts) * self.horizon * self.sim.n_obs)
 
-    def _record_fn(self, theta, obs, u, noise, scale):
+    def _record_fn(self, theta, obs, u, noise, scale, mis):
         """H and B B^T of one recorded episode, its residuals over `scale`."""
-        h, b = self._sandwich_fn(theta, obs, u, noise, scale)
+        h, b = self._sandwich_fn(theta, obs, u, noise, scale, mis)
         return h, b @ b.T
 
-    def record_se(self, theta, obs, u, noise) -> np.ndarray:
+    def record_se(self, theta, obs, u, noise, mismatch=None) -> np.ndarray:
         """[M] standard errors of the fit's estimate at theta on the records obs [E, T+1, n_obs]
         of controls u [E, T, n_act] (all E together) if their residuals were white sensor
         noise of std `noise` [n_obs] alone: the sandwich H^-1 B B^T H^-1 on the recorded
         trajectories. The design's prediction made on the record the plant gave: against the
         fit's cluster-robust noise part (the episodes' own gradients' scatter) it tells the
-        sensor noise's share from a law mismatch that differs between episodes."""
+        sensor noise's share from a law mismatch that differs between episodes. With
+        `mismatch` (a `Mismatch`) the residuals hold its disturbance too."""
         obs, u = np.asarray(obs, np.float64), np.asarray(u, np.float64)
         e = len(obs)
         if obs.shape != (e, self.steps + 1, self.sim.n_obs) or u.shape != (
@@ -621,9 +794,10 @@ class Designer:
         std = obs.reshape(-1, obs.shape[-1]).std(axis=0)
         scale = np.maximum(std, 1e-6 * std.max() + 1e-12)
         fixed = _f32(theta, np.maximum(np.asarray(noise, np.float64), 1e-9), scale)
+        mis = self._mis(mismatch)
         h = meat = 0.0
         for o, a in zip(obs, u, strict=True):
-            he, me = self._record(fixed[0], *_f32(o, a), *fixed[1:])
+            he, me = self._record(fixed[0], *_f32(o, a), *fixed[1:], mis)
             h, meat = h + np.asarray(he, np.float64), meat + np.asarray(me, np.float64)
         return np.sqrt(np.maximum(np.diag(_covariance(h, meat)), 0.0))
 
@@ -636,12 +810,14 @@ class Designer:
 
     # -- the design -----------------------------------------------------------------------
 
-    def _objective(self, wave, theta, noise, ref, pick, amplitude, middle, gain, x_ref, x0s, lim):
+    def _objective(
+        self, wave, theta, noise, mis, ref, pick, amplitude, middle, gain, x_ref, x0s, lim
+    ):
         """The criterion plus the limits' penalty of the feedforward middle + amplitude x wave
         (wave [T, n_act] in [-1, 1]); also the criterion alone and the trajectories and
         controls [S, ...], to keep the best iterate that keeps the limits."""
         h, meat, obs, u = self._parts(
-            theta, middle + amplitude * wave, gain, x_ref, x0s, lim[0], lim[1], noise
+            theta, middle + amplitude * wave, gain, x_ref, x0s, lim[0], lim[1], noise, mis
         )
         value = _traced_criterion(h, meat, ref, pick)
         return value + PENALTY * _penalty(obs, lim) / x0s.shape[0], (value, obs, u)
@@ -725,6 +901,7 @@ class Designer:
         start: Design | None = None,
         rivals: dict | None = None,
         parameterisation: str = "per_step",
+        mismatch: Mismatch | None = None,
     ) -> Design:
         """Optimise the excitation at `estimate` ({key: {param: value}}; missing: the
         simulator's own value) for episodes from the initial state x0 [n_obs] (or the
@@ -742,7 +919,13 @@ class Designer:
         `start`'s signal, each rival within the bound, and a random smooth wave (a tanh
         Fourier series of `seed`); "fourier" optimises a tanh Fourier series's coefficients
         (from `start`'s, else random ones). `iterations` and `learning_rate` default per
-        parameterisation (ITERATIONS, LEARNING_RATE)."""
+        parameterisation (ITERATIONS, LEARNING_RATE).
+
+        `mismatch` (a `Mismatch`, e.g. `Designer.mismatch` of the records so far, `calibrated`
+        to the fit's noise part): the criterion's covariance holds its disturbance besides the
+        sensor noise, so the design seeks information where the parameters' sensitivities
+        stand out of the law mismatch (e.g. away from a friction's reversals, where the
+        plant's law differs most), and the prediction holds it. None: sensor noise alone."""
         if parameterisation not in PARAMETERISATIONS:
             raise ValueError(
                 f"parameterisation {parameterisation!r} is unknown: choose one of "
@@ -785,8 +968,11 @@ class Designer:
             noise = 0.01 * np.maximum(np.asarray(obs).std(axis=0), 1e-9)
         noise = np.maximum(np.asarray(noise, np.float64), 1e-9)
         pick32 = None if pick is None else jnp.asarray(pick, jnp.float32)
+        mis = self._mis(mismatch)
         args = (
-            *_f32(theta, noise, ref),
+            *_f32(theta, noise),
+            mis,
+            *_f32(ref),
             pick32,
             *_f32(amplitude, middle, gain, x_ref, x0s),
             _f32(*lim),
@@ -839,17 +1025,17 @@ class Designer:
             history=history,
             waveform=best if parameterisation == "per_step" else None,
         )
-        design = self.finish(design, theta, x0s, noise)
+        design = self.finish(design, theta, x0s, noise, mismatch=mismatch)
         if rivals:
-            design = self._against(design, rivals, theta, x0s[0], noise, ref, pick)
+            design = self._against(design, rivals, theta, x0s[0], noise, ref, pick, mis)
         return design
 
-    def _against(self, design: Design, rivals: dict, theta, x0, noise, ref, pick) -> Design:
+    def _against(self, design: Design, rivals: dict, theta, x0, noise, ref, pick, mis) -> Design:
         """The design, or the rival signal of least criterion on the model (open loop, from
         x0, keeping the limits)."""
         if np.any(design.gain != 0):
             raise ValueError("rivals are open-loop signals: give them to an open-loop design")
-        h, meat = self._predict(*_f32(*_rollout_args(theta, design, x0[None]), noise))
+        h, meat = self._predict(*_f32(*_rollout_args(theta, design, x0[None]), noise), mis)
         best = _criterion_value(_covariance(h, meat), ref, pick)
         for name, u in rivals.items():
             u = np.asarray(u, np.float64)
@@ -859,7 +1045,7 @@ class Designer:
                 )
             if (u > design.limits.u_high + 1e-9).any() or (u < design.limits.u_low - 1e-9).any():
                 continue  # beyond the amplitude bound: no fair rival
-            h, meat, obs = self._predict_open(*_f32(theta, u, x0, noise))
+            h, meat, obs = self._predict_open(*_f32(theta, u, x0, noise), mis=mis)
             if max(design.limits.violation(np.asarray(obs), u).values()) > 0:
                 continue
             cov = _covariance(h, meat)
@@ -883,6 +1069,7 @@ class Designer:
         learning_rate: float = 0.05,
         seed: int = 0,
         starts: dict | None = None,
+        mismatch: Mismatch | None = None,
     ) -> dict:
         """The most flexible open-loop excitation: every step's control a free variable in the
         amplitude bound (projected Adam on the criterion, the joints' and speed limits as
@@ -922,8 +1109,11 @@ class Designer:
         lim = (limits.u_low, limits.u_high, limits.q_low, limits.q_high, limits.max_speed)
         pick32 = None if pick is None else jnp.asarray(pick, jnp.float32)
         gain = np.zeros((sim.n_act, sim.n_obs))  # open loop
+        mis = self._mis(mismatch)
         args = (
-            *_f32(theta, noise, ref),
+            *_f32(theta, noise),
+            mis,
+            *_f32(ref),
             pick32,
             *_f32(amplitude, middle, gain, x0, x0[None]),
             _f32(*lim),
@@ -941,12 +1131,21 @@ class Designer:
                 "no per-step excitation kept the limits from this initial state: it starts "
                 "outside them, or the limits leave no room to move; widen them"
             )
-        h, meat, obs = self._predict_open(*_f32(theta, best["controls"], x0, noise))
+        h, meat, obs = self._predict_open(*_f32(theta, best["controls"], x0, noise), mis=mis)
         best["trajectory"] = np.asarray(obs, np.float64)
         best["predicted_se"] = np.sqrt(np.maximum(np.diag(_covariance(h, meat)), 0.0))
         return best
 
-    def finish(self, design: Design, theta, x0s, noise, shrink: float = 0.8, tries: int = 30):
+    def finish(
+        self,
+        design: Design,
+        theta,
+        x0s,
+        noise,
+        shrink: float = 0.8,
+        tries: int = 30,
+        mismatch=None,
+    ):
         """Shrink the feedforward's swing until the predicted trajectories keep every limit,
         then fill in the trajectory (from the first initial state) and the predicted
         standard errors."""
@@ -964,8 +1163,45 @@ class Designer:
                 "widen the limits or give a stabilising feedback"
             )
         design.trajectory, design.planned_controls = obs[0], u[0]
-        design.predicted_se = self.predicted_se(theta, design, x0s, noise)
+        design.predicted_se = self.predicted_se(theta, design, x0s, noise, mismatch)
         return design
+
+
+def calibrated(
+    designer: Designer,
+    mismatch: Mismatch,
+    theta,
+    obs,
+    u,
+    noise,
+    noise_half,
+    level: float = 0.95,
+    min_episodes: int = 4,
+) -> Mismatch:
+    """`mismatch` scaled so that, on the records it was estimated from (obs [E, T+1, n_obs],
+    u [E, T, n_act], the fit's theta and sensor noise), the sandwich of the sensor noise and
+    its disturbance gives the fit's noise part `noise_half` [M] (t x cluster-robust se, a
+    typical draw of E clusters: over `typical_scale(E)`): the mismatch as discovery's fit sees
+    it. A white disturbance of the one-step residuals' size is the model; a plant's law
+    mismatch persists over steps (a friction's error while sliding one way), so its windows'
+    residuals grow faster and the fit's scatter is larger than a white one of the same step
+    size gives: one factor over the parameters (their relative variances pooled) takes that
+    up. The factor is a ratio of variances with the fit's noise part's degrees of freedom
+    (E - 1): below `min_episodes` episodes (2: a single draw, a factor anywhere from nil to
+    several times) the mismatch is returned as estimated (factor 1), the one-step residuals'
+    size being the better measure then."""
+    episodes = len(obs)
+    if episodes < min_episodes:
+        return dataclasses.replace(mismatch, scale=1.0)
+    sensor = designer.record_se(theta, obs, u, noise) ** 2
+    white = designer.record_se(theta, obs, u, noise, mismatch.scaled(1.0 / mismatch.scale)) ** 2
+    t = stats.t.ppf(0.5 + level / 2, episodes - 1)
+    fit = (np.asarray(noise_half, np.float64) / t / typical_scale(episodes)) ** 2
+    ref = np.maximum(np.abs(np.asarray(theta, np.float64)[designer.slots]), 1e-30) ** 2
+    ok = np.isfinite(fit) & np.isfinite(white) & np.isfinite(sensor)
+    extra = np.sum(((white - sensor) / ref)[ok])
+    factor = np.sum((np.maximum(fit - sensor, 0.0) / ref)[ok]) / extra if extra > 0 else 0.0
+    return dataclasses.replace(mismatch, scale=float(factor))
 
 
 def with_mismatch(
@@ -976,6 +1212,7 @@ def with_mismatch(
     half,
     episodes_before: int,
     level: float = 0.95,
+    noise_predicted=None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The fit's noise part and reported half-widths [M] for a record of `episodes` episodes
     whose sensor-noise half-widths the design predicts (`predicted_half`, typical ones:
@@ -994,10 +1231,16 @@ def with_mismatch(
     with the episodes while H^-1 shrinks as the predicted information grows, so it is carried
     from the fit so far as sqrt(E / E_before) x (predicted se / sensor se so far). The
     view-disagreement part is carried the same way (a shift, not scatter). Before any data
-    (episodes_before = 0) there is nothing to carry: the sensor part is returned for both."""
+    (episodes_before = 0) there is nothing to carry: the sensor part is returned for both.
+
+    `noise_predicted` [M]: the noise part predicted with a model of the mismatch's scatter
+    (`Designer.predicted_se_of(..., mismatch=)` as a half-width): it replaces (1), which
+    carries the scatter of the signals recorded so far to a signal that may differ; (2) is
+    carried as above."""
     pred = np.asarray(predicted_half, np.float64)
     if episodes_before == 0:
-        return pred.copy(), pred.copy()
+        first = pred if noise_predicted is None else np.asarray(noise_predicted, np.float64)
+        return first.copy(), first.copy()
     if episodes_before < 2 or episodes < 2:
         raise ValueError(
             f"episodes_before = {episodes_before} and episodes = {episodes}: intervals need "
@@ -1014,6 +1257,8 @@ def with_mismatch(
         t_now = stats.t.ppf(0.5 + level / 2, episodes - 1) * typical_scale(episodes)
         shrink = np.where(sensor > 0, (pred / t_now) / (sensor / t_before), 1.0)
     noise_now = pred * scatter
+    if noise_predicted is not None:
+        noise_now = np.asarray(noise_predicted, np.float64)
     bias = np.maximum(full - noise, 0.0) * math.sqrt(episodes / episodes_before) * shrink
     return noise_now, noise_now + bias
 
@@ -1056,6 +1301,15 @@ def _traced_criterion(h, meat, ref, pick):
         return jnp.linalg.slogdet(meat)[1] - 2 * jnp.linalg.slogdet(h)[1]
     inv = jnp.linalg.inv(h)  # A (pick all ones) or one parameter's variance (a one-hot pick)
     return jnp.log(jnp.sum(jnp.diag(inv @ meat @ inv) * pick))
+
+
+def _mismatch_std(obs, u, nq, mis):
+    """[T, n_obs] the std of each step's disturbance (traced) at states obs [T, n_obs] and
+    controls u [T, n_act]; mis = `Mismatch.arrays()`."""
+    coef, rest, speed, mid, half = mis
+    var = _mismatch_features(obs, u, nq, rest, speed, mid, half) @ coef.T
+    # the floor keeps the square root's derivative finite where the model has no mismatch
+    return jnp.sqrt(jnp.maximum(var, 0.0) + 1e-30)
 
 
 def _penalty(obs, lim):
