@@ -149,6 +149,12 @@ def run_discovery(system: str, env, effects: list[str], label: str):
         "initial_state": result.initial_state,
         "initial_state_choice": result.initial_state_choice,
         "velocity_error": [float(x) for x in result.data.velocity_error],
+        # what measured initial states carry through the windows: part of the noise floor
+        "carried_noise_mse": float(result.carried_noise),
+        "refused": [
+            {"effect": f"{e.name}@{e.target}", "params": dict(e.params), "reason": e.reason}
+            for e in result.law_mismatch
+        ],
     }
 
 
@@ -459,7 +465,7 @@ def main(argv=None):
         print(diagnostics())
         return
     enable_compilation_cache()  # as `python -m hds.discover` does: a rerun skips the compiles
-    results = {"date": "2026-11-27", "discover": DISCOVER, "ks": KS, "hold_rad": HOLD}
+    results = {"date": "2026-11-28", "discover": DISCOVER, "ks": KS, "hold_rad": HOLD}
     for system in args.systems:
         arms = ARMS[system]
         xml = f"multiarm_{system}.xml"
