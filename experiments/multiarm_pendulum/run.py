@@ -307,6 +307,37 @@ def tables(results: dict) -> str:
     return "\n".join(lines)
 
 
+def choices(results: dict) -> str:
+    """Per discovery: the velocities' error, the noise the measured states carry through the
+    windows (`carried_noise`), both starts' held-out k-step errors where both ran, the start
+    chosen, and what was refused and why (markdown)."""
+    lines = [
+        "\n| rig, start | velocity error (share of std) | carried noise (MSE per residual) | "
+        "held-out k-step, measured / estimated | chosen | refused (rule's numbers) |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for system in ("single", "double"):
+        if system not in results:
+            continue
+        runs = results[system]["discoveries"]
+        for tag, info in [("a", runs["a"])] + [(f"b{i}", d) for i, d in enumerate(runs["b"])]:
+            error = info.get("initial_state_choice", {}).get("heldout_error", {})
+            held = (
+                f"{error['measured']:.4f} / {error['estimated']:.4f}"
+                if error
+                else f"{info['heldout_kstep_after']:.4f} / not run"
+            )
+            velocity = ", ".join(f"{v:.2%}" for v in info.get("velocity_error", []))
+            refused = "; ".join(
+                f"{r['effect']}: {r['reason']}" for r in info.get("refused", []) if r["reason"]
+            )
+            lines.append(
+                f"| {system} {tag} | {velocity} | {info.get('carried_noise_mse', 0.0):.3g} | "
+                f"{held} | {info['initial_state']} | {refused or '-'} |"
+            )
+    return "\n".join(lines)
+
+
 def diagnostics() -> str:
     """What the recordings are (numpy only, seconds): each segment's swing amplitude at its start
     and end, and, for the single pendulum, the viscous k1 that minimises each segment's
@@ -461,7 +492,9 @@ def main(argv=None):
     parser.add_argument("--tables", action="store_true", help="print results.json's tables")
     args = parser.parse_args(argv)
     if args.tables:
-        print(tables(json.loads((HERE / "results.json").read_text())))
+        results = json.loads((HERE / "results.json").read_text())
+        print(tables(results))
+        print(choices(results))
         print(diagnostics())
         return
     enable_compilation_cache()  # as `python -m hds.discover` does: a rerun skips the compiles
@@ -509,6 +542,7 @@ def main(argv=None):
         results = json.loads(path.read_text()) | results
     atomic_write_json(path, results)
     print(tables(results))
+    print(choices(results))
     print(diagnostics())
 
 
