@@ -1210,3 +1210,30 @@ def test_retrain_shrinks_the_policys_sim2real_gap(plants, task, env_cfg, tmp_pat
     gaps = {r["method"]: r for r in retrain(cfg, corrected_env(env_cfg, result), tmp_path)["rows"]}
     assert set(gaps) == {"original", "corrected"}
     assert abs(gaps["corrected"]["gap"]) < 0.5 * abs(gaps["original"]["gap"])
+
+
+def test_two_compensations_of_one_mismatch_are_both_refused():
+    """The refusal cascade, kept on purpose: once an effect is refused as law mismatch, the
+    model without it, its share included, is the bar for the rest. A heavier cart and a rail
+    friction that both stand for one mismatch (each refitted alone takes most of the other's
+    share: 280 -> 160 and 280 -> 150) each earn less than the 100 the pair leaves; the cart,
+    weaker, is refused first, and the friction alone then removes 130 of 280, less than the
+    150 it leaves: refused too. Judged against the pair's 100 instead, the second of two
+    substitutes would always be named. A friction that explains more than it leaves (280 ->
+    120, a rise of 160) stays."""
+    from hds.discover.explain import _refuse_law_mismatch
+
+    base = _state([], 280.0)
+    chain = [base, _state([MASS], 160.0), _state([MASS, FRICTION], 100.0)]
+    misfits = {("coulomb_friction@slider",): 150.0, ("mass_scale@cart",): 160.0}
+    refused = []
+    kept = _refuse_law_mismatch(_Refits(misfits), chain, refused)
+    assert [with_it.selected[-1].key for with_it, _ in refused] == [
+        "mass_scale@cart",
+        "coulomb_friction@slider",
+    ]
+    assert kept == [base]
+    misfits[("coulomb_friction@slider",)] = 120.0  # the cart adds 20 < 100: still refused
+    chain[-1] = _state([MASS, FRICTION], 100.0)
+    kept = _refuse_law_mismatch(_Refits(misfits), chain, [])
+    assert [s.keys for s in kept] == [set(), {"coulomb_friction@slider"}]

@@ -600,3 +600,130 @@ def test_discovery_names_dry_friction_and_air_drag_on_a_generated_recording():
     assert set(named) == set(truth), (result.stopped, result.warnings)
     for name, (param, value) in truth.items():
         assert named[name].params[param] == pytest.approx(value, rel=0.15)
+
+
+# -- the noise floor of measured initial states (hds.discover.explain.carried_noise) -----------
+
+
+def test_a_correct_model_leaves_what_its_measured_initial_states_carry():
+    """On a recording of the single pendulum's MJCF (its published damping, 10 ms samples, 1 s
+    windows every 100 ms), velocities with 1% white noise: the true model's identification
+    mean squared residual is the noise of the compared samples plus what each window's noisy
+    initial velocity carries through it (`carried_noise`), about as much again. A floor of
+    the samples' noise alone would leave half of it for the laws to explain."""
+    from hds.config import compose
+    from hds.data.format import Dataset
+    from hds.discover.data import prepare
+    from hds.discover.explain import carried_noise
+    from hds.discover.fit import get_engine
+
+    env = compose(["env=multiarm_single", "data=unused"], "discover").env
+    env.effects = multiarm.published_effects(1)  # the model is the plant
+    engine = get_engine(env, 0.01, ["viscous_damping"], 0, 0, 100)
+    full = generated_single(0.0)
+    obs = full.obs[:, ::10].copy()
+    sigma = 0.01 * obs[..., 1].std()
+    obs[..., 1] += sigma * np.random.default_rng(3).normal(size=obs[..., 1].shape)
+    data = prepare(
+        Dataset(obs, full.actions[:, ::10], 0.01, full.obs_names),
+        engine.model.sim,
+        engine.model.pad,
+        100,
+        10,
+        0.25,
+        0,
+    )
+    ident = data.arrays("identification")
+    theta, delay = engine.model.nominal, np.zeros(1, np.int32)
+    mse = float(engine.errors(theta[None], delay[None], ident)[0]) ** 2
+    scale = np.asarray(data.scale, np.float64)
+    spread = np.array([0.0, sigma / scale[1]])
+    samples = float(np.mean(spread**2))  # the compared samples' own noise
+    carried = carried_noise(engine, theta, delay, ident, spread)
+    assert carried > 0.5 * samples
+    assert mse == pytest.approx(samples + carried, rel=0.1)
+
+
+TRUTH = {"coulomb_friction": ("force", 5e-4), "quadratic_drag": ("coefficient", 1.5e-5)}
+
+
+def _lowpassed_swings(friction: bool, tau: float):
+    """Discovery on free swings of the single pendulum in C MuJoCo (1 ms), with dry friction
+    5e-4 N m and quadratic drag 1.5e-5 N m s^2/rad^2 (`friction`) or neither, the velocities
+    low-passed over `tau` s (de-noised: an error white noise does not explain), sampled at
+    10 ms plus 0.1% white noise, measured initial states, 3 s windows every 0.5 s."""
+    from omegaconf import OmegaConf
+
+    from hds.config import compose
+    from hds.data.format import Dataset
+    from hds.discover import DiscoverConfig, discover
+    from hds.real.mujoco_plant import MujocoPlant
+
+    effects = [
+        {"name": name, "target": "arm1", "params": {param: value}}
+        for name, (param, value) in TRUTH.items()
+    ]
+    env = OmegaConf.create({"xml": "multiarm_single.xml", "timestep": 1e-3, "frames_per_step": 1})
+    plant = MujocoPlant(env, effects if friction else [])
+    rng = np.random.default_rng(0)
+    offsets = np.array([0.3, 0.5, 0.8, 1.2, -0.4, -1.0, -1.6])
+    obs = [plant.reset(np.pi + offsets[:, None], rng.normal(0, 0.05, (len(offsets), 1)))]
+    for _ in range(9000):
+        obs.append(plant.step(np.zeros((len(offsets), 1))))
+    obs = np.stack(obs, axis=1)
+    obs[..., 1] = _lowpass(obs[..., 1], tau, 1e-3)
+    obs = obs[:, ::10]  # the experiment's 10 ms
+    obs = obs + 0.001 * obs.reshape(-1, 2).std(axis=0) * rng.normal(size=obs.shape)
+    data = Dataset(
+        obs, np.zeros((len(obs), 900, 1)), 0.01, multiarm.obs_names(1), multiarm.ACTION_NAMES
+    )
+    cfg = DiscoverConfig(
+        horizon=300,
+        stride=50,
+        effects=["viscous_damping", "coulomb_friction", "quadratic_drag", "inertia_scale"],
+        max_delay=0,
+        slot_buckets=[],
+        initial_state="measured",
+    )
+    env_cfg = compose(["env=multiarm_single", "data=unused"], "discover").env
+    result = discover(data, env_cfg, cfg)
+    assert result.data.velocity_error[0] > cfg.noise_threshold
+    return result
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("friction", [True, False])
+def test_the_carried_floor_names_the_friction_and_nothing_on_a_frictionless_swing(friction):
+    """Velocities low-passed over 2 ms (1.6% of their std), measured initial states: the noise
+    floor carries the velocities' error through each window (`carried_noise`); the friction
+    and the drag are named, within 20%, and on the frictionless swing nothing is: the lower
+    bar names no compensation of the velocities' lag."""
+    result = _lowpassed_swings(friction, 0.002)
+    assert result.carried_noise > 0.0
+    named = {e.name: e for e in result.missing_effects}
+    if not friction:
+        assert not named, (result.stopped, [e.to_json() for e in result.missing_effects])
+        return
+    assert set(named) == set(TRUTH), (result.stopped, result.warnings)
+    for name, (param, value) in TRUTH.items():
+        assert named[name].params[param] == pytest.approx(value, rel=0.2)
+
+
+@pytest.mark.slow
+def test_the_carried_floor_is_what_names_the_friction_under_a_lagging_velocity(monkeypatch):
+    """Velocities low-passed over 5 ms (3.9% of their std): with the floor of the samples'
+    white noise alone the lag's consequences count as the laws' mismatch and no friction law
+    clears the bar (viscous damping, the one selected, is refused); with the floor carrying
+    the velocities' error a friction law of arm1 is named (viscous damping: with a lag this
+    large the dry friction's margin is lost, and one law stands for the pair) and no
+    inertia."""
+    from hds.discover import workflow
+
+    friction = {"viscous_damping", "coulomb_friction", "quadratic_drag"}
+    result = _lowpassed_swings(True, 0.005)
+    named = {e.name for e in result.missing_effects}
+    assert named and named <= friction, (result.stopped, named)
+    monkeypatch.setattr(workflow, "smooth_velocity_error", lambda data, cfg: False)
+    result = _lowpassed_swings(True, 0.005)
+    assert result.carried_noise == 0.0
+    assert not {e.name for e in result.missing_effects} & friction, result.stopped

@@ -149,6 +149,12 @@ def run_discovery(system: str, env, effects: list[str], label: str):
         "initial_state": result.initial_state,
         "initial_state_choice": result.initial_state_choice,
         "velocity_error": [float(x) for x in result.data.velocity_error],
+        # what measured initial states carry through the windows: part of the noise floor
+        "carried_noise_mse": float(result.carried_noise),
+        "refused": [
+            {"effect": f"{e.name}@{e.target}", "params": dict(e.params), "reason": e.reason}
+            for e in result.law_mismatch
+        ],
     }
 
 
@@ -298,6 +304,37 @@ def tables(results: dict) -> str:
                 lines.append(
                     f"| {tag} | {named} | {info['seconds']:.0f} / {cpu:.0f} ({load:.1f}) |"
                 )
+    return "\n".join(lines)
+
+
+def choices(results: dict) -> str:
+    """Per discovery: the velocities' error, the noise the measured states carry through the
+    windows (`carried_noise`), both starts' held-out k-step errors where both ran, the start
+    chosen, and what was refused and why (markdown)."""
+    lines = [
+        "\n| rig, start | velocity error (share of std) | carried noise (MSE per residual) | "
+        "held-out k-step, measured / estimated | chosen | refused (rule's numbers) |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for system in ("single", "double"):
+        if system not in results:
+            continue
+        runs = results[system]["discoveries"]
+        for tag, info in [("a", runs["a"])] + [(f"b{i}", d) for i, d in enumerate(runs["b"])]:
+            error = info.get("initial_state_choice", {}).get("heldout_error", {})
+            held = (
+                f"{error['measured']:.4f} / {error['estimated']:.4f}"
+                if error
+                else f"{info['heldout_kstep_after']:.4f} / not run"
+            )
+            velocity = ", ".join(f"{v:.2%}" for v in info.get("velocity_error", []))
+            refused = "; ".join(
+                f"{r['effect']}: {r['reason']}" for r in info.get("refused", []) if r["reason"]
+            )
+            lines.append(
+                f"| {system} {tag} | {velocity} | {info.get('carried_noise_mse', 0.0):.3g} | "
+                f"{held} | {info['initial_state']} | {refused or '-'} |"
+            )
     return "\n".join(lines)
 
 
@@ -455,11 +492,13 @@ def main(argv=None):
     parser.add_argument("--tables", action="store_true", help="print results.json's tables")
     args = parser.parse_args(argv)
     if args.tables:
-        print(tables(json.loads((HERE / "results.json").read_text())))
+        results = json.loads((HERE / "results.json").read_text())
+        print(tables(results))
+        print(choices(results))
         print(diagnostics())
         return
     enable_compilation_cache()  # as `python -m hds.discover` does: a rerun skips the compiles
-    results = {"date": "2026-11-27", "discover": DISCOVER, "ks": KS, "hold_rad": HOLD}
+    results = {"date": "2026-11-28", "discover": DISCOVER, "ks": KS, "hold_rad": HOLD}
     for system in args.systems:
         arms = ARMS[system]
         xml = f"multiarm_{system}.xml"
@@ -503,6 +542,7 @@ def main(argv=None):
         results = json.loads(path.read_text()) | results
     atomic_write_json(path, results)
     print(tables(results))
+    print(choices(results))
     print(diagnostics())
 
 

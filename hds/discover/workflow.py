@@ -19,6 +19,7 @@ from hds.discover.data import Data, prepare
 from hds.discover.explain import (
     Selection,
     State,
+    carried_noise,
     correlations,
     delay_range,
     forward_selection,
@@ -104,6 +105,9 @@ class Discovery:
     # where the velocities' smooth error left the choice to the held-out episodes
     # (`choose_initial_states`): the error, both modes' held-out errors, the mode chosen
     initial_state_choice: dict = field(default_factory=dict)
+    # the mean squared normalized residual the measured initial states' error carries
+    # through the identification windows, part of the noise floor (`carried_noise`)
+    carried_noise: float = 0.0
     final: State | None = None  # the corrected model (theta, delays) of the named effects
     backend: str = ""  # the physics backend the fits ran on
     no_gap: bool = False  # the simulator already predicted the data (to min_improvement)
@@ -193,6 +197,7 @@ class Discovery:
             "noise_floor_nrmse": self.noise_floor,
             "initial_state": self.initial_state,
             "initial_state_choice": self.initial_state_choice,
+            "carried_noise_mse": self.carried_noise,
             "velocity_error": [float(x) for x in self.data.velocity_error],
             "backend": self.backend,
             "stopped": self.stopped,
@@ -277,8 +282,25 @@ def discover(
     )
     floor = float(np.sqrt(np.mean(relative_noise**2)))
     ident = data.arrays("identification")
+    carried = 0.0
+    if not estimate and smooth_velocity_error(data, cfg):
+        # measured states whose velocities carry a smooth error: a correct model would still
+        # leave what that error (and the states' white noise) carries through each window,
+        # and the error of every compared velocity sample, which the white-noise floor
+        # leaves out
+        spread = relative_noise.copy()
+        nq = len(data.velocity_error)
+        spread[nq:] = np.sqrt(spread[nq:] ** 2 + data.velocity_error**2)
+        carried = carried_noise(engine, nominal, no_delay, ident, spread)
+        carried += float(np.sum(data.velocity_error**2)) / len(spread)
+        log.info(
+            "measured initial states carry %.3g (mean squared normalized residual) through "
+            "the windows, against %.3g of white noise in the samples",
+            carried,
+            floor**2,
+        )
     selection = forward_selection(
-        engine, ident, data.arrays("heldout"), cfg, estimate, floor, banned, progress
+        engine, ident, data.arrays("heldout"), cfg, estimate, floor, banned, progress, carried
     )
     # What the selected effects leave: if a feature still explains much of it, the gap has a
     # structure no effect of the library has, and an effect that explains less than that
@@ -362,6 +384,7 @@ def discover(
     result.remainder = remainder
     result.structured_unexplained = float(unexplained * structure(remainder))
     result.initial_state = "estimated" if estimate else "measured"
+    result.carried_noise = carried
     result.final, result.cfg, result.backend = final, cfg, backend
     result.no_gap = no_gap
     result.warnings = warnings(result, cfg)
