@@ -240,10 +240,11 @@ def test_a_checked_model_builds_no_system_until_used_and_keeps_its_key(tmp_path,
     def never(model):
         raise AssertionError("the System was built or read")
 
+    built = system.brax_system
     monkeypatch.setattr(system, "brax_system", never)
     warm, _ = system.make_simulator("cartpole.xml", backend="analytic")  # the check: a hit
     assert fingerprint(warm) == key  # the same program key as the process that built it
-    monkeypatch.undo()
+    monkeypatch.setattr(system, "brax_system", built)
     assert_same_system(warm.sys, first.sys)  # built on first use, to the last digit
     assert fingerprint(warm) == key  # building it does not change its content
     other, _ = system.make_simulator("cartpole.xml", backend="tree")  # another key: checked
