@@ -35,9 +35,9 @@ from bench.common import best_of, block, compose, peak_rss_mb, timed  # noqa: E4
 from hds.experiment import trainer_program_key  # noqa: E402
 from hds.utils.runtime import (  # noqa: E402
     RunByRun,
+    command_gc,
     over_runs,
     runs_vmapped,
-    skip_final_collection,
 )
 
 
@@ -215,7 +215,7 @@ KINDS = {"train": train, "programs": programs}
 
 
 def main() -> None:
-    skip_final_collection()  # as hds.run does
+    command_gc()  # as hds.run does
     kind, spec, path = sys.argv[1], json.loads(sys.argv[2]), sys.argv[3]
     result = KINDS[kind](spec)
     with open(path, "w") as f:

@@ -31,7 +31,7 @@ from hds.gap import no_finite_result  # noqa: E402
 from hds.simulators import method_name  # noqa: E402
 from hds.utils import cli  # noqa: E402
 from hds.utils.io import atomic_write_bytes  # noqa: E402
-from hds.utils.runtime import enable_compilation_cache, skip_final_collection  # noqa: E402
+from hds.utils.runtime import command_gc, enable_compilation_cache  # noqa: E402
 
 log = logging.getLogger("hds")
 
@@ -93,6 +93,6 @@ def main(dcfg) -> float:
 
 
 if __name__ == "__main__":
-    skip_final_collection()
+    command_gc()
     before_hydra()
     main()
