@@ -256,9 +256,12 @@ class LazySystem:
     def sys(self):
         if self.given is not None:
             return self.given
-        sys = brax_system(self.model)
-        if self.backend == "mjx":  # the default solver loop is a while_loop, which reverse
-            sys = sys.tree_replace({"opt.iterations": 1})  # mode rejects
+        # first used while a program is traced, as a rule: built eagerly all the same (concrete
+        # arrays, as make_simulator built it before), never as the trace's values
+        with jax.ensure_compile_time_eval():
+            sys = brax_system(self.model)
+            if self.backend == "mjx":  # the default solver loop is a while_loop, which
+                sys = sys.tree_replace({"opt.iterations": 1})  # reverse mode rejects
         return sys
 
     def check(self) -> None:
