@@ -295,3 +295,20 @@ def test_a_second_process_of_a_checked_model_never_imports_brax(tmp_path):
     ]
     assert runs[1] == [runs[0][0], "False", "False"]  # the first built (and checked) it
     assert runs[0][1] == "True"
+
+
+def test_a_system_first_used_inside_a_trace_is_built_with_concrete_arrays(tmp_path, monkeypatch):
+    """Discovery's fit reads the System while jit traces it: it is built eagerly all the same
+    (kept in the cache, the numbers of an eager build), never as the trace's values."""
+    from hds.envs import system
+
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path))
+    eager, _ = system.make_simulator("cartpole.xml", backend="analytic")
+    for entry in tmp_path.glob("*.brax_system.pickle"):
+        entry.unlink()  # the check is kept: the next simulator builds its System on first use
+    lazy, _ = system.make_simulator("cartpole.xml", backend="analytic")
+    damping = jax.jit(lambda x: x * lazy.sys.dof.damping)(np.float32(2.0))
+    assert not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(lazy.sys))
+    assert_same_system(lazy.sys, eager.sys)
+    np.testing.assert_array_equal(damping, 2.0 * np.asarray(eager.sys.dof.damping))
+    assert len(list(tmp_path.glob("*.brax_system.pickle"))) == 1
