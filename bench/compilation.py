@@ -290,12 +290,13 @@ def section(results: list[dict], per_program: list[dict]) -> dict:
             + ", ".join(f"{r['backend']} {r['cache_mib']:.1f} MiB" for r in results)
             + ".",
             "A warm process reads the trainer's init and chunk from the program cache (trace: "
-            "deserializing and lowering it, hds.utils.runtime.program_key), brax's System from "
-            "it too (env build: hds.envs.system.brax_system), and their XLA compile from the "
-            "persistent compilation cache; it still imports jax, brax and the rest, composes "
-            "the config and runs init and the chunk. A warm miss means the warm process's "
-            "program differed from the cold one's (source files edited in between change the "
-            "HLO's source locations).",
+            "deserializing and lowering it, hds.utils.runtime.program_key) and their XLA "
+            "compile from the persistent compilation cache; it builds no brax System and never "
+            "imports brax, mujoco.mjx, matplotlib or Orbax (hds.envs.system.LazySystem: the "
+            "engine's check of the model is kept in the program cache too); it still imports "
+            "jax, flax, optax, mujoco and Hydra, composes the config and runs init and the "
+            "chunk. A warm miss means the warm process's program differed from the cold one's "
+            "(source files edited in between change the HLO's source locations).",
             "A rerun of some backends or methods (`--set compile.backends=tree`) replaces "
             "their rows and keeps the others; compare rows measured under similar load.",
         ],

@@ -33,7 +33,12 @@ import sys  # noqa: E402
 
 from bench.common import best_of, block, compose, peak_rss_mb, timed  # noqa: E402
 from hds.experiment import trainer_program_key  # noqa: E402
-from hds.utils.runtime import RunByRun, over_runs, runs_vmapped  # noqa: E402
+from hds.utils.runtime import (  # noqa: E402
+    RunByRun,
+    command_gc,
+    over_runs,
+    runs_vmapped,
+)
 
 
 def memory_analysis(compiled) -> dict | None:
@@ -210,6 +215,7 @@ KINDS = {"train": train, "programs": programs}
 
 
 def main() -> None:
+    command_gc()  # as hds.run does
     kind, spec, path = sys.argv[1], json.loads(sys.argv[2]), sys.argv[3]
     result = KINDS[kind](spec)
     with open(path, "w") as f:

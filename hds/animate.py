@@ -6,15 +6,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
 import mujoco
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
-
-from hds.envs.system import ASSETS, resolve_xml, state_names  # noqa: E402
+from hds.envs.system import ASSETS, resolve_xml, state_names
+from hds.utils.runtime import pyplot
 
 
 def model_of(names: tuple[str, ...], xml: str | None = None) -> mujoco.MjModel:
@@ -91,6 +87,9 @@ def animate(
         view = camera(np.concatenate([s.reshape(-1, 3) for s in segments]))
         if render_gif(xml_path, qpos, titles, dt, path, view) is not None:
             return path
+    plt = pyplot()  # matplotlib on first use
+    from matplotlib.animation import FuncAnimation, PillowWriter
+
     tracks = [project(s) for s in segments]
     points = np.concatenate([t.reshape(-1, 2) for t in tracks])
     lo, hi = points.min(axis=0) - 0.2, points.max(axis=0) + 0.2

@@ -20,9 +20,17 @@ from pathlib import Path
 
 import jax
 import numpy as np
-import orbax.checkpoint as ocp
 
 log = logging.getLogger("hds")
+
+
+def _orbax():
+    """orbax.checkpoint, imported where a checkpoint is written or read: a process that imports
+    this module (hds.experiment does) but never checkpoints skips Orbax's ~0.3 s import."""
+    import orbax.checkpoint as ocp
+
+    return ocp
+
 
 # arrays under these names (TrainState.progress) an older checkpoint may lack
 OPTIONAL = ("progress.",)
@@ -30,6 +38,7 @@ OPTIONAL = ("progress.",)
 
 class Checkpoints:
     def __init__(self, directory: str | Path, keep: int = 3):
+        ocp = _orbax()
         self.directory = Path(directory).absolute()
         self.manager = ocp.CheckpointManager(
             self.directory,
@@ -49,6 +58,7 @@ class Checkpoints:
         (one line at the command: free space and start again, it resumes), without the
         tracebacks Orbax's threads log for it (hundreds of lines); any other failure of the
         save re-emits what Orbax logged, then raises."""
+        ocp = _orbax()
         with _held_back(logging.getLogger("absl")) as held:  # Orbax logs through absl
             try:
                 self.manager.save(
@@ -81,6 +91,7 @@ class Checkpoints:
         """(state, meta) of `epoch` (default: the latest readable one); `like` gives the
         state's structure. `resuming` (training): an unreadable checkpoint is deleted, as
         training writes that epoch again; otherwise (reading a policy) it is left in place."""
+        ocp = _orbax()
         epochs = sorted(self.manager.all_steps(), reverse=True) if epoch is None else [epoch]
         if not epochs:
             raise FileNotFoundError(
@@ -117,6 +128,7 @@ class Checkpoints:
         """(state, meta) of the latest readable checkpoint as stored: nested dicts of NumPy
         arrays named as the state's fields, for a reader that has no state to restore into
         (loading a policy of an older run directory). Never deletes a checkpoint."""
+        ocp = _orbax()
         epochs = sorted(self.manager.all_steps(), reverse=True)
         if not epochs:
             raise FileNotFoundError(
@@ -145,6 +157,7 @@ class Checkpoints:
         each array to the leaf of `like` of the same name (_check_structure: the names
         match), so a field that holds no arrays does not make older checkpoints unreadable;
         an OPTIONAL array the checkpoint lacks takes `like`'s value."""
+        ocp = _orbax()
         by_name = {_name(path): x for path, x in jax.tree.leaves_with_path(like)}
         abstract = {k: ocp.utils.to_shape_dtype_struct(x) for k, x in by_name.items()}
         target = jax.tree.map(lambda leaf: abstract[leaf.name], stored.tree)

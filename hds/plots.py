@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+from hds.config import SWEEP_KEYS
+from hds.utils.runtime import pyplot
 
-from hds.config import SWEEP_KEYS  # noqa: E402
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 def varying_keys(rows: list[dict], exclude=()) -> list[str]:
@@ -38,12 +39,13 @@ def histories_by_setting(rows: list[dict], histories: dict, keys: list[str]) -> 
     return out
 
 
-def learning_curves(histories: dict[str, dict]) -> plt.Figure:
+def learning_curves(histories: dict[str, dict]) -> Figure:
     """histories: {method: {metric: [n_seeds, n_epochs]}}; mean and range over seeds. The
     return axis is symlog: the first epochs' returns (thousands) and the last (a few units,
     where methods differ) both read."""
     from matplotlib.patches import Patch
 
+    plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
     banded = 0
     for method, h in histories.items():
@@ -76,12 +78,13 @@ def learning_curves(histories: dict[str, dict]) -> plt.Figure:
     return fig
 
 
-def sim_vs_real(rows: list[dict]) -> plt.Figure:
+def sim_vs_real(rows: list[dict]) -> Figure:
     """Mean return on the simulator and on the real plant per method and swept setting, seeds
     as dots."""
     keys = varying_keys(rows)
     rows = [{**r, "method": label(r, keys)} for r in rows]
     methods = list(dict.fromkeys(r["method"] for r in rows))
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(3.2 + 1.6 * len(methods), 3.6))
     x = np.arange(len(methods))
     for offset, key, where in (
@@ -107,9 +110,10 @@ def sim_vs_real(rows: list[dict]) -> plt.Figure:
     return fig
 
 
-def gap_vs_friction(summary: list[dict]) -> plt.Figure:
+def gap_vs_friction(summary: list[dict]) -> Figure:
     """Real-plant return and sim2real gap against the friction gap, per method, with the 95%
     interval over seeds (entries of hds.report.aggregate)."""
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
     for method in dict.fromkeys(e["method"] for e in summary):
         entries = sorted(
@@ -133,9 +137,10 @@ def gap_vs_friction(summary: list[dict]) -> plt.Figure:
     return fig
 
 
-def loop_rounds(rounds: list[dict]) -> plt.Figure:
+def loop_rounds(rounds: list[dict]) -> Figure:
     """The sim2real loop's real-plant return and sim2real gap per round, with the 95% interval
     over the runs (reports of hds.loop.run_loop)."""
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
     x = [r["round"] for r in rounds]
     for ax, key, title in (
@@ -152,12 +157,13 @@ def loop_rounds(rounds: list[dict]) -> plt.Figure:
     return fig
 
 
-def trajectories(sim_obs, real_obs, names, dt: float) -> plt.Figure:
+def trajectories(sim_obs, real_obs, names, dt: float) -> Figure:
     """One episode of a policy from the same initial state on the simulator and on the plant:
     each observed variable against time."""
     n = len(names)
     cols = min(n, 4)
     rows = -(-n // cols)
+    plt = pyplot()
     fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False)
     t = np.arange(len(sim_obs)) * dt
     for i, ax in enumerate(axes.flat):
@@ -174,11 +180,12 @@ def trajectories(sim_obs, real_obs, names, dt: float) -> plt.Figure:
     return fig
 
 
-def save(fig: plt.Figure, path: Path) -> Path:
+def save(fig: Figure, path: Path) -> Path:
     """Write fig atomically and close it (pyplot keeps every open figure alive)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp.png")
     fig.savefig(tmp, dpi=110)
+    plt = pyplot()
     plt.close(fig)
     tmp.replace(path)
     return path

@@ -31,7 +31,7 @@ from hds.gap import no_finite_result  # noqa: E402
 from hds.simulators import method_name  # noqa: E402
 from hds.utils import cli  # noqa: E402
 from hds.utils.io import atomic_write_bytes  # noqa: E402
-from hds.utils.runtime import enable_compilation_cache  # noqa: E402
+from hds.utils.runtime import command_gc, enable_compilation_cache  # noqa: E402
 
 log = logging.getLogger("hds")
 
@@ -93,5 +93,6 @@ def main(dcfg) -> float:
 
 
 if __name__ == "__main__":
+    command_gc()
     before_hydra()
     main()

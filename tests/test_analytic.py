@@ -17,7 +17,6 @@ Stated tolerances, over 0.5 s of open-loop input from random states (pole hangin
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import jax
@@ -98,7 +97,7 @@ class Case:
                 xml, backend, frames=c["frames"], effects=effects
             )
         gen = self.sims["generalized"]
-        self.sims["exact"] = dataclasses.replace(gen, sys=gen.sys.replace(matrix_inv_iterations=0))
+        self.sims["exact"] = gen.with_sys(gen.sys.replace(matrix_inv_iterations=0))
         self.fns = {}
         self.sim = self.sims["analytic"]
         self.nq = self.sim.nq

@@ -3,13 +3,14 @@ by jax.export, under a key of everything it is built from."""
 
 from __future__ import annotations
 
+import os
 import sys
 
 import jax
 import numpy as np
 import pytest
 
-from hds.envs import make_env
+from hds.envs import analytic, make_env
 from hds.experiment import batch_hparams, compiled_programs, trainer_program_key
 from hds.utils import runtime
 from hds.utils.runtime import RunByRun, Unhashable, fingerprint, program_key
@@ -158,8 +159,9 @@ def build_counted(monkeypatch, **kwargs):
     real = mjcf.load_model
     monkeypatch.setattr(mjcf, "load_model", lambda m: calls.append(m) or real(m))
     sim, _ = make_simulator("cartpole.xml", backend="analytic", **kwargs)
+    sys = sim.sys  # built (or read) on first use: hds.envs.system.LazySystem
     monkeypatch.setattr(mjcf, "load_model", real)
-    return sim.sys, len(calls)
+    return sys, len(calls)
 
 
 def assert_same_system(a, b):
@@ -182,7 +184,7 @@ def test_a_cached_brax_system_is_the_built_one_to_the_last_digit(tmp_path, monke
     assert_same_system(built, hit)
     monkeypatch.setenv("HDS_PROGRAM_CACHE", "off")
     plain, calls = build_counted(monkeypatch)
-    assert calls == 1 and len(list(tmp_path.iterdir())) == 1
+    assert calls == 1 and len(list(tmp_path.glob("*.brax_system.pickle"))) == 1
     assert_same_system(plain, hit)
 
 
@@ -224,3 +226,89 @@ def test_the_trainer_key_ignores_the_logger_and_nothing_that_changes_a_result(
     other = make_config(*TINY, "algo.learning_rate=2e-3")
     assert trainer_program_key(other, trainer.run_chunk) != key
     assert trainer_program_key(cfg, trainer.init) != key
+
+
+# --- the System on first use (hds.envs.system.LazySystem): a warm process needs no brax --------
+def test_a_checked_model_builds_no_system_until_used_and_keeps_its_key(tmp_path, monkeypatch):
+    from hds.envs import system
+
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path))
+    first, _ = system.make_simulator("cartpole.xml", backend="analytic")
+    key = fingerprint(first)  # the System was built for the backend's check
+    assert len(list(tmp_path.glob("*.backend_check.pickle"))) == 1
+
+    def never(model):
+        raise AssertionError("the System was built or read")
+
+    built = system.brax_system
+    monkeypatch.setattr(system, "brax_system", never)
+    warm, _ = system.make_simulator("cartpole.xml", backend="analytic")  # the check: a hit
+    assert fingerprint(warm) == key  # the same program key as the process that built it
+    monkeypatch.setattr(system, "brax_system", built)
+    assert_same_system(warm.sys, first.sys)  # built on first use, to the last digit
+    assert fingerprint(warm) == key  # building it does not change its content
+    other, _ = system.make_simulator("cartpole.xml", backend="tree")  # another key: checked
+    assert fingerprint(other) != key
+    assert len(list(tmp_path.glob("*.backend_check.pickle"))) == 2
+
+
+def test_a_corrupt_backend_check_is_run_again_and_a_refusal_is_never_kept(tmp_path, monkeypatch):
+    from hds.envs import system
+
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path))
+    system.make_simulator("cartpole.xml", backend="analytic")
+    (entry,) = tmp_path.glob("*.backend_check.pickle")
+    entry.write_bytes(b"\x80")  # cut short
+    checks = []
+    monkeypatch.setattr(analytic, "check", lambda sys: checks.append(sys) or "cartpole")
+    system.make_simulator("cartpole.xml", backend="analytic")
+    assert len(checks) == 1  # run again on the built System, and rewritten
+    system.make_simulator("cartpole.xml", backend="analytic")
+    assert len(checks) == 1
+
+    def refuse(sys):
+        raise ValueError("unsupported")
+
+    monkeypatch.setattr(analytic, "check", refuse)
+    for _ in range(2):  # another model: refused each time, nothing kept
+        with pytest.raises(ValueError, match="unsupported"):
+            system.make_simulator("cartpole.xml", backend="analytic", timestep=0.005)
+    assert len(list(tmp_path.glob("*.backend_check.pickle"))) == 1
+
+
+def test_a_second_process_of_a_checked_model_never_imports_brax(tmp_path):
+    """What the warm path saves (~1 s): brax imports mujoco.mjx, trimesh and scipy.spatial."""
+    import subprocess
+
+    script = (
+        "import sys; from hds.envs import make_env; from hds.utils.runtime import fingerprint;"
+        "from hds.config.composition import compose;"
+        "env = make_env(compose(['env.backend=analytic']).env);"
+        "print(fingerprint(env), 'brax' in sys.modules, 'mujoco.mjx' in sys.modules)"
+    )
+    env = {**os.environ, "HDS_PROGRAM_CACHE": str(tmp_path)}
+    runs = [
+        subprocess.run(
+            [sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True
+        ).stdout.split()[-3:]
+        for _ in range(2)
+    ]
+    assert runs[1] == [runs[0][0], "False", "False"]  # the first built (and checked) it
+    assert runs[0][1] == "True"
+
+
+def test_a_system_first_used_inside_a_trace_is_built_with_concrete_arrays(tmp_path, monkeypatch):
+    """Discovery's fit reads the System while jit traces it: it is built eagerly all the same
+    (kept in the cache, the numbers of an eager build), never as the trace's values."""
+    from hds.envs import system
+
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path))
+    eager, _ = system.make_simulator("cartpole.xml", backend="analytic")
+    for entry in tmp_path.glob("*.brax_system.pickle"):
+        entry.unlink()  # the check is kept: the next simulator builds its System on first use
+    lazy, _ = system.make_simulator("cartpole.xml", backend="analytic")
+    damping = jax.jit(lambda x: x * lazy.sys.dof.damping)(np.float32(2.0))
+    assert not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(lazy.sys))
+    assert_same_system(lazy.sys, eager.sys)
+    np.testing.assert_array_equal(damping, 2.0 * np.asarray(eager.sys.dof.damping))
+    assert len(list(tmp_path.glob("*.brax_system.pickle"))) == 1

@@ -48,7 +48,6 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from brax import actuator
 from flax import struct
 
 _SUPPORTED = (
@@ -355,6 +354,9 @@ def _limit_force(sys, q, qd, acc_free, mass_inv, h):
 
 def step(sys, state: State, act: jax.Array, *args, **kwargs) -> State:
     """One MuJoCo-style Euler step of `sys.opt.timestep` under actuator inputs `act`."""
+    from brax import actuator  # here, not at import: a process whose programs come from the
+    # program cache never traces a step, and so never imports brax (hds.envs.system.LazySystem)
+
     del args, kwargs
     h = sys.opt.timestep
     q, qd = state.q, state.qd

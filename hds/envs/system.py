@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+import functools
 import importlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -150,7 +153,7 @@ class SimState:
 class Simulator:
     """Pure step functions over a Brax system; hashable by identity so jit can close over it."""
 
-    sys: object
+    system: LazySystem  # brax's System, built on first use (`sys`)
     pipeline: object
     frames: int
     timestep: float
@@ -166,6 +169,15 @@ class Simulator:
     xml: str
     backend: str
     gradient_sharpness: float | None = None  # Coulomb friction's surrogate gradient, if any
+
+    @property
+    def sys(self):
+        """brax's System (built, or read from the program cache, on first use)."""
+        return self.system.sys
+
+    def with_sys(self, sys) -> Simulator:
+        """This simulator on another brax System (e.g. an edited copy of its own)."""
+        return dataclasses.replace(self, system=LazySystem(None, self.backend, given=sys))
 
     @property
     def dt(self) -> float:
@@ -214,16 +226,54 @@ def brax_system(model: mujoco.MjModel):
     """brax's System of a compiled MuJoCo model (`mjcf.load_model`), kept in the program cache
     under the model's binary (hds.utils.runtime.cached_build: with every hds source file and the
     versions of brax, mujoco and jax in the key): a later process unpickles it, where
-    load_model's copies into jax arrays took ~0.7 s of a second process's start."""
+    load_model's copies into jax arrays took ~0.7 s of a second process's start. `model` is
+    left as it is (load_model edits a copy)."""
     with quiet_brax():  # brax prints on import, which unpickling a System also does
         from brax.io import mjcf
 
     def build():
         with quiet_brax():
-            return mjcf.load_model(model)
+            return mjcf.load_model(copy.deepcopy(model))
 
-    # the key is taken before load_model, which edits its argument
     return cached_build("brax_system", build, model)
+
+
+@dataclass(frozen=True, eq=False)
+class LazySystem:
+    """brax's System of `model` on `backend`, built (or unpickled from the program cache) on
+    first use: a process whose programs all come from the program cache never traces the
+    simulator, so it never imports brax, mujoco.mjx, trimesh and scipy.spatial (~1 s) nor
+    unpickles the System (~0.3 s). Its content, for the program cache's keys
+    (hds.utils.runtime.fingerprint), is its fields: the model's binary and the backend, from
+    which the System is built deterministically (brax's version is in the key), or `given`,
+    a System built elsewhere (an edited copy), used as it is."""
+
+    model: mujoco.MjModel | None  # never edited
+    backend: str
+    given: object = None
+
+    @functools.cached_property  # kept beside the fields, so the content does not change
+    def sys(self):
+        if self.given is not None:
+            return self.given
+        # first used while a program is traced, as a rule: built eagerly all the same (concrete
+        # arrays, as make_simulator built it before), never as the trace's values
+        with jax.ensure_compile_time_eval():
+            sys = brax_system(self.model)
+            if self.backend == "mjx":  # the default solver loop is a while_loop, which
+                sys = sys.tree_replace({"opt.iterations": 1})  # reverse mode rejects
+        return sys
+
+    def check(self) -> None:
+        """Refuse here, once, a model that hds's own backends cannot simulate (ValueError).
+        The check reads brax's System; that it passed is kept in the program cache under the
+        model and backend, so a later process does not build the System for it."""
+        if self.backend not in _OWN_BACKENDS or self.given is not None:
+            return
+        module = importlib.import_module(f"hds.envs.{self.backend}")
+        cached_build(
+            "backend_check", lambda: module.check(self.sys) or True, self.model, self.backend
+        )
 
 
 def make_simulator(
@@ -252,13 +302,10 @@ def make_simulator(
             ctrllimited=0,
             gear=[1, 0, 0, 0, 0, 0],
         )
-    sys = brax_system(spec.compile())
-    if backend == "mjx":  # the default solver loop is a while_loop, which reverse mode rejects
-        sys = sys.tree_replace({"opt.iterations": 1})
-    if backend in _OWN_BACKENDS:  # refuse unsupported models here, once
-        importlib.import_module(f"hds.envs.{backend}").check(sys)
+    system = LazySystem(spec.compile(), backend)
+    system.check()
     sim = Simulator(
-        sys=sys,
+        system=system,
         pipeline=importlib.import_module(
             f"hds.envs.{backend}" if backend in _OWN_BACKENDS else f"brax.{backend}.pipeline"
         ),

@@ -35,7 +35,6 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from brax import actuator
 
 from hds.envs.analytic import (
     State,
@@ -584,6 +583,8 @@ def step(sys, state: State, act: jax.Array, *args, **kwargs) -> State:
 
 
 def _euler_step(sys, state: State, act: jax.Array) -> State:
+    from brax import actuator  # at trace time only (see hds.envs.analytic.step)
+
     h = sys.opt.timestep
     q, qd = state.q, state.qd
     n = q.shape[0]
