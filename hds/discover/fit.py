@@ -366,7 +366,12 @@ class Engine:
             a, g, _ = reduced(r * view, jt * view, jz * view, z, 0.0, jnp.zeros(windows))
             return a, jax.ops.segment_sum(g, data[2], num_segments=data[0].shape[0])
 
-        h, per_episode = jax.vmap(normal)(views)
+        if hold and not estimate:
+            # a screen only ranks: its H and G (at a stale linearization) are never read
+            h = jnp.zeros((len(views), m, m), r.dtype)
+            per_episode = jnp.zeros((len(views), episodes, m), r.dtype)
+        else:
+            h, per_episode = jax.vmap(normal)(views)
         count = jnp.maximum(data[4].sum() * n_res, 1.0)
         return theta, jnp.sum(r * r) / count, h, per_episode, its - 1, z
 
@@ -400,8 +405,8 @@ class Engine:
         """The fits of `_fit_each`; only the first `rows` rows are fitted (default: all; or
         a [C] mask of the rows to fit), each from the windows' initial states z0 [W, n_obs]
         (`estimate`, or `hold`: kept there; default: the measurements). Returns theta, loss,
-        H, G, iterations, then H and G of each view, and with `states` the estimated initial
-        states z [C, W, n_obs]."""
+        H, G, iterations, then H and G of each view (zeros with `hold`: a screen only ranks),
+        and with `states` the estimated initial states z [C, W, n_obs]."""
         if rows is not None and np.ndim(rows):
             active = np.asarray(rows, bool)
         else:
