@@ -943,6 +943,21 @@ def test_a_fit_with_estimated_states_reaches_one_optimum_from_two_starts(plants,
     at = engine.errors(cut[0][:1], delay[:1], ident)[0] ** 2
     assert cut[1][0] == pytest.approx(at, rel=1e-5)
     assert at < engine.errors(theta0[:1], delay[:1], ident)[0] ** 2  # its steps lowered it
+    # a row linearizes only its valid slots (a prefix of its bucket's width); a row whose
+    # slots are not a prefix linearizes every one, and fits alike
+    scattered = slots.copy()
+    scattered[0] = -1
+    scattered[0, 1] = slot
+    apart = engine.fit(theta0, scattered, delay, ident, CFG.iterations, False, rows=1)
+    assert apart[0][0, slot] == pytest.approx(plain[0][0, slot], rel=1e-5)
+    assert apart[4][0] == plain[4][0]
+    # held-out errors of the rows asked for only: the others are not computed (NaN)
+    wanted = np.zeros(len(theta0), bool)
+    wanted[[0, 2]] = True
+    every = engine.errors(theta0, delay, ident)
+    some = engine.errors(theta0, delay, ident, rows=wanted)
+    np.testing.assert_allclose(some[wanted], every[wanted], rtol=1e-6)
+    assert np.isnan(some[~wanted]).all()
 
 
 @pytest.mark.slow  # a noisy record: initial states estimated, discovery's slow path

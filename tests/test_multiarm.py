@@ -379,6 +379,41 @@ def test_a_smoothed_or_biased_velocity_leaves_the_initial_states_to_the_held_out
         assert smooth_velocity_error(data, cfg)
 
 
+def test_a_velocity_curving_within_a_sample_is_no_velocity_error():
+    """The Furuta pendulum's MJCF stepped by C MuJoCo (2 ms, sampled every 20 ms), no noise:
+    its velocities are exactly those its angles integrate, but the arm's motor turns its
+    velocity within a sample (time constants near 20 ms), so a straight line between two
+    samples read 0.56% of the arm's std, past noise_threshold (and 0.77-0.98% on lab draws,
+    whose discoveries ran twice). The weights of a cubic through four samples read nothing,
+    and the same velocities one sample late still read an error far beyond the threshold."""
+    from hds.config import compose
+    from hds.data.collect import collect
+    from hds.data.excitation import random_steps
+    from hds.discover import DiscoverConfig
+    from hds.discover.data import noise_level, velocity_error
+    from hds.envs import make_env
+    from hds.real.mujoco_plant import MujocoPlant
+
+    env = compose(["env=furuta_balance", "real=lab_furuta"]).env
+    plant = MujocoPlant(env, [])
+    rng = np.random.default_rng(0)
+    episodes, steps = 40, 100
+    q0 = np.c_[rng.uniform(-0.5, 0.5, episodes), rng.uniform(-0.3, 0.3, episodes)]
+    qd0 = rng.uniform(-0.5, 0.5, (episodes, 2))
+    u = random_steps(1, episodes, steps, plant.dt, plant.ctrl_range, 0.1, 0.5, scale=0.6)
+    obs = np.asarray(collect(plant, make_env(env).task, q0, qd0, u).obs, np.float64)
+    frames = round(plant.dt / env.timestep)
+    threshold = DiscoverConfig().noise_threshold
+
+    def error(obs):
+        return velocity_error(obs, plant.dt, 2, frames, np.ones(2, bool), noise_level(obs))
+
+    assert np.all(error(obs) < 0.2 * threshold)
+    late = obs.copy()
+    late[:, 1:, 2:] = obs[:, :-1, 2:]
+    assert np.all(error(late) > 10 * threshold)
+
+
 @pytest.mark.parametrize(("measured", "estimated", "chosen"), [(0.010, 0.009, "estimated")])
 def test_the_held_out_episodes_choose_the_initial_states(monkeypatch, measured, estimated, chosen):
     """Where the velocities carry a smooth error, discovery runs with both starts and keeps the

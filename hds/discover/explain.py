@@ -718,6 +718,10 @@ class _Fitter:
 
     def run(self, theta0, slots, delay, rows=None, z0=None, hold=False) -> Batch:
         engine = self.engine
+        if rows is not None and np.ndim(rows):
+            fitted = np.asarray(rows, bool)
+        else:
+            fitted = np.arange(len(theta0)) < (len(theta0) if rows is None else rows)
         theta, loss, h, g, its, view_h, view_g, z = engine.fit(
             theta0,
             slots,
@@ -730,7 +734,8 @@ class _Fitter:
             True,
             hold,
         )
-        held = engine.errors(theta, delay, self.heldout)
+        # (only the rows fitted: the others' are never read)
+        held = engine.errors(theta, delay, self.heldout, None if rows is None else fitted)
         screened = np.full(len(theta), bool(hold))
         return Batch(theta, delay, held, loss, h, g, slots, its, view_h, view_g, z, screened)
 

@@ -5,7 +5,8 @@ An `Engine` holds one superset `Model` and three jitted functions, each compiled
 data layout and reused for every candidate, every round and every call:
 
   predict(theta, delay, data)                    -> [W, k, n_obs] k-step predictions
-  losses(theta [C, N], delay [C, n_act], data)   -> [C] mean squared normalized error
+  losses(theta [C, N], delay [C, n_act], active [C], data)
+      -> [C] mean squared normalized error (NaN on the rows not `active`: not computed)
   fit(theta0 [C, N], slots [C, M], delay [C, n_act], data, z0 [W, n_obs])
       -> theta [C, N], loss [C], H [C, M, M], G [C, E, M], iterations [C],
          view H [C, V, M, M], view G [C, V, E, M], (estimated initial states) z [C, W, n_obs]
@@ -54,7 +55,7 @@ class Engine:
         self.model, self.horizon = model, int(horizon)
         self.views = self._views()
         self.predict = jax.jit(self._predict)
-        self.losses = jax.jit(jax.vmap(self._loss, in_axes=(0, 0, None)))
+        self.losses = jax.jit(self._losses_each)
         # `iterations` only bounds the while loop, so it is traced: fits of any budget share a
         # program; `estimate` changes the residuals' shapes and stays static
         self._fit = jax.jit(self._fit_each, static_argnums=(6, 8))
@@ -91,6 +92,20 @@ class Engine:
             )
 
         return jax.lax.map(row, (theta0, slots, delay, active))
+
+    def _losses_each(self, theta, delay, active, data):
+        """The rows' losses one after another, as `_fit_each`'s fits: a row not `active`
+        (padding, or a row the caller does not need) costs nothing and reads NaN."""
+
+        def row(args):
+            theta, delay, active = args
+            return jax.lax.cond(
+                active,
+                lambda: self._loss(theta, delay, data),
+                lambda: jnp.asarray(jnp.nan, theta.dtype),
+            )
+
+        return jax.lax.map(row, (theta, delay, active))
 
     # -- single-candidate pieces (vmapped or mapped above) ---------------------------------
 
@@ -141,9 +156,28 @@ class Engine:
             given = z if estimate or hold else None
             return self._residuals(theta, delay, data, given).reshape(windows, -1)
 
-        def linear(theta, z):
-            r, jac = jax.vmap(lambda tt, tz: jax.jvp(res, (theta, z), (tt, tz)))(t_theta, t_z)
-            return r[0], jac[:m], jac[m:]  # [W, R], [M, W, R], [n_z, W, R]
+        def linear_first(k, theta, z):
+            """The linearization with the first k of theta's tangents (the rest zero)."""
+            pick = np.r_[np.arange(k), m + np.arange(n_z)]
+            r, jac = jax.vmap(lambda tt, tz: jax.jvp(res, (theta, z), (tt, tz)))(
+                t_theta[pick], t_z[pick]
+            )
+            rest = jnp.zeros((m - k, *jac.shape[1:]), jac.dtype)
+            return r[0], jnp.concatenate([jac[:k], rest]), jac[k:]
+
+        # a tangent costs about one forward pass, and a row fits only its valid slots (a
+        # prefix of `slots`; the rest pad the bucket's width): a row of one valid slot (every
+        # candidate of round 1, a refit of one effect) linearizes that one, the others all m.
+        # Not a branch for each count: each copy of the linearization adds about a quarter
+        # of the fit program's compile (experiments/discovery_speed)
+        n_valid = jnp.sum(valid)
+        single = (n_valid <= 1) & jnp.all(valid[1:] == 0)
+
+        def linear(theta, z):  # [W, R], [M, W, R], [n_z, W, R]
+            if m == 1:
+                return linear_first(1, theta, z)
+            branches = [lambda t, s: linear_first(m, t, s), lambda t, s: linear_first(1, t, s)]
+            return jax.lax.switch(single.astype(jnp.int32), branches, theta, z)
 
         def per_window(r, z):
             return jnp.sum(r * r, 1) + (jnp.sum(z * z, 1) if estimate else 0.0)
@@ -335,7 +369,12 @@ class Engine:
             a, g, _ = reduced(r * view, jt * view, jz * view, z, 0.0, jnp.zeros(windows))
             return a, jax.ops.segment_sum(g, data[2], num_segments=data[0].shape[0])
 
-        h, per_episode = jax.vmap(normal)(views)
+        if hold and not estimate:
+            # a screen only ranks: its H and G (at a stale linearization) are never read
+            h = jnp.zeros((len(views), m, m), r.dtype)
+            per_episode = jnp.zeros((len(views), episodes, m), r.dtype)
+        else:
+            h, per_episode = jax.vmap(normal)(views)
         count = jnp.maximum(data[4].sum() * n_res, 1.0)
         return theta, jnp.sum(r * r) / count, h, per_episode, its - 1, z
 
@@ -369,8 +408,8 @@ class Engine:
         """The fits of `_fit_each`; only the first `rows` rows are fitted (default: all; or
         a [C] mask of the rows to fit), each from the windows' initial states z0 [W, n_obs]
         (`estimate`, or `hold`: kept there; default: the measurements). Returns theta, loss,
-        H, G, iterations, then H and G of each view, and with `states` the estimated initial
-        states z [C, W, n_obs]."""
+        H, G, iterations, then H and G of each view (zeros with `hold`: a screen only ranks),
+        and with `states` the estimated initial states z [C, W, n_obs]."""
         if rows is not None and np.ndim(rows):
             active = np.asarray(rows, bool)
         else:
@@ -392,16 +431,24 @@ class Engine:
         out = (theta, loss, h[:, 0], g[:, 0], its, h[:, 1:], g[:, 1:])
         return tuple(np.asarray(x) for x in out) + ((np.asarray(z),) if states else ())
 
-    def errors(self, theta, delay, data) -> np.ndarray:
-        """[C] normalized RMSE of each row of theta [C, N] with its delays [C, n_act]. Fewer
-        rows than the library's candidates are padded to that many (the last row repeated),
-        so one compiled program serves the base model, every round and the delay ranges."""
-        rows = len(theta)
-        pad = max(len(self.model.candidates) - rows, 0)
+    def errors(self, theta, delay, data, rows=None) -> np.ndarray:
+        """[C] normalized RMSE of each row of theta [C, N] with its delays [C, n_act]; with
+        `rows` (a [C] mask) only of those rows, NaN elsewhere. Fewer rows than the library's
+        candidates are padded to that many (skipped), so one compiled program serves the base
+        model, every round and the delay ranges, and a call costs the rows it needs."""
+        rows_in = len(theta)
+        need = np.ones(rows_in, bool) if rows is None else np.asarray(rows, bool)
+        pad = max(len(self.model.candidates) - rows_in, 0)
         theta = np.concatenate([theta, np.repeat(theta[-1:], pad, axis=0)])
         delay = np.concatenate([delay, np.repeat(delay[-1:], pad, axis=0)])
-        mse = self.losses(jnp.asarray(theta, jnp.float32), jnp.asarray(delay, jnp.int32), data)
-        return np.sqrt(np.asarray(mse, dtype=np.float64))[:rows]
+        active = np.concatenate([need, np.zeros(pad, bool)])
+        mse = self.losses(
+            jnp.asarray(theta, jnp.float32),
+            jnp.asarray(delay, jnp.int32),
+            jnp.asarray(active),
+            data,
+        )
+        return np.sqrt(np.asarray(mse, dtype=np.float64))[:rows_in]
 
     def predictions(self, theta, delay, data) -> np.ndarray:
         return np.asarray(
