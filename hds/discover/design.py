@@ -477,23 +477,22 @@ class Designer:
         mismatch confined to a few steps (a friction's reversals) does not count as noise;
         one spread over every step does (then this is the residual level the fit sees). The
         fitted parameters take a handful of degrees of freedom from E x T residuals: ignored."""
-        obs, u = np.asarray(obs, np.float64), np.asarray(u, np.float64)
-        if obs.ndim != 3 or u.shape[:2] != (obs.shape[0], obs.shape[1] - 1):
-            raise ValueError(
-                f"obs {obs.shape} and u {u.shape} do not match: give the records' observations "
-                "[E, T+1, n_obs] and the controls applied between them [E, T, n_act]"
-            )
-        return self._sensor_noise(theta, obs, u)[0]
+        return self._sensor_noise(theta, *_records(obs, u))[0]
 
-    def _sensor_noise(self, theta, obs, u) -> tuple[np.ndarray, int]:
-        """`sensor_noise` and how many steps' residuals it was taken from."""
+    def _one_step_residuals(self, theta, obs, u) -> tuple[np.ndarray, np.ndarray]:
+        """Every step's one-step residual [N, n_obs] over the records and its squared
+        sensitivity to the initial state [N, n_obs, n_obs] (`_one_step`), record by record."""
         theta32 = jnp.asarray(theta, jnp.float32)
         res, sens = [], []
         for o, a in zip(obs, u, strict=True):
             r, jac = self._one_step(theta32, *_f32(o, a))
             res.append(np.asarray(r, np.float64))
             sens.append(np.asarray(jac, np.float64) ** 2)
-        res, sens = np.concatenate(res), np.concatenate(sens)
+        return np.concatenate(res), np.concatenate(sens)
+
+    def _sensor_noise(self, theta, obs, u) -> tuple[np.ndarray, int]:
+        """`sensor_noise` and how many steps' residuals it was taken from."""
+        res, sens = self._one_step_residuals(theta, obs, u)
         eye = np.eye(obs.shape[-1])
 
         def solve(keep):
@@ -527,20 +526,9 @@ class Designer:
         over every step of a signal is, by its variance, indistinguishable from that signal's
         sensor noise (`sensor_noise`'s robust scale counts it there); one confined to some
         states (a joint near rest, a fast or a hard-driven one) is what this separates."""
-        obs, u = np.asarray(obs, np.float64), np.asarray(u, np.float64)
-        if obs.ndim != 3 or u.shape[:2] != (obs.shape[0], obs.shape[1] - 1):
-            raise ValueError(
-                f"obs {obs.shape} and u {u.shape} do not match: give the records' observations "
-                "[E, T+1, n_obs] and the controls applied between them [E, T, n_act]"
-            )
+        obs, u = _records(obs, u)
         noise = np.maximum(np.asarray(noise, np.float64), 0.0)
-        theta32 = jnp.asarray(theta, jnp.float32)
-        res, sens = [], []
-        for o, a in zip(obs, u, strict=True):
-            r, jac = self._one_step(theta32, *_f32(o, a))
-            res.append(np.asarray(r, np.float64))
-            sens.append(np.asarray(jac, np.float64) ** 2)
-        res, sens = np.concatenate(res), np.concatenate(sens)
+        res, sens = self._one_step_residuals(theta, obs, u)
         excess = res**2 - (sens @ noise**2 + noise**2)  # [N, n_obs]
         nq = self.sim.nq
         states = obs[:, :-1].reshape(-1, obs.shape[-1])
@@ -1325,6 +1313,18 @@ def _penalty(obs, lim):
     over_v = jnp.where(jnp.isfinite(speed), jax.nn.relu(jnp.abs(qd) - speed), 0.0)
     span_v = jnp.where(jnp.isfinite(speed), speed, 1.0)
     return jnp.sum((over_q / span_q) ** 2) + jnp.sum((over_v / span_v) ** 2)
+
+
+def _records(obs, u) -> tuple[np.ndarray, np.ndarray]:
+    """Records' observations [E, T+1, n_obs] and controls [E, T, n_act] as float64, refused
+    (ValueError) where their shapes do not match."""
+    obs, u = np.asarray(obs, np.float64), np.asarray(u, np.float64)
+    if obs.ndim != 3 or u.shape[:2] != (obs.shape[0], obs.shape[1] - 1):
+        raise ValueError(
+            f"obs {obs.shape} and u {u.shape} do not match: give the records' observations "
+            "[E, T+1, n_obs] and the controls applied between them [E, T, n_act]"
+        )
+    return obs, u
 
 
 def _f32(*xs):
