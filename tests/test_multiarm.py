@@ -637,19 +637,18 @@ def test_discovery_names_dry_friction_and_air_drag_on_a_generated_recording():
         assert named[name].params[param] == pytest.approx(value, rel=0.15)
 
 
-# -- the noise floor of measured initial states (hds.discover.explain.carried_noise) -----------
+# -- the noise floor of measured initial states (hds.discover.fit.Engine.carried_noise) ------
 
 
 def test_a_correct_model_leaves_what_its_measured_initial_states_carry():
     """On a recording of the single pendulum's MJCF (its published damping, 10 ms samples, 1 s
     windows every 100 ms), velocities with 1% white noise: the true model's identification
     mean squared residual is the noise of the compared samples plus what each window's noisy
-    initial velocity carries through it (`carried_noise`), about as much again. A floor of
+    initial velocity carries through it (`Engine.carried_noise`), about as much again. A floor of
     the samples' noise alone would leave half of it for the laws to explain."""
     from hds.config import compose
     from hds.data.format import Dataset
     from hds.discover.data import prepare
-    from hds.discover.explain import carried_noise
     from hds.discover.fit import get_engine
 
     env = compose(["env=multiarm_single", "data=unused"], "discover").env
@@ -674,7 +673,7 @@ def test_a_correct_model_leaves_what_its_measured_initial_states_carry():
     scale = np.asarray(data.scale, np.float64)
     spread = np.array([0.0, sigma / scale[1]])
     samples = float(np.mean(spread**2))  # the compared samples' own noise
-    carried = carried_noise(engine, theta, delay, ident, spread)
+    carried = engine.carried_noise(theta, delay, ident, spread)
     assert carried > 0.5 * samples
     assert mse == pytest.approx(samples + carried, rel=0.1)
 
@@ -730,7 +729,7 @@ def _lowpassed_swings(friction: bool, tau: float):
 @pytest.mark.parametrize("friction", [True, False])
 def test_the_carried_floor_names_the_friction_and_nothing_on_a_frictionless_swing(friction):
     """Velocities low-passed over 2 ms (1.6% of their std), measured initial states: the noise
-    floor carries the velocities' error through each window (`carried_noise`); the friction
+    floor carries the velocities' error through each window (`Engine.carried_noise`); the friction
     and the drag are named, within 20%, and on the frictionless swing nothing is: the lower
     bar names no compensation of the velocities' lag."""
     result = _lowpassed_swings(friction, 0.002)

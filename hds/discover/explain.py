@@ -21,8 +21,6 @@ import logging
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
@@ -137,8 +135,8 @@ def forward_selection(
     normalized RMSE measurement noise alone leaves; `banned`: keys of candidates the data
     cannot identify (fitted, never selected); `progress(stage)`: told as each round ends;
     `carried`: the mean squared normalized residual that the measured initial states' error
-    carries through the identification windows (`carried_noise`; measured states only), part
-    of the noise floor a correct model would still leave."""
+    carries through the identification windows (`Engine.carried_noise`; measured states
+    only), part of the noise floor a correct model would still leave."""
     model = engine.model
     sw = _slot_width(model)
     sizes = sorted(
@@ -705,7 +703,7 @@ class _Fitter:
         self.count = float(np.sum(np.asarray(mask))) * engine.horizon * obs.shape[-1]
         # the squared residual per entry that noise alone leaves: estimated initial states
         # (n_obs unknowns per window of k * n_obs residuals) absorb 1/k of it; measured ones
-        # carry their own error through every window (`carried_noise`)
+        # carry their own error through every window (`Engine.carried_noise`)
         self.noise_mse = floor**2 * ((1.0 - 1.0 / engine.horizon) if estimate else 1.0)
         self.noise_mse += 0.0 if estimate else carried
 
@@ -808,47 +806,6 @@ class _Fitter:
                     delay[i, c.actuator] = state.delay[c.actuator]
         batch = self.run(theta0, slots, delay, rows=len(sets), z0=state.z)
         return [self.state(chosen, batch, i) for i, chosen in enumerate(sets)]
-
-
-_CARRY: dict = {}  # engine -> its jitted `carried_noise`, compiled once per engine
-
-
-def carried_noise(engine: Engine, theta, delay, data, spread: np.ndarray) -> float:
-    """The mean squared normalized residual per entry that the error of measured initial
-    states carries through the k-step windows of `data` (`Data.arrays`): a correct model
-    started from a state off by dx predicts x(t) + S_t dx, S_t the simulator's sensitivity of
-    the state at step t to the initial one. For independent errors of each variable, of
-    std `spread` [n_obs] (in units of scale), the expected square is sum_i spread_i^2 |S_t
-    e_i|^2, averaged here over every window and step (S taken by forward-mode
-    differentiation at `theta`, from the measured states). A velocity de-noised offline or
-    sampled late carries a smooth error that an angle started from it turns into a drift
-    growing with t, the consequence a noise floor of the compared samples alone misses: the
-    fits would count it as the laws' mismatch, and every effect would have to exceed it."""
-    if engine not in _CARRY:
-        model, k = engine.model, engine.horizon
-
-        def carried(theta, delay, data, spread):
-            windows, n = data[2].shape[0], spread.shape[0]
-
-            def res(z):
-                return model.residuals(theta, delay, data, k, z)
-
-            def moved(tangent):  # the residuals' change along one variable's error
-                _, out = jax.jvp(res, (jnp.zeros((windows, n)),), (tangent,))
-                return jnp.sum(out * out)
-
-            tangents = jnp.broadcast_to(jnp.diag(spread)[:, None, :], (n, windows, n))
-            count = jnp.maximum(data[4].sum() * k * n, 1.0)
-            return jnp.sum(jax.lax.map(moved, tangents)) / count
-
-        _CARRY[engine] = jax.jit(carried)
-    out = _CARRY[engine](
-        jnp.asarray(theta, jnp.float32),
-        jnp.asarray(delay, jnp.int32),
-        data,
-        jnp.asarray(spread, jnp.float32),
-    )
-    return float(out) if np.isfinite(float(out)) else 0.0
 
 
 INSEPARABLE = 0.95  # |correlation| above which the data do not separate two parameters

@@ -59,6 +59,7 @@ class Engine:
         # `iterations` only bounds the while loop, so it is traced: fits of any budget share a
         # program; `estimate` changes the residuals' shapes and stays static
         self._fit = jax.jit(self._fit_each, static_argnums=(6, 8))
+        self._carried = jax.jit(self._carried_each)
 
     def _fit_each(
         self, theta0, slots, delay, active, data, iterations, estimate: bool, z0, hold=False
@@ -449,6 +450,42 @@ class Engine:
             data,
         )
         return np.sqrt(np.asarray(mse, dtype=np.float64))[:rows_in]
+
+    def carried_noise(self, theta, delay, data, spread: np.ndarray) -> float:
+        """The mean squared normalized residual per entry that the error of measured initial
+        states carries through the k-step windows of `data` (`Data.arrays`): a correct model
+        started from a state off by dx predicts x(t) + S_t dx, S_t the simulator's sensitivity
+        of the state at step t to the initial one. For independent errors of each variable, of
+        std `spread` [n_obs] (in units of scale), the expected square is sum_i spread_i^2 |S_t
+        e_i|^2, averaged here over every window and step (S taken by forward-mode
+        differentiation at `theta`, from the measured states). A velocity de-noised offline or
+        sampled late carries a smooth error that an angle started from it turns into a drift
+        growing with t, the consequence a noise floor of the compared samples alone misses:
+        the fits would count it as the laws' mismatch, and every effect would have to exceed
+        it."""
+        out = float(
+            self._carried(
+                jnp.asarray(theta, jnp.float32),
+                jnp.asarray(delay, jnp.int32),
+                data,
+                jnp.asarray(spread, jnp.float32),
+            )
+        )
+        return out if np.isfinite(out) else 0.0
+
+    def _carried_each(self, theta, delay, data, spread):
+        windows, n, k = data[2].shape[0], spread.shape[0], self.horizon
+
+        def res(z):
+            return self.model.residuals(theta, delay, data, k, z)
+
+        def moved(tangent):  # the residuals' change along one variable's error
+            _, out = jax.jvp(res, (jnp.zeros((windows, n)),), (tangent,))
+            return jnp.sum(out * out)
+
+        tangents = jnp.broadcast_to(jnp.diag(spread)[:, None, :], (n, windows, n))
+        count = jnp.maximum(data[4].sum() * k * n, 1.0)
+        return jnp.sum(jax.lax.map(moved, tangents)) / count
 
     def predictions(self, theta, delay, data) -> np.ndarray:
         return np.asarray(

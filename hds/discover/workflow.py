@@ -19,7 +19,6 @@ from hds.discover.data import Data, prepare
 from hds.discover.explain import (
     Selection,
     State,
-    carried_noise,
     correlations,
     delay_range,
     forward_selection,
@@ -106,7 +105,7 @@ class Discovery:
     # (`choose_initial_states`): the error, both modes' held-out errors, the mode chosen
     initial_state_choice: dict = field(default_factory=dict)
     # the mean squared normalized residual the measured initial states' error carries
-    # through the identification windows, part of the noise floor (`carried_noise`)
+    # through the identification windows, part of the noise floor (`Engine.carried_noise`)
     carried_noise: float = 0.0
     final: State | None = None  # the corrected model (theta, delays) of the named effects
     backend: str = ""  # the physics backend the fits ran on
@@ -291,7 +290,7 @@ def discover(
         spread = relative_noise.copy()
         nq = len(data.velocity_error)
         spread[nq:] = np.sqrt(spread[nq:] ** 2 + data.velocity_error**2)
-        carried = carried_noise(engine, nominal, no_delay, ident, spread)
+        carried = engine.carried_noise(nominal, no_delay, ident, spread)
         carried += float(np.sum(data.velocity_error**2)) / len(spread)
         log.info(
             "measured initial states carry %.3g (mean squared normalized residual) through "
