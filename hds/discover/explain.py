@@ -716,10 +716,6 @@ class _Fitter:
 
     def run(self, theta0, slots, delay, rows=None, z0=None, hold=False) -> Batch:
         engine = self.engine
-        if rows is not None and np.ndim(rows):
-            fitted = np.asarray(rows, bool)
-        else:
-            fitted = np.arange(len(theta0)) < (len(theta0) if rows is None else rows)
         theta, loss, h, g, its, view_h, view_g, z = engine.fit(
             theta0,
             slots,
@@ -733,7 +729,7 @@ class _Fitter:
             hold,
         )
         # (only the rows fitted: the others' are never read)
-        held = engine.errors(theta, delay, self.heldout, None if rows is None else fitted)
+        held = engine.errors(theta, delay, self.heldout, rows)
         screened = np.full(len(theta), bool(hold))
         return Batch(theta, delay, held, loss, h, g, slots, its, view_h, view_g, z, screened)
 

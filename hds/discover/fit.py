@@ -50,6 +50,13 @@ SETTLED = 0.01
 SLOW = 1e-3  # ... and the error falls by less than this share a step
 
 
+def row_mask(rows, n: int) -> np.ndarray:
+    """[n] the rows a call computes: all (None), the first `rows` (a count) or a [n] mask."""
+    if rows is not None and np.ndim(rows):
+        return np.asarray(rows, bool)
+    return np.arange(n) < (n if rows is None else rows)
+
+
 class Engine:
     def __init__(self, model: Model, horizon: int):
         self.model, self.horizon = model, int(horizon)
@@ -411,10 +418,7 @@ class Engine:
         (`estimate`, or `hold`: kept there; default: the measurements). Returns theta, loss,
         H, G, iterations, then H and G of each view (zeros with `hold`: a screen only ranks),
         and with `states` the estimated initial states z [C, W, n_obs]."""
-        if rows is not None and np.ndim(rows):
-            active = np.asarray(rows, bool)
-        else:
-            active = np.arange(len(theta0)) < (len(theta0) if rows is None else rows)
+        active = row_mask(rows, len(theta0))
         if z0 is None:
             z0 = np.zeros((np.shape(data[2])[0], self.model.sim.n_obs))
         theta, loss, h, g, its, z = self._fit(
@@ -434,11 +438,12 @@ class Engine:
 
     def errors(self, theta, delay, data, rows=None) -> np.ndarray:
         """[C] normalized RMSE of each row of theta [C, N] with its delays [C, n_act]; with
-        `rows` (a [C] mask) only of those rows, NaN elsewhere. Fewer rows than the library's
-        candidates are padded to that many (skipped), so one compiled program serves the base
-        model, every round and the delay ranges, and a call costs the rows it needs."""
+        `rows` (`row_mask`: a count, or a [C] mask) only of those rows, NaN elsewhere. Fewer
+        rows than the library's candidates are padded to that many (skipped), so one compiled
+        program serves the base model, every round and the delay ranges, and a call costs the
+        rows it needs."""
         rows_in = len(theta)
-        need = np.ones(rows_in, bool) if rows is None else np.asarray(rows, bool)
+        need = row_mask(rows, rows_in)
         pad = max(len(self.model.candidates) - rows_in, 0)
         theta = np.concatenate([theta, np.repeat(theta[-1:], pad, axis=0)])
         delay = np.concatenate([delay, np.repeat(delay[-1:], pad, axis=0)])
