@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hds import plots
+from hds.utils.runtime import pyplot
 
 ORACLE = "oracle"
 
@@ -131,7 +131,7 @@ def figure(summary: list[dict], title: str = ""):
     labelled with its mean and interval (readable where the methods differ by little)."""
     entries = ranked(summary)[::-1]  # barh draws upwards: the best on top
     y = np.arange(len(entries))
-    fig, axes = plots.pyplot().subplots(1, 2, figsize=(11, 1.4 + 0.6 * len(entries)))
+    fig, axes = pyplot().subplots(1, 2, figsize=(11, 1.4 + 0.6 * len(entries)))
     for ax, key, heading in (
         (axes[0], "real_return", "return on the plant (higher is better)"),
         (axes[1], "gap", "sim2real gap: simulator - plant"),
