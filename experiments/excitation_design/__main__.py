@@ -425,6 +425,30 @@ def anchored_time(row, key="ratio") -> float:
     return float(row["seconds"][-1] * row[key][-1] ** 2)
 
 
+def carried_over(rows, j: int, n: int, i: int, key=None) -> tuple[float, float]:
+    """Round j's parameter i (n episodes): medians over the repeats `rows` of the predicted
+    noise part and reported width over the achieved, with what the fit so far measured
+    carried to the new record (with_mismatch; round 0 has no data: the sensor part alone),
+    the noise part predicted with the mismatch model `key` if any."""
+    noise_ratio, full_ratio = [], []
+    for r in rows:
+        before = (
+            (r["sensor_half"][j - 1], r["noise_half"][j - 1], r["half"][j - 1])
+            if j
+            else (None, None, None)
+        )
+        pn, pf = with_mismatch(
+            r["predicted_half_now"][j],
+            n,
+            *before,
+            int(np.cumsum(ROUNDS)[j - 1]) if j else 0,
+            noise_predicted=None if key is None else r[key][j],
+        )
+        noise_ratio.append(pn[i] / r["noise_half"][j][i])
+        full_ratio.append(pf[i] / r["half"][j][i])
+    return float(np.median(noise_ratio)), float(np.median(full_ratio))
+
+
 def summarise(results) -> tuple[str, dict]:
     lines, summary = [], {}
     for key, what in (("ratio", "noise part"), ("ratio_reported", "reported, with law mismatch")):
@@ -589,26 +613,10 @@ def summarise(results) -> tuple[str, dict]:
                     )
                     errors_like.append(like_v)
                     sensor, like, share = f"{sens:.3g}", f"{like_v:.2f}", f"{share_v:.2f}"
+
                 carried = carried_full = ""
                 if "sensor_half" in rows[0]:
-                    # what the fit so far measured, carried to the new record (with_mismatch);
-                    # round 0 has no data: the sensor part alone, for both
-                    cn, cf = [], []
-                    for r in rows:
-                        before = (
-                            (r["sensor_half"][j - 1], r["noise_half"][j - 1], r["half"][j - 1])
-                            if j
-                            else (None, None, None)
-                        )
-                        pn, pf = with_mismatch(
-                            r["predicted_half_now"][j],
-                            int(n),
-                            *before,
-                            int(np.cumsum(ROUNDS)[j - 1]) if j else 0,
-                        )
-                        cn.append(pn[i] / r["noise_half"][j][i])
-                        cf.append(pf[i] / r["half"][j][i])
-                    cn, cf = float(np.median(cn)), float(np.median(cf))
+                    cn, cf = carried_over(rows, j, int(n), i)
                     errors_carried.append(cn)
                     errors_carried_full.append(cf)
                     mark = "" if j else " (noise only)"
@@ -622,24 +630,8 @@ def summarise(results) -> tuple[str, dict]:
                         modelled += ["", ""]
                         continue
                     # the noise part predicted with the mismatch measured so far; the reported
-                    # width adds the law-mismatch part carried from the fit so far (with_mismatch)
-                    mn, mf = [], []
-                    for r in rows:
-                        before = (
-                            (r["sensor_half"][j - 1], r["noise_half"][j - 1], r["half"][j - 1])
-                            if j
-                            else (None, None, None)
-                        )
-                        pn, pf = with_mismatch(
-                            r["predicted_half_now"][j],
-                            int(n),
-                            *before,
-                            int(np.cumsum(ROUNDS)[j - 1]) if j else 0,
-                            noise_predicted=r[key_][j],
-                        )
-                        mn.append(pn[i] / r["noise_half"][j][i])
-                        mf.append(pf[i] / r["half"][j][i])
-                    mn, mf = float(np.median(mn)), float(np.median(mf))
+                    # width adds the law-mismatch part carried from the fit so far
+                    mn, mf = carried_over(rows, j, int(n), i, key_)
                     model_errors[kind][0].append(mn)
                     model_errors[kind][1].append(mf)
                     mark = "" if j else " (noise only)"
