@@ -42,7 +42,12 @@ class Checkpoints:
         self.directory = Path(directory).absolute()
         self.manager = ocp.CheckpointManager(
             self.directory,
-            options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True),
+            # synchronous: training waits for every save anyway (a checkpoint is complete
+            # before the next epoch runs), and an async manager then reports that wait at the
+            # next save as a warning to checkpoint less often
+            options=ocp.CheckpointManagerOptions(
+                max_to_keep=keep, create=True, enable_async_checkpointing=False
+            ),
             # known before the first restore: item_metadata reads the state's arrays with it
             item_handlers={
                 "state": ocp.StandardCheckpointHandler(),
