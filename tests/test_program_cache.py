@@ -387,3 +387,62 @@ def test_a_corrupt_composition_entry_is_composed_again_not_a_crash(tmp_path, mon
     assert calls == 1 and again == built
     hit, calls = compose_counted(monkeypatch, "seeds=2")  # rewritten whole
     assert calls == 0 and hit == built
+
+
+# --- the evaluation after training (hds.gap.Evaluator): from the program cache like the chunk ---
+def evaluation(monkeypatch, tiny, cache, episodes: int = 2, never: bool = False):
+    """The tiny trainer's initial policies' returns on the simulator, by a new Evaluator
+    (`cache`: the program cache's directory or "off"); `never`: tracing the rollout fails."""
+    from hds import gap
+    from hds.gap import Evaluator
+
+    cfg, trainer = tiny
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(cache))
+    hparams = batch_hparams(cfg, trainer)
+    _, _, keys, hparams = compiled_programs(cfg, trainer, hparams)
+    state = RunByRun(trainer.init)(keys, hparams)
+    evaluator = Evaluator(make_env(cfg.env), trainer.policy, None, episodes)
+    if never:
+
+        def traced(*args, **kwargs):
+            raise AssertionError("the evaluation was traced on a hit")
+
+        monkeypatch.setattr(gap, "policy_rollout", traced)
+    try:
+        return evaluator, evaluator.sim_returns(state.policy)
+    finally:
+        monkeypatch.setattr(gap, "policy_rollout", policy_rollout)
+
+
+from hds.algo.rollout import policy_rollout  # noqa: E402 - restored after `never`
+
+
+def test_the_evaluation_from_the_program_cache_gives_the_numbers_of_jit_to_the_last_digit(
+    tiny, tmp_path, monkeypatch
+):
+    _, plain = evaluation(monkeypatch, tiny, "off")
+    evaluator, miss = evaluation(monkeypatch, tiny, tmp_path)
+    assert evaluator._key is not None
+    entries = sorted(p.name for p in tmp_path.iterdir())
+    assert len([e for e in entries if e.endswith(".jaxexport")]) == 1
+    _, hit = evaluation(monkeypatch, tiny, tmp_path, never=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == entries
+    assert plain.shape == (1, 2)
+    np.testing.assert_array_equal(plain, miss)
+    np.testing.assert_array_equal(miss, hit)
+
+
+@pytest.mark.slow
+def test_other_initial_states_miss_the_evaluation_and_a_corrupt_entry_is_traced_again(
+    tiny, tmp_path, monkeypatch
+):
+    first, two = evaluation(monkeypatch, tiny, tmp_path)
+    other, three = evaluation(monkeypatch, tiny, tmp_path, episodes=3)
+    assert other._key != first._key and three.shape == (1, 3)
+    assert len(list(tmp_path.glob("*.jaxexport"))) == 2
+    for entry in tmp_path.glob("*.jaxexport"):
+        entry.write_bytes(entry.read_bytes()[:100])  # cut short, as a full disk might leave it
+    _, again = evaluation(monkeypatch, tiny, tmp_path)
+    np.testing.assert_array_equal(again, two)
+    _, hit = evaluation(monkeypatch, tiny, tmp_path, never=True)  # rewritten whole
+    np.testing.assert_array_equal(hit, two)
