@@ -446,3 +446,10 @@ def test_other_initial_states_miss_the_evaluation_and_a_corrupt_entry_is_traced_
     np.testing.assert_array_equal(again, two)
     _, hit = evaluation(monkeypatch, tiny, tmp_path, never=True)  # rewritten whole
     np.testing.assert_array_equal(hit, two)
+
+
+def test_an_unknown_override_is_refused_before_composing_and_never_kept(tmp_path, monkeypatch):
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path))
+    with pytest.raises(ValueError, match="has no key 'sedes'"):
+        compose_counted(monkeypatch, "sedes=2")
+    assert not list(tmp_path.glob("*.composed_config.pickle"))

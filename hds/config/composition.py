@@ -52,13 +52,18 @@ def compose(overrides=(), config_name: str = "config", check_memory: bool = True
 
     config_dirs: further folders searched for config options, as `--config-dir` adds them
     (a study's experiments beside the study)."""
-    check_override_keys(overrides, schema_of(config_name), config_groups())
-    return validate(_hydra_compose(overrides, config_name, config_dirs), check_memory)
+    composed = _hydra_compose(overrides, config_name, config_dirs, checked=True)
+    return validate(composed, check_memory)
 
 
-def _hydra_compose(overrides, config_name: str, config_dirs, with_hydra: bool = False):
+def _hydra_compose(
+    overrides, config_name: str, config_dirs, with_hydra: bool = False, checked: bool = False
+):
     """Hydra's composition from hds/conf, with `config_dirs` on its search path (as
-    `--config-dir` adds them); `with_hydra`: Hydra's own node (`hydra.*`) too.
+    `--config-dir` adds them); `with_hydra`: Hydra's own node (`hydra.*`) too; `checked`:
+    the overrides' keys checked against the schema first (`check_override_keys`), which an
+    entry of the cache below passed when it was kept (the check reads only what its key
+    holds: the overrides, the schema and hds/conf's groups).
 
     The job's composition (without Hydra's node, whose run directory and time are the
     process's own) is kept in the program cache (hds.utils.runtime.cached_build; off where
@@ -71,9 +76,15 @@ def _hydra_compose(overrides, config_name: str, config_dirs, with_hydra: bool = 
         return _compose_now(overrides, config_name, config_dirs, with_hydra)
     from hds.utils.runtime import cached_build
 
+    def build():
+        if checked:
+            check_override_keys(overrides, schema_of(config_name), config_groups())
+        return _compose_now(overrides, config_name, config_dirs)
+
     return cached_build(
         "composed_config",
-        lambda: _compose_now(overrides, config_name, config_dirs),
+        build,
+        checked,
         config_name,
         [str(o) for o in overrides],
         [_yaml_files(d) for d in config_dirs],
@@ -93,8 +104,9 @@ def _hydra_state() -> tuple:
     files of the installed Hydra plugins (their configs and search-path additions) and the
     ConfigStore's entries (pickled: every node's values, whoever stored them)."""
     import pickle
-    from importlib.metadata import version
 
+    import hydra
+    import omegaconf
     from hydra.core.config_store import ConfigStore
 
     try:
@@ -114,7 +126,7 @@ def _hydra_state() -> tuple:
     # the plugins: every other entry (hds's schemas, a user's) by its values
     repo = ConfigStore.instance().repo
     store = pickle.dumps({k: v for k, v in repo.items() if k != "hydra"})
-    return version("hydra-core"), version("omegaconf"), plugins, store
+    return hydra.__version__, omegaconf.__version__, plugins, store
 
 
 def _compose_now(overrides, config_name: str, config_dirs, with_hydra: bool = False):
