@@ -114,13 +114,9 @@ def peak_rss_mb() -> float:
 # ---------------------------------------------------------------------------------------- config
 def compose(*overrides: str):
     """The validated config `python -m hds.run <overrides>` would use."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
+    from hds.config import compose as hds_compose
 
-    from hds.config import validate
-
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return validate(hydra_compose("config", overrides=list(overrides)))
+    return hds_compose(list(overrides))
 
 
 def backend_available(name: str) -> bool:

@@ -293,8 +293,10 @@ def section(results: list[dict], per_program: list[dict]) -> dict:
             "deserializing and lowering it, hds.utils.runtime.program_key) and their XLA "
             "compile from the persistent compilation cache; it builds no brax System and never "
             "imports brax, mujoco.mjx, matplotlib or Orbax (hds.envs.system.LazySystem: the "
-            "engine's check of the model is kept in the program cache too); it still imports "
-            "jax, flax, optax, mujoco and Hydra, composes the config and runs init and the "
+            "engine's check of the model is kept in the program cache too) and reads the "
+            "composed config from the program cache (hds.config.compose); it still imports "
+            "jax, flax, optax, mujoco and Hydra, loads the chunk's executable (XLA's "
+            "deserialization, proportional to the program's code) and runs init and the "
             "chunk. A warm miss means the warm process's program differed from the cold one's "
             "(source files edited in between change the HLO's source locations).",
             "A rerun of some backends or methods (`--set compile.backends=tree`) replaces "

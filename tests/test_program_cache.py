@@ -312,3 +312,144 @@ def test_a_system_first_used_inside_a_trace_is_built_with_concrete_arrays(tmp_pa
     assert_same_system(lazy.sys, eager.sys)
     np.testing.assert_array_equal(damping, 2.0 * np.asarray(eager.sys.dof.damping))
     assert len(list(tmp_path.glob("*.brax_system.pickle"))) == 1
+
+
+# --- the composed config (hds.config.composition): a second process skips Hydra's compose ------
+def compose_counted(monkeypatch, *overrides, config_dirs=()):
+    from hds.config import composition
+
+    calls = []
+    real = composition._compose_now
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(composition, "_compose_now", counted)
+    return composition.compose(list(overrides), config_dirs=config_dirs), len(calls)
+
+
+def test_a_cached_composition_is_the_composed_config(tmp_path, monkeypatch):
+    from omegaconf import OmegaConf
+
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path))
+    built, calls = compose_counted(monkeypatch, "env.backend=analytic", "seeds=2")
+    assert calls == 1 and len(list(tmp_path.glob("*.composed_config.pickle"))) == 1
+    hit, calls = compose_counted(monkeypatch, "env.backend=analytic", "seeds=2")
+    assert calls == 0  # unpickled, not composed
+    assert OmegaConf.to_yaml(OmegaConf.structured(hit)) == OmegaConf.to_yaml(
+        OmegaConf.structured(built)
+    )
+    assert hit == built and hit.seeds == 2
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", "off")
+    plain, calls = compose_counted(monkeypatch, "env.backend=analytic", "seeds=2")
+    assert calls == 1 and plain == hit
+
+
+def test_an_override_a_config_file_or_the_config_store_misses_the_composition(
+    tmp_path, monkeypatch
+):
+    from hydra.core.config_store import ConfigStore
+
+    cache, study = tmp_path / "cache", tmp_path / "study"
+    (study / "algo").mkdir(parents=True)
+    algo = study / "algo" / "mine.yaml"
+    algo.write_text("defaults:\n  - pods\n  - _self_\nepochs: 7\n")
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(cache))
+    cfg, calls = compose_counted(monkeypatch, "algo=mine", config_dirs=[study])
+    assert calls == 1 and cfg.algo.epochs == 7
+    cfg, calls = compose_counted(monkeypatch, "algo=mine", config_dirs=[study])
+    assert calls == 0 and cfg.algo.epochs == 7
+    algo.write_text("defaults:\n  - pods\n  - _self_\nepochs: 9\n")  # the study's file edited
+    cfg, calls = compose_counted(monkeypatch, "algo=mine", config_dirs=[study])
+    assert calls == 1 and cfg.algo.epochs == 9
+    cfg, calls = compose_counted(monkeypatch, "algo=mine", "seeds=3", config_dirs=[study])
+    assert calls == 1 and cfg.seeds == 3 and cfg.algo.epochs == 9
+    before = len(list(cache.glob("*.composed_config.pickle")))
+    ConfigStore.instance().store(group="algo", name="stored_here", node={"epochs": 5})
+    try:  # an entry stored in this process: the store's content is in the key
+        _, calls = compose_counted(monkeypatch, "algo=mine", config_dirs=[study])
+        assert calls == 1
+        assert len(list(cache.glob("*.composed_config.pickle"))) == before + 1
+    finally:
+        del ConfigStore.instance().repo["algo"]["stored_here.yaml"]
+    monkeypatch.setattr(runtime, "source_digest", lambda: "an edited hds/conf file")
+    _, calls = compose_counted(monkeypatch, "algo=mine", config_dirs=[study])
+    assert calls == 1
+
+
+def test_a_corrupt_composition_entry_is_composed_again_not_a_crash(tmp_path, monkeypatch):
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path))
+    built, _ = compose_counted(monkeypatch, "seeds=2")
+    (entry,) = tmp_path.glob("*.composed_config.pickle")
+    entry.write_bytes(entry.read_bytes()[:100])  # cut short, as a full disk might leave it
+    again, calls = compose_counted(monkeypatch, "seeds=2")
+    assert calls == 1 and again == built
+    hit, calls = compose_counted(monkeypatch, "seeds=2")  # rewritten whole
+    assert calls == 0 and hit == built
+
+
+# --- the evaluation after training (hds.gap.Evaluator): from the program cache like the chunk ---
+def evaluation(monkeypatch, tiny, cache, episodes: int = 2, never: bool = False):
+    """The tiny trainer's initial policies' returns on the simulator, by a new Evaluator
+    (`cache`: the program cache's directory or "off"); `never`: tracing the rollout fails."""
+    from hds import gap
+    from hds.gap import Evaluator
+
+    cfg, trainer = tiny
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(cache))
+    hparams = batch_hparams(cfg, trainer)
+    _, _, keys, hparams = compiled_programs(cfg, trainer, hparams)
+    state = RunByRun(trainer.init)(keys, hparams)
+    evaluator = Evaluator(make_env(cfg.env), trainer.policy, None, episodes)
+    if never:
+
+        def traced(*args, **kwargs):
+            raise AssertionError("the evaluation was traced on a hit")
+
+        monkeypatch.setattr(gap, "policy_rollout", traced)
+    try:
+        return evaluator, evaluator.sim_returns(state.policy)
+    finally:
+        monkeypatch.setattr(gap, "policy_rollout", policy_rollout)
+
+
+from hds.algo.rollout import policy_rollout  # noqa: E402 - restored after `never`
+
+
+def test_the_evaluation_from_the_program_cache_gives_the_numbers_of_jit_to_the_last_digit(
+    tiny, tmp_path, monkeypatch
+):
+    _, plain = evaluation(monkeypatch, tiny, "off")
+    evaluator, miss = evaluation(monkeypatch, tiny, tmp_path)
+    assert evaluator._key is not None
+    entries = sorted(p.name for p in tmp_path.iterdir())
+    assert len([e for e in entries if e.endswith(".jaxexport")]) == 1
+    _, hit = evaluation(monkeypatch, tiny, tmp_path, never=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == entries
+    assert plain.shape == (1, 2)
+    np.testing.assert_array_equal(plain, miss)
+    np.testing.assert_array_equal(miss, hit)
+
+
+@pytest.mark.slow
+def test_other_initial_states_miss_the_evaluation_and_a_corrupt_entry_is_traced_again(
+    tiny, tmp_path, monkeypatch
+):
+    first, two = evaluation(monkeypatch, tiny, tmp_path)
+    other, three = evaluation(monkeypatch, tiny, tmp_path, episodes=3)
+    assert other._key != first._key and three.shape == (1, 3)
+    assert len(list(tmp_path.glob("*.jaxexport"))) == 2
+    for entry in tmp_path.glob("*.jaxexport"):
+        entry.write_bytes(entry.read_bytes()[:100])  # cut short, as a full disk might leave it
+    _, again = evaluation(monkeypatch, tiny, tmp_path)
+    np.testing.assert_array_equal(again, two)
+    _, hit = evaluation(monkeypatch, tiny, tmp_path, never=True)  # rewritten whole
+    np.testing.assert_array_equal(hit, two)
+
+
+def test_an_unknown_override_is_refused_before_composing_and_never_kept(tmp_path, monkeypatch):
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path))
+    with pytest.raises(ValueError, match="has no key 'sedes'"):
+        compose_counted(monkeypatch, "sedes=2")
+    assert not list(tmp_path.glob("*.composed_config.pickle"))

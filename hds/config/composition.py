@@ -52,13 +52,84 @@ def compose(overrides=(), config_name: str = "config", check_memory: bool = True
 
     config_dirs: further folders searched for config options, as `--config-dir` adds them
     (a study's experiments beside the study)."""
-    check_override_keys(overrides, schema_of(config_name), config_groups())
-    return validate(_hydra_compose(overrides, config_name, config_dirs), check_memory)
+    composed = _hydra_compose(overrides, config_name, config_dirs, checked=True)
+    return validate(composed, check_memory)
 
 
-def _hydra_compose(overrides, config_name: str, config_dirs, with_hydra: bool = False):
+def _hydra_compose(
+    overrides, config_name: str, config_dirs, with_hydra: bool = False, checked: bool = False
+):
     """Hydra's composition from hds/conf, with `config_dirs` on its search path (as
-    `--config-dir` adds them); `with_hydra`: Hydra's own node (`hydra.*`) too."""
+    `--config-dir` adds them); `with_hydra`: Hydra's own node (`hydra.*`) too; `checked`:
+    the overrides' keys checked against the schema first (`check_override_keys`), which an
+    entry of the cache below passed when it was kept (the check reads only what its key
+    holds: the overrides, the schema and hds/conf's groups).
+
+    The job's composition (without Hydra's node, whose run directory and time are the
+    process's own) is kept in the program cache (hds.utils.runtime.cached_build; off where
+    the program cache is off): ~0.3 s of a second process of a configuration, 63 config reads
+    and merges. Its key is everything Hydra composes from: the config name, the overrides,
+    hds/conf (every hds file, `content_key`), the `config_dirs`' YAML files, Hydra's and
+    OmegaConf's versions, the installed Hydra plugins' files and Hydra's ConfigStore as it is
+    now; interpolations stay unresolved (`${oc.env:...}` is read when the config is)."""
+    if with_hydra:
+        return _compose_now(overrides, config_name, config_dirs, with_hydra)
+    from hds.utils.runtime import cached_build
+
+    def build():
+        if checked:
+            check_override_keys(overrides, schema_of(config_name), config_groups())
+        return _compose_now(overrides, config_name, config_dirs)
+
+    return cached_build(
+        "composed_config",
+        build,
+        checked,
+        config_name,
+        [str(o) for o in overrides],
+        [_yaml_files(d) for d in config_dirs],
+        _hydra_state(),
+    )
+
+
+def _yaml_files(directory) -> tuple:
+    """A config folder as Hydra reads it: its path and its YAML files' names and contents."""
+    root = Path(directory).resolve()
+    files = sorted(p for p in root.rglob("*") if p.suffix in (".yaml", ".yml") and p.is_file())
+    return str(root), [(str(p.relative_to(root)), p.read_bytes()) for p in files]
+
+
+def _hydra_state() -> tuple:
+    """What Hydra composes from besides the config folders: its and OmegaConf's versions, the
+    files of the installed Hydra plugins (their configs and search-path additions) and the
+    ConfigStore's entries (pickled: every node's values, whoever stored them)."""
+    import pickle
+
+    import hydra
+    import omegaconf
+    from hydra.core.config_store import ConfigStore
+
+    try:
+        import hydra_plugins
+
+        roots = list(hydra_plugins.__path__)
+    except ImportError:  # no plugin installed
+        roots = []
+    plugins = [
+        (str(p.relative_to(root)), p.read_bytes())
+        for root in map(Path, roots)
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and "__pycache__" not in p.parts
+    ]
+    # the store's `hydra` group (launchers, sweepers) is Hydra's and its plugins' (their
+    # versions and files are in the key), and it fills when the first composition discovers
+    # the plugins: every other entry (hds's schemas, a user's) by its values
+    repo = ConfigStore.instance().repo
+    store = pickle.dumps({k: v for k, v in repo.items() if k != "hydra"})
+    return hydra.__version__, omegaconf.__version__, plugins, store
+
+
+def _compose_now(overrides, config_name: str, config_dirs, with_hydra: bool = False):
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
