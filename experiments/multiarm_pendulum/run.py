@@ -28,16 +28,20 @@ import os
 import time
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
-import numpy as np
+# XLA's C++ log (a notice per persistent-cache hit) is read when jax loads: quiet it first,
+# as hds's commands do (hds/__init__.py sets it too, but jax is imported before hds here)
+os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 
-from hds.config import compose
-from hds.data import multiarm
-from hds.discover import DiscoverConfig, discover, write_report
-from hds.envs.system import load_spec, make_simulator
-from hds.utils.io import atomic_write_json
-from hds.utils.runtime import enable_compilation_cache
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from hds.config import compose  # noqa: E402
+from hds.data import multiarm  # noqa: E402
+from hds.discover import DiscoverConfig, discover, write_report  # noqa: E402
+from hds.envs.system import load_spec, make_simulator  # noqa: E402
+from hds.utils.io import atomic_write_json  # noqa: E402
+from hds.utils.runtime import enable_compilation_cache  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]

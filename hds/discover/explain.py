@@ -87,6 +87,9 @@ class Selection:
     # others refitted jointly) raises the held-out error by more than the law mismatch left:
     # the data show them, however wide the trade-off makes their intervals (`_shown`)
     shown: set[str] = field(default_factory=set)
+    # the chain's effects, in their order of selection, when the search ended and before the
+    # final judgement (`_finish`): what `judge_path` refits with other initial states
+    path: list[Candidate] = field(default_factory=list)
 
     @property
     def final(self) -> State:
@@ -138,22 +141,8 @@ def forward_selection(
     carries through the identification windows (`Engine.carried_noise`; measured states
     only), part of the noise floor a correct model would still leave."""
     model = engine.model
-    sw = _slot_width(model)
-    sizes = sorted(
-        {b * sw for b in cfg.slot_buckets if b < cfg.max_effects} | {max(cfg.max_effects, 1) * sw}
-    )
-    n_act = len(model.sim.action_names)
-    base_theta, base_delay = model.nominal.copy(), np.zeros(n_act, np.int32)
-    fit = _Fitter(engine, ident, heldout, cfg, estimate, sizes, sw, floor, carried)
-    base_error = float(engine.errors(base_theta[None], base_delay[None], ident)[0])
-    state = State(
-        [],
-        base_theta,
-        base_delay,
-        float(engine.errors(base_theta[None], base_delay[None], heldout)[0]),
-        base_error,
-        misfit=fit.misfit(base_error**2),
-    )
+    fit = _fitter(engine, ident, heldout, cfg, estimate, floor, carried)
+    state = _base_state(fit)
     states, rounds, dropped, mismatch = [state], [], [], []
     stopped, unidentified = f"reached discover.max_effects = {cfg.max_effects}", ""
     unidentifiable, banned = set(banned), set(banned)
@@ -258,6 +247,7 @@ def forward_selection(
         dropped += gone
         banned.update(c.key for c in gone)
         state = states[-1]
+    path = list(states[-1].selected)
     split_states, split = _split_proxy(fit, states, banned)
     if split:
         # the pair is judged as any final model is; it stands only if both of it survive,
@@ -267,13 +257,72 @@ def forward_selection(
         trial = _finish(fit, split_states, kept)
         if all(c.key in trial[-1].keys for c in pair):
             states, mismatch, dropped = trial, kept, dropped + split
+            path = list(split_states[-1].selected)
         else:
             log.info("the pair %s did not stand as named", " and ".join(c.key for c in pair))
             split = []
     if not split:
         states = _finish(fit, states, mismatch)
     shown = _shown(fit, states[-1])
-    return Selection(states, rounds, stopped, dropped, mismatch, unidentified, shown)
+    return Selection(states, rounds, stopped, dropped, mismatch, unidentified, shown, path)
+
+
+def judge_path(
+    engine: Engine,
+    ident,
+    heldout,
+    cfg,
+    path: list[Candidate],
+    estimate: bool = False,
+    floor: float = 0.0,
+    carried: float = 0.0,
+) -> Selection:
+    """Another search's selection (`Selection.path`: its effects in their order) refitted with
+    these fits' initial states (`estimate`) and judged as any selection's final model is
+    (`_finish`: settled, then each effect refused that earns less than the model's mismatch),
+    with no search of its own: each prefix of the path fitted jointly from the library's
+    starting values, in one batched fit. What the initial-state choice compares
+    (`hds.discover.workflow.choose_initial_states`): the held-out episodes judge both starts'
+    fits of the same effects, not two searches' different paths. Arguments as
+    `forward_selection`'s."""
+    fit = _fitter(engine, ident, heldout, cfg, estimate, floor, carried)
+    base = _base_state(fit)
+    keys = ", ".join(c.key for c in path) or "none"
+    stopped = f"the effects another search selected ({keys}), refitted and judged"
+    if not path:
+        return Selection([base], [], stopped)
+    start = dataclasses.replace(base, theta=engine.model.start.copy())
+    states = [base] + fit.sets(start, [path[:n] for n in range(1, len(path) + 1)])
+    mismatch: list[tuple[State, State]] = []
+    states = _finish(fit, states, mismatch)
+    shown = _shown(fit, states[-1])
+    return Selection(states, [], stopped, [], mismatch, "", shown, list(path))
+
+
+def _fitter(engine: Engine, ident, heldout, cfg, estimate, floor, carried) -> _Fitter:
+    """The batched fits of a selection: one slot width per bucket of cfg.slot_buckets below
+    max_effects, and max_effects'."""
+    sw = _slot_width(engine.model)
+    sizes = sorted(
+        {b * sw for b in cfg.slot_buckets if b < cfg.max_effects} | {max(cfg.max_effects, 1) * sw}
+    )
+    return _Fitter(engine, ident, heldout, cfg, estimate, sizes, sw, floor, carried)
+
+
+def _base_state(fit: _Fitter) -> State:
+    """The simulator as it is (no effect added): its errors and misfit."""
+    engine = fit.engine
+    theta = engine.model.nominal.copy()
+    delay = np.zeros(len(engine.model.sim.action_names), np.int32)
+    ident_error = float(engine.errors(theta[None], delay[None], fit.ident)[0])
+    return State(
+        [],
+        theta,
+        delay,
+        float(engine.errors(theta[None], delay[None], fit.heldout)[0]),
+        ident_error,
+        misfit=fit.misfit(ident_error**2),
+    )
 
 
 def _finish(fit, states: list[State], mismatch: list) -> list[State]:

@@ -23,6 +23,7 @@ from hds.discover.explain import (
     delay_range,
     forward_selection,
     intervals,
+    judge_path,
 )
 from hds.discover.fit import Engine, confidence_intervals, get_engine
 from hds.discover.identify import Identifiability, identifiability
@@ -223,12 +224,19 @@ Result = Discovery  # its name until 2026-11-27 (`from hds.discover import Resul
 
 
 def discover(
-    dataset: Dataset, env_cfg, cfg: DiscoverConfig | None = None, validation: Dataset | None = None
+    dataset: Dataset,
+    env_cfg,
+    cfg: DiscoverConfig | None = None,
+    validation: Dataset | None = None,
+    *,
+    path: list[str] | None = None,
 ) -> Discovery:
     """Find which effects of the library the simulator of `env_cfg` misses on `dataset`.
 
     Episodes are split into identification and held-out sets; `validation` (optional) is a
-    further dataset whose errors are reported before and after, never fitted."""
+    further dataset whose errors are reported before and after, never fitted. `path`: keys
+    of candidates, in order (another discovery's `selection.path`), refitted and judged
+    instead of searched for (`judge_path`: the initial-state choice's second start)."""
     cfg = cfg or DiscoverConfig()
     cfg.check()
     # refused past discover.max_steps before anything compiles (every caller: the commands,
@@ -298,9 +306,16 @@ def discover(
             carried,
             floor**2,
         )
-    selection = forward_selection(
-        engine, ident, data.arrays("heldout"), cfg, estimate, floor, banned, progress, carried
-    )
+    if path is None:
+        selection = forward_selection(
+            engine, ident, data.arrays("heldout"), cfg, estimate, floor, banned, progress, carried
+        )
+    else:
+        by_key = {c.key: c for c in model.candidates}
+        chosen = [by_key[k] for k in path]
+        selection = judge_path(
+            engine, ident, data.arrays("heldout"), cfg, chosen, estimate, floor, carried
+        )
     # What the selected effects leave: if a feature still explains much of it, the gap has a
     # structure no effect of the library has, and an effect that explains less than that
     # structured remainder is a compensation for it, not a finding: it stays tentative.
@@ -412,11 +427,21 @@ def choose_initial_states(
     more depends on the windows and the effects, not on the record alone, so the held-out
     episodes decide, as they decide every effect: each model predicts them from their measured
     states (as it will be used), and the estimated states are kept only where they lower that
-    error by the selection margin (stop_margin); the measured start is the cheaper default."""
-    runs = {
-        mode: discover(dataset, env_cfg, dataclasses.replace(cfg, initial_state=mode), validation)
-        for mode in ("measured", "estimated")
-    }
+    error by the selection margin (stop_margin); the measured start is the cheaper default.
+
+    One search, two judgements: the measured start searches (`forward_selection`); the
+    estimated start refits the effects that search selected, in its order, and judges them
+    by the same rules (`judge_path`) instead of searching again. Both starts are compared on
+    the same effects, so what decides is the initial states alone, and the estimated start
+    costs a few batched fits instead of a search's rounds."""
+    measured = discover(
+        dataset, env_cfg, dataclasses.replace(cfg, initial_state="measured"), validation
+    )
+    path = [c.key for c in measured.selection.path]
+    estimated = discover(
+        dataset, env_cfg, dataclasses.replace(cfg, initial_state="estimated"), validation, path=path
+    )
+    runs = {"measured": measured, "estimated": estimated}
     error = {mode: float(r.error("after").normalized) for mode, r in runs.items()}
     better = error["estimated"] < (1.0 - cfg.stop_margin) * error["measured"]
     result = runs["estimated" if better else "measured"]
@@ -424,7 +449,10 @@ def choose_initial_states(
         "velocity_error": [float(x) for x in velocity_error],
         "heldout_error": error,
         "chosen": result.initial_state,
+        "selected_with_measured_states": path,
     }
+    if result is estimated:  # its effects were searched for with measured states
+        result.candidates = measured.candidates
     log.info(
         "initial states %s: the velocities' smooth error is %s of their std; held-out k-step "
         "error with measured states %.4g, with estimated %.4g",
