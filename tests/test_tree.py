@@ -276,12 +276,18 @@ def test_the_brax_plant_runs_a_new_system_with_its_hidden_effect():
     for name, effects in (("gain", gain), ("nominal", [])):
         env = make_env(cfg.env, effects=effects, sharpness=None)
         state = jax.vmap(env.sim.init, in_axes=(0, 0, None))(q0, qd0, env.params)
-        step = jax.vmap(env.sim.step, in_axes=(None, 0, 0))
-        obs = []
-        for t in range(10):
-            state = step(env.params, state, jnp.asarray(u[t], jnp.float32))
-            obs.append(jax.vmap(env.sim.observe, in_axes=(None, 0))(env.params, state))
-        expected[name] = np.stack(obs)
+
+        # the ten steps in one program: stepped eagerly, each step's substep scan compiled
+        # again (18 compiles in this test)
+        @jax.jit
+        def ten_steps(params, state, u, sim=env.sim):
+            def one(state, u_t):
+                state = jax.vmap(sim.step, in_axes=(None, 0, 0))(params, state, u_t)
+                return state, jax.vmap(sim.observe, in_axes=(None, 0))(params, state)
+
+            return jax.lax.scan(one, state, u)[1]
+
+        expected[name] = np.asarray(ten_steps(env.params, state, jnp.asarray(u, jnp.float32)))
     np.testing.assert_allclose(measured, expected["gain"], atol=1e-6)
     assert np.abs(measured - expected["nominal"]).max() > 1e-2
 
