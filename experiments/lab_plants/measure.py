@@ -47,10 +47,10 @@ HERE = Path(__file__).resolve().parent
 # tries only as a refinement of a named Coulomb friction (hds.discover.explain._refine)
 EFFECTS = [*default_candidates(), "breakaway_friction"]
 FAMILIES = {  # family: (its overrides, the results file)
-    "lab_cartpole": (["real=lab_cartpole"], "results.json"),
+    "lab_cartpole": (["real=lab_cartpole", "env.backend=analytic"], "results.json"),
     "lab_furuta": (["env=furuta_balance", "real=lab_furuta"], "results_furuta.json"),
 }
-COMMON = ["method=pods_cl", "env.backend=analytic", "logger=none"]
+COMMON = ["method=pods_cl", "logger=none"]
 COMMON += ["discover.effects=[" + ",".join(EFFECTS) + "]"]
 
 # what the truth holds for each library effect's parameter discovery may name

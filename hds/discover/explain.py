@@ -467,6 +467,18 @@ def _refine(fit, states: list[State], banned, mismatch: list) -> tuple[list[Stat
         better = trial.heldout_error < (1.0 - cfg.stop_margin) * state.heldout_error
         enough = gains[best] >= trial.misfit / max(fit.count, 1.0)
         if not (better and shown and enough and np.isfinite(trial.heldout_error)):
+            log.info(
+                "%s does not refine %s: held-out error %.4g -> %.4g (margin %s), peak shown "
+                "by its noise interval %s, held-out MSE gain %.3g against %.3g left",
+                r.key,
+                named.key,
+                state.heldout_error,
+                trial.heldout_error,
+                better,
+                shown,
+                gains[best],
+                trial.misfit / max(fit.count, 1.0),
+            )
             return states, refined
         prefixes = [chosen[:n] for n in range(j + 1, len(chosen))]
         kept = list(mismatch)
