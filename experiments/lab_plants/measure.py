@@ -1,18 +1,23 @@
-"""Issue 38.2, one measurement: what gap discovery names on lab_cartpole draws, against each
-draw's truth, and the held-out error it leaves unexplained.
+"""Issue 38.2, one measurement: what gap discovery names on lab_cartpole (or lab_furuta)
+draws, against each draw's truth, and the held-out error it leaves unexplained.
 
 The data are a sim2real loop's first round (hds.loop.record, excite_until_identifiable): a
 balance policy trained by closed-loop PODS on the nominal simulator (round 0, the same for
 every draw), deployed on the draw's plant, plus open-loop excitation, raised while the data
-cannot identify what more excitation would. Discovery runs with its defaults
-(discover.effects: the default candidates). Writes experiments/lab_plants/results.json.
+cannot identify what more excitation would. Discovery runs with its default candidates and
+`breakaway_friction` (dry friction with a Stribeck peak), which it tries only as a refinement
+of a named Coulomb friction. Writes experiments/lab_plants/results.json (results_furuta.json
+with --furuta: the Furuta pendulum, env=furuta_balance).
 
     PYTHONPATH=$PWD .venv/bin/python experiments/lab_plants/measure.py [draws=5] [--fresh]
+        [--furuta]
 
 Per draw: what discovery named against the truth; whether a named library effect has an
 interval that excludes no effect where the truth has none (the issue's proxy for an
 out-of-library effect or a law mismatch, target: never); whether the truth is in the
-interval and within 10% (masses, gains) or 25% (frictions, of the sliding level) of the fit;
+interval and within 10% (masses, gains) or 25% (frictions: a Coulomb fit against the
+sliding level, a breakaway friction's sliding and static levels each against the truth's) of
+the fit;
 and the held-out error the corrected model leaves (`remainder_fraction`, of which
 `noise_fraction` is the measurement noise's). --fresh measures every draw again (results
 of an earlier discovery are dropped; round 0's policy is kept).
@@ -31,58 +36,136 @@ from hds import experiment
 from hds.config import compose
 from hds.data import concatenate
 from hds.discover import discover
+from hds.effects.library import default_candidates
 from hds.envs import make_env
 from hds.loop import excite_until_identifiable
 from hds.real import lab, make_plant
 from hds.utils.io import atomic_write_json, read_json
 
 HERE = Path(__file__).resolve().parent
-WORK = Path("outputs/lab_plants")  # checkpoints of round 0 (resumable)
-BASE = ["real=lab_cartpole", "method=pods_cl", "env.backend=analytic", "logger=none"]
-
-# what the truth holds for each library effect discovery may name ({effect@target: value})
-TRUTH_OF = {
-    "coulomb_friction": ("stribeck_friction", "force"),  # the sliding level (static: beside)
-    "viscous_damping": ("viscous_damping", "coefficient"),
-    "mass_scale": ("mass_scale", "scale"),
-    "actuator_gain": ("actuator_gain", "gain"),
-    "actuator_deadzone": ("actuator_deadzone", "width"),
-    "action_delay": ("action_delay", "steps"),
+# discovery's candidates: its defaults and the dry friction with a Stribeck peak, which it
+# tries only as a refinement of a named Coulomb friction (hds.discover.explain._refine)
+EFFECTS = [*default_candidates(), "breakaway_friction"]
+FAMILIES = {  # family: (its overrides, the results file)
+    "lab_cartpole": (["real=lab_cartpole", "env.backend=analytic"], "results.json"),
+    "lab_furuta": (["env=furuta_balance", "real=lab_furuta"], "results_furuta.json"),
 }
+COMMON = ["method=pods_cl", "logger=none"]
+COMMON += ["discover.effects=[" + ",".join(EFFECTS) + "]"]
 
-
-TOLERANCE = {"coulomb_friction": 0.25, "viscous_damping": 0.25, "mass_scale": 0.10}
-TOLERANCE |= {"actuator_gain": 0.10, "actuator_deadzone": 0.25}
+# what the truth holds for each library effect's parameter discovery may name
+# ({effect: {param: (truth's effect, truth's param)}}); a dry friction's static level is
+# judged against the truth's static level (a Coulomb fit's against the sliding level)
+TRUTH_OF = {
+    "coulomb_friction": {"force": ("stribeck_friction", "force")},
+    "breakaway_friction": {
+        "force": ("stribeck_friction", "force"),
+        "static": ("stribeck_friction", "static"),
+        "velocity": ("stribeck_friction", "velocity"),
+    },
+    "viscous_damping": {"coefficient": ("viscous_damping", "coefficient")},
+    "mass_scale": {"scale": ("mass_scale", "scale")},
+    "actuator_gain": {"gain": ("actuator_gain", "gain")},
+    "actuator_deadzone": {"width": ("actuator_deadzone", "width")},
+    "action_delay": {"steps": ("action_delay", "steps")},
+}
+FRICTION = 0.25  # the issue's tolerance for frictions (and dead bands); 10% masses and gains
+TOLERANCE = {"coulomb_friction": FRICTION, "breakaway_friction": FRICTION}
+TOLERANCE |= {"viscous_damping": FRICTION, "actuator_deadzone": FRICTION}
+TOLERANCE |= {"mass_scale": 0.10, "actuator_gain": 0.10}
+JUDGED = {"breakaway_friction": ("force", "static")}  # not the Stribeck velocity: no tolerance
 NO_OP = {"action_delay": 0}  # a drawn value that is no effect
 
 
-def truth_value(truth: dict, name: str, target: str):
+def truth_values(truth: dict, name: str, target: str) -> dict | None:
+    """{param: the truth's value} of a named library effect, None where the truth has none."""
     if name not in TRUTH_OF:
         return None
-    effect, param = TRUTH_OF[name]
-    for e in truth["effects"]:
-        if e["name"] == effect and e["target"] == target:
-            value = e["params"][param]
-            return None if NO_OP.get(name) == value else value
-    return None
+    out = {}
+    for param, (effect, theirs) in TRUTH_OF[name].items():
+        for e in truth["effects"]:
+            if e["name"] == effect and e["target"] == target:
+                out[param] = e["params"][theirs]
+    if not out or any(NO_OP.get(name) == v for v in out.values()):
+        return None
+    return out
+
+
+def quantities(e: dict) -> dict:
+    """{quantity: (fit, lo, hi)} of a named effect; a breakaway friction's static level is
+    force + peak (its interval the sum of the two's ends: a bound)."""
+    out = {p: (x, *e["ci95"][p]) for p, x in e["params"].items()}
+    if e["name"] == "breakaway_friction":
+        (f, flo, fhi), (p, plo, phi) = out.pop("force"), out.pop("peak")
+        out = {"force": (f, flo, fhi), "static": (f + p, flo + plo, fhi + phi), **out}
+    return out
 
 
 def judge(e: dict) -> dict:
-    """A named effect against the truth: `spurious` (the truth has none and the interval
-    excludes no effect), `covers` (the truth in the interval), `close` (within the issue's
-    tolerance of the truth)."""
-    ((param, x),) = e["params"].items()
-    lo, hi = e["ci95"][param]
+    """A named effect against the truth, per judged quantity: `spurious` (the truth has none
+    and the interval excludes no effect), `covers` (the truth in the interval), `close`
+    (within the issue's tolerance of the truth)."""
+    values = quantities(e)
+    judged = JUDGED.get(e["name"], tuple(values)[:1])
     nominal = {"mass_scale": 1.0, "actuator_gain": 1.0}.get(e["name"], 0.0)
-    excludes = not lo <= nominal <= hi
     truth = e["truth"]
     if truth is None:
-        return {"spurious": excludes, "covers": None, "close": None}
+        x, lo, hi = values[judged[0]]
+        return {judged[0]: {"spurious": not lo <= nominal <= hi, "covers": None, "close": None}}
     tol = TOLERANCE.get(e["name"])
+    out = {}
+    for q in judged:
+        x, lo, hi = values[q]
+        out[q] = {
+            "spurious": False,
+            "covers": bool(lo <= truth[q] <= hi),
+            "close": None if tol is None else bool(abs(x - truth[q]) <= tol * abs(truth[q])),
+        }
+    return out
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.3g}"
+
+
+def describe(e: dict, values: dict) -> str:
+    """One named effect: each quantity's fit [interval] against the truth, and the verdicts."""
+    verdict = judge(e)
+    parts = []
+    for q, (x, lo, hi) in quantities(e).items():
+        if e["truth"] is None:
+            truth = "none"
+        elif e["name"] == "coulomb_friction":  # one level for two: both shown
+            static = values[f"stribeck_friction@{e['target']}.static"]
+            truth = f"{_fmt(e['truth'][q])} sliding, {_fmt(static)} static"
+        else:
+            truth = _fmt(e["truth"][q]) if q in e["truth"] else "?"
+        v = verdict.get(q, {})
+        mark = " **(spurious)**" if v.get("spurious") else ""
+        mark += " (outside the tolerance)" if v.get("close") is False else ""
+        mark += " (truth outside)" if v.get("covers") is False else ""
+        label = "" if len(e["params"]) == 1 else f"{q} "
+        parts.append(f"{label}{_fmt(x)} [{_fmt(lo)}, {_fmt(hi)}] vs {truth}{mark}")
+    return f"{e['name']}@{e['target']} " + ", ".join(parts)
+
+
+def totals(rows: list[dict]) -> dict:
+    """Counts over the draws: effects named, spurious, truth covered, within the tolerance
+    (frictions apart from masses and gains)."""
+    named = [e for d in rows for e in d["named"]]
+    verdicts = [(e, q, v) for e in named for q, v in judge(e).items()]
+    friction = [
+        v["close"]
+        for e, _, v in verdicts
+        if v["close"] is not None
+        and e["name"] in ("coulomb_friction", "breakaway_friction", "viscous_damping")
+    ]
     return {
-        "spurious": False,
-        "covers": bool(lo <= truth <= hi),
-        "close": None if tol is None else bool(abs(x - truth) <= tol * abs(truth)),
+        "named": len(named),
+        "spurious": sum(v["spurious"] for _, _, v in verdicts),
+        "covered": [v["covers"] for _, _, v in verdicts if v["covers"] is not None],
+        "close": [v["close"] for _, _, v in verdicts if v["close"] is not None],
+        "close_friction": friction,
     }
 
 
@@ -97,30 +180,22 @@ def table(rows: list[dict]) -> str:
     ]
     for d in rows:
         values = d["truth"]["values"]
-        named = []
-        for e in d["named"]:
-            ((param, x),) = e["params"].items()
-            lo, hi = e["ci95"][param]
-            truth = "none" if e["truth"] is None else f"{e['truth']:.3g}"
-            if e["name"] == "coulomb_friction":
-                static = values[f"stribeck_friction@{e['target']}.static"]
-                truth += f" sliding, {static:.3g} static"
-            verdict = judge(e)
-            mark = " **(spurious)**" if verdict["spurious"] else ""
-            mark += " (outside the tolerance)" if verdict["close"] is False else ""
-            mark += " (truth outside)" if verdict["covers"] is False else ""
-            named.append(f"{e['name']}@{e['target']} {x:.3g} [{lo:.3g}, {hi:.3g}] vs {truth}{mark}")
+        named = [describe(e, values) for e in d["named"]]
         keys = {f"{e['name']}@{e['target']}" for e in d["named"]}
+        dry = {k.split("@")[1] for k in keys if k.split("@")[0] in TOLERANCE and "friction" in k}
         missed = []
         for key, x in values.items():
             effect, rest = key.split("@")
             target, param = rest.split(".")
-            library = "coulomb_friction" if effect == "stribeck_friction" else effect
-            if library not in TRUTH_OF or TRUTH_OF[library][1] != param:
+            if effect == "stribeck_friction":
+                if param == "force" and target not in dry:
+                    missed.append(f"dry friction@{target} {_fmt(x)}")
                 continue
-            if f"{library}@{target}" in keys or (effect == "action_delay" and x == 0):
+            if effect not in TRUTH_OF or param not in TRUTH_OF[effect]:
                 continue
-            missed.append(f"{library}@{target} {x:.3g}")
+            if f"{effect}@{target}" in keys or (effect == "action_delay" and x == 0):
+                continue
+            missed.append(f"{effect}@{target} {_fmt(x)}")
         before, after = d["nrmse_before"]["heldout"], d["nrmse_after"]["heldout"]
         terms = d.get("nrmse_with_terms", {}).get("heldout")
         errors = f"{before:.3f} -> {after:.3f}" + (f" -> {terms:.3f}" if terms else "")
@@ -129,35 +204,38 @@ def table(rows: list[dict]) -> str:
             f"| {errors} | {d['unexplained_fraction']:.1%} "
             f"| {d['remainder_fraction']:.1%} ({d['noise_fraction']:.1%}) |"
         )
-    verdicts = [judge(e) for d in rows for e in d["named"]]
-    spurious = sum(v["spurious"] for v in verdicts)
-    covered = [v["covers"] for v in verdicts if v["covers"] is not None]
-    close = [v["close"] for v in verdicts if v["close"] is not None]
+    t = totals(rows)
     lines += [
         "",
-        f"Over {len(rows)} draws: {len(verdicts)} library effects named; {spurious} with an "
+        f"Over {len(rows)} draws: {t['named']} library effects named; {t['spurious']} with an "
         "interval that excludes no effect where the truth has none; the truth inside the "
-        f"interval {sum(covered)} of {len(covered)} times; within the tolerance (10% masses "
-        f"and gains, 25% frictions and dead bands) {sum(close)} of {len(close)} times.",
+        f"interval {sum(t['covered'])} of {len(t['covered'])} times; within the tolerance "
+        f"(10% masses and gains, 25% frictions and dead bands) {sum(t['close'])} of "
+        f"{len(t['close'])} times, frictions {sum(t['close_friction'])} of "
+        f"{len(t['close_friction'])} (a breakaway friction's sliding and static levels each "
+        "judged).",
     ]
     return "\n".join(lines)
 
 
-def main(n_draws: int = 5, fresh: bool = False) -> None:
+def main(family: str, n_draws: int = 5, fresh: bool = False) -> None:
     start = time.time()
-    cfg0 = compose([*BASE, "real.draw=0"])
+    overrides, results = FAMILIES[family]
+    base = [*overrides, *COMMON]
+    cfg0 = compose([*base, "real.draw=0"])
     env = make_env(cfg0.env)
-    training = experiment.train_batch(cfg0, env, WORK / "round0", "pods_cl")
+    work = Path("outputs/lab_plants") / family  # round 0's checkpoints (resumable)
+    training = experiment.train_batch(cfg0, env, work / "round0", "pods_cl")
     params = training.params
-    path = HERE / "results.json"
+    path = HERE / results
     rows = read_json(path)["draws"] if path.is_file() and not fresh else []
     done = {r["draw"] for r in rows}
     for k in range(n_draws):
         if k in done:
             continue
-        t0 = time.time()
-        cfg = compose([*BASE, f"real.draw={k}"])
-        truth = lab.draw("lab_cartpole", k)
+        t0, c0 = time.time(), time.process_time()
+        cfg = compose([*base, f"real.draw={k}"])
+        truth = lab.draw(family, k)
         plant = make_plant(cfg.real, cfg.env)
         key = jax.random.split(jax.random.PRNGKey(cfg.seed + 7919))[1]  # the loop's round 1
         data, scale, notes = excite_until_identifiable(cfg, env, plant, params, key, [], cfg.env)
@@ -166,7 +244,7 @@ def main(n_draws: int = 5, fresh: bool = False) -> None:
         named = []
         for e in result.missing_effects:
             row = e.to_json()
-            row["truth"] = truth_value(truth, e.name, e.target)
+            row["truth"] = truth_values(truth, e.name, e.target)
             named.append(row)
         heldout = {s: errs.normalized for s, (_, errs) in result.after.items()}
         with_terms = {s: errs.normalized for s, (_, errs) in result.after_terms.items()}
@@ -180,6 +258,7 @@ def main(n_draws: int = 5, fresh: bool = False) -> None:
                 "named": named,
                 "tentative": [e.to_json() for e in result.tentative],
                 "law_mismatch": [e.to_json() for e in result.law_mismatch],
+                "dropped": result.to_json().get("dropped_proxies", []),
                 "unexplained_fraction": result.unexplained_fraction,
                 "remainder_fraction": result.remainder_fraction,
                 "noise_fraction": result.noise_fraction,
@@ -190,19 +269,22 @@ def main(n_draws: int = 5, fresh: bool = False) -> None:
                 "warnings": result.warnings,
                 "truth": truth,
                 "seconds": time.time() - t0,
+                "cpu_seconds": time.process_time() - c0,
             }
         )
         atomic_write_json(path, {"draws": rows, "load_average": os.getloadavg()})
         print(
             f"draw {k}: {[e['name'] + '@' + e['target'] for e in named]} "
             f"unexplained {result.unexplained_fraction:.3f} remainder "
-            f"{result.remainder_fraction:.3f} ({time.time() - t0:.0f} s)",
+            f"{result.remainder_fraction:.3f} ({time.time() - t0:.0f} s, "
+            f"{time.process_time() - c0:.0f} CPU s)",
             flush=True,
         )
     print(f"total {time.time() - start:.0f} s")
-    print(table(rows))
+    print(table(sorted(rows, key=lambda r: r["draw"])))
 
 
 if __name__ == "__main__":
     numbers = [a for a in sys.argv[1:] if not a.startswith("--")]
-    main(int(numbers[0]) if numbers else 5, "--fresh" in sys.argv)
+    chosen = "lab_furuta" if "--furuta" in sys.argv else "lab_cartpole"
+    main(chosen, int(numbers[0]) if numbers else 5, "--fresh" in sys.argv)

@@ -191,7 +191,7 @@ def forward_selection(
         fresh = [
             i
             for i, c in enumerate(model.candidates)
-            if c.key not in state.keys and c.key not in banned
+            if c.key not in state.keys and c.key not in banned and not _refinement(c)
         ]
         if not fresh:
             stopped = "every candidate the data can identify is selected"
@@ -263,6 +263,8 @@ def forward_selection(
             split = []
     if not split:
         states = _finish(fit, states, mismatch)
+    states, refined = _refine(fit, states, banned, mismatch)
+    dropped += refined
     shown = _shown(fit, states[-1])
     return Selection(states, rounds, stopped, dropped, mismatch, unidentified, shown, path)
 
@@ -410,7 +412,11 @@ def _split_proxy(fit, states: list[State], banned) -> tuple[list[State], list[Ca
     state = states[-1]
     if len(state.selected) + 1 > cfg.max_effects:
         return states, []
-    laws = {c.key for c in model.candidates if effect_type(c.name).friction and c.slots}
+    laws = {
+        c.key
+        for c in model.candidates
+        if effect_type(c.name).friction and c.slots and not _refinement(c)
+    }
     trials = []
     for j, out in enumerate(state.selected):
         if out.key not in laws:
@@ -451,6 +457,94 @@ def _split_proxy(fit, states: list[State], banned) -> tuple[list[State], list[Ca
     )
     prefixes = [chosen[:n] for n in range(j + 1, len(chosen))]
     return states[: j + 1] + fit.sets(start, prefixes) + [pair], [state.selected[j]]
+
+
+def _refinement(cand: Candidate) -> str:
+    """The effect a candidate refines (`Effect.refines`: its law holds that one's), or ''."""
+    refines = effect_type(cand.name).refines
+    return refines[0] if refines else ""
+
+
+def _refine(fit, states: list[State], banned, mismatch: list) -> tuple[list[State], list]:
+    """Once the final model is judged: whether a named effect's refinement (`Effect.refines`:
+    a law that holds the named one's as a special case, a dry friction with a Stribeck peak
+    for Coulomb friction) predicts better in its place. Coulomb's law cannot fit a friction
+    whose static level is above its sliding one: its fit lands between the two, and a mass
+    or gain compensates. The refinement starts from the named effect's values (its extra
+    parameters from their start: no peak), fitted jointly with the others, and takes the
+    named one's place where, as any effect added by selection must, it predicts the
+    held-out episodes better by the selection margin (`stop_margin`), the data show its
+    extra parameters (their noise intervals exclude their no-op, `_within_mismatch`) and
+    its gain in held-out MSE is at least what the model leaves above the noise (the
+    held-out share rule, `_shown_on_held_out`). The refined chain is then judged again
+    (`_finish`): an effect that only compensated the named law's mismatch (a heavier cart
+    for the static peak) may now be law mismatch. The refinement stands only if it survives
+    that judgement; otherwise the model stays as it was. One joint at a time, the best first.
+    Returns (the chain, [the effects refined])."""
+    model, cfg = fit.engine.model, fit.cfg
+    refined = []
+    while True:
+        state = states[-1]
+        trials = []
+        for j, named in enumerate(state.selected):
+            for r in model.candidates:
+                if (
+                    _refinement(r) == named.name
+                    and r.target == named.target
+                    and r.key not in state.keys
+                    and r.key not in banned
+                ):
+                    trials.append((j, r, state.selected[:j] + [r] + state.selected[j + 1 :]))
+        if not trials:
+            return states, refined
+        theta = model.start.copy()
+        theta[state.slots] = state.theta[state.slots]
+        for j, r, _ in trials:  # the shared parameters from the named effect's values
+            named = state.selected[j]
+            for p, s in zip(r.params, r.slots, strict=True):
+                if p in named.params:
+                    theta[s] = state.theta[named.slots[named.params.index(p)]]
+        start = dataclasses.replace(state, theta=theta)
+        fitted = fit.sets(start, [chosen for _, _, chosen in trials])
+        gains = [state.heldout_error**2 - f.heldout_error**2 for f in fitted]
+        best = int(np.argmax(gains))
+        (j, r, chosen), trial = trials[best], fitted[best]
+        named = state.selected[j]
+        # the parameter by which it differs (a peak), not one that means nothing without it
+        s = r.slots[r.params.index(effect_type(r.name).refines[1])]
+        shown = abs(float(trial.theta[s] - model.nominal[s])) > trial.half_widths(False)[s]
+        better = trial.heldout_error < (1.0 - cfg.stop_margin) * state.heldout_error
+        enough = gains[best] >= trial.misfit / max(fit.count, 1.0)
+        if not (better and shown and enough and np.isfinite(trial.heldout_error)):
+            log.info(
+                "%s does not refine %s: held-out error %.4g -> %.4g (margin %s), peak shown "
+                "by its noise interval %s, held-out MSE gain %.3g against %.3g left",
+                r.key,
+                named.key,
+                state.heldout_error,
+                trial.heldout_error,
+                better,
+                shown,
+                gains[best],
+                trial.misfit / max(fit.count, 1.0),
+            )
+            return states, refined
+        prefixes = [chosen[:n] for n in range(j + 1, len(chosen))]
+        kept = list(mismatch)
+        judged = _finish(fit, states[: j + 1] + fit.sets(start, prefixes) + [trial], kept)
+        if r.key not in judged[-1].keys:
+            log.info("the refinement %s of %s did not stand as named", r.key, named.key)
+            return states, refined
+        log.info(
+            "%s refines %s: held-out error %.4g -> %.4g",
+            r.key,
+            named.key,
+            state.heldout_error,
+            trial.heldout_error,
+        )
+        states, refined = judged, refined + [named]
+        mismatch[:] = kept
+        banned = set(banned) | {named.key}
 
 
 def _unidentifiable_explains_more(model, keys: set[str], held, best: int) -> str:

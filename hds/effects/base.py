@@ -81,6 +81,11 @@ class Effect:
     # in discover.effects' default list; False: a candidate a user names (each added candidate
     # costs every discovery a fit per place, and changes what the existing studies measured)
     default_candidate: bool = True
+    # (effect, parameter): the candidate on the same target whose law this one's holds as a
+    # special case, and this one's parameter whose nominal value makes it that law (a
+    # Stribeck peak of 0 is Coulomb friction); discovery tries it only in that one's place
+    # once that one is named (`hds.discover.explain._refine`), never on its own
+    refines: tuple[str, str] | tuple = ()
     # its C MuJoCo law acts at every physics step on the episodes' state (`plant_substep`)
     # rather than as a constant force (`plant_force`): friction that varies with speed, a
     # torque that varies with angle, a drive with a state of its own

@@ -126,3 +126,61 @@ class QuadraticDrag(Effect):
         v = qd[:, site.index]
         loads.force[:, site.index] += -p["coefficient"] * np.abs(v) * v
         return state
+
+
+def breakaway_magnitude(xp, force, peak, velocity, v):
+    """Dry friction's magnitude at speed v with a Stribeck (breakaway) peak: at rest the
+    contact's asperities have had time to bond, and breaking them takes force + peak (the
+    static, breakaway level); sliding faster than the Stribeck velocity, a lubricant film
+    builds up and separates them, and only the sliding (Coulomb) level is left. The peak
+    decays as exp(-(v / velocity)^2) (Armstrong-Helouvry's exponent of 2, the form of the
+    LuGre and Dahl models' steady state). peak = 0 is Coulomb friction."""
+    return force + peak * xp.exp(-((v / velocity) ** 2))
+
+
+class BreakawayFriction(Effect):
+    name = "breakaway_friction"
+    target_kind = JOINT
+    description = (
+        "dry friction with a Stribeck peak: the sliding (Coulomb) level `force` plus `peak` "
+        "at rest, decaying over the Stribeck velocity, (force + peak exp(-(qd/velocity)^2)) "
+        "against the motion (smoothed as Coulomb friction is in the simulator, k no sharper "
+        "than a substep carries at the breakaway level; in the C MuJoCo plant MuJoCo's "
+        "frictionloss set to that magnitude at every physics step, which holds a joint at "
+        "rest up to force + peak); peak = 0 is coulomb_friction. An opt-in candidate that "
+        "discovery tries as a refinement of a named coulomb_friction on the same joint"
+    )
+    physical_name = "dry friction with a Stribeck (breakaway) peak"
+    params = (
+        Param("force", "N or N m", 0.0, lower=0.0),
+        Param("peak", "N or N m", 0.0, lower=0.0),
+        # no no-op of its own (any velocity is no effect at peak 0): where a fit starts; a
+        # lubricated rail or bearing's is of the order of 0.01 to 0.1 m/s (rad/s)
+        Param("velocity", "m/s or rad/s", 0.1, lower=1e-6, fit_bounds=(1e-3, 10.0)),
+    )
+    stage, order = SUBSTEP, 1
+    friction = "force"
+    plant_stepwise = True
+    # tried by discovery only as a refinement of a named Coulomb friction on its joint (the
+    # two are nested: peak 0 is Coulomb's law), not in the default list: each added
+    # candidate costs every discovery a fit per joint
+    refines = ("coulomb_friction", "peak")
+    default_candidate = False
+
+    def substep(self, site, p, state, u, force, q, qd, h, sharpness, gradient_sharpness):
+        v = qd[site.index]
+        if sharpness is not None and site.mobility > 0:
+            # the largest magnitude, at rest, sets how sharp an explicit step may make it
+            breakaway = p["force"] + p["peak"]
+            sharpness = jnp.minimum(sharpness, stick_sharpness(breakaway, site.mobility, h))
+        direction = friction_direction(v, sharpness, gradient_sharpness)
+        magnitude = breakaway_magnitude(jnp, p["force"], p["peak"], p["velocity"], v)
+        return u, force.at[site.index].add(-magnitude * direction), state
+
+    def plant_substep(self, site, p, state, loads, q, qd, h):
+        """MuJoCo's frictionloss (a constraint: it holds the joint at rest up to it) set to
+        the magnitude at the physics step's starting speed."""
+        v = qd[:, site.index]
+        magnitude = breakaway_magnitude(np, p["force"], p["peak"], p["velocity"], v)
+        loads.frictionloss[:, site.index] += magnitude
+        return state

@@ -20,7 +20,12 @@ from hds.effects.actuator import (
 from hds.effects.base import STAGES, TARGET_KINDS, Effect, Param
 from hds.effects.body import MassScale
 from hds.effects.force_terms import JointForceTerms
-from hds.effects.friction import CoulombFriction, QuadraticDrag, ViscousDamping
+from hds.effects.friction import (
+    BreakawayFriction,
+    CoulombFriction,
+    QuadraticDrag,
+    ViscousDamping,
+)
 from hds.effects.inertial import ComScale, InertiaScale
 from hds.effects.lab import LAB_EFFECTS
 from hds.effects.sensor import SensorBias
@@ -52,6 +57,7 @@ def register(effect: Effect) -> Effect:
 register(CoulombFriction())
 register(ViscousDamping())
 register(QuadraticDrag())
+register(BreakawayFriction())
 register(ActuatorGain())
 register(ActuatorOffset())
 register(ActuatorDeadzone())
