@@ -431,8 +431,8 @@ def test_mismatch_mean_shift_matches_the_disturbed_fits(small, analytic_cfg, dri
         # the scatter the sandwich predicts for one signal is the sensor noise's alone
         np.testing.assert_allclose(predicted["se"], without.std(axis=0), rtol=0.3)
     # regressed from the one-step residuals at the truth, over several drives: the mean
-    # disturbance on the cart's velocity within 25% of the bump where it matters, and the
-    # pole's (none injected) a tenth of it; the bump as wide as the model's rest feature
+    # disturbance on the cart's velocity within 25% of the bump where it matters, and on the
+    # pole's (none injected) no more than noise; the bump as wide as the model's rest feature
     # (1 / sharpness + 3 noise: where a smoothed friction's law differs from a plant's)
     width = 1.0 / small.sim.sharpness + 3.0 * noise[2]
     recs, controls = [], []
@@ -446,7 +446,9 @@ def test_mismatch_mean_shift_matches_the_disturbed_fits(small, analytic_cfg, dri
     est = small.mismatch_mean(theta, recs, controls, noise).mean(recs[:, :-1], controls)
     true = size * np.exp(-((recs[:, :-1, 2] / width) ** 2))
     assert np.abs(est[..., 2] - true).mean() < 0.25 * true.mean()
-    assert np.abs(est[..., 3]).mean() < 0.1 * true.mean()
+    # the pole's velocity had none: what stays is the regression's noise, the residuals'
+    # noise (the pole's sensor noise and its initial state's, propagated) over sqrt(N / F)
+    assert np.abs(est[..., 3]).mean() < 3.0 * noise[3] * np.sqrt(16 / true.size)
 
 
 def test_bias_criterion_picks_the_less_dragged_signal(small, analytic_cfg, drifted):

@@ -231,13 +231,19 @@ class MismatchMean:
             self.u_half,
         )
 
+    def features(self, obs, u) -> np.ndarray:
+        """[..., F] the features at the states obs [..., n_obs] and controls u [..., n_act]."""
+        scales = (self.rest_speed, self.speed_scale, self.q_scale, self.angular)
+        return _mean_features(
+            np.asarray(obs, np.float64),
+            np.asarray(u, np.float64),
+            *(np.asarray(x, np.float64) for x in (*scales, self.u_mid, self.u_half)),
+        )
+
     def mean(self, obs, u) -> np.ndarray:
         """[..., n_obs] the mismatch's mean at the states obs [..., n_obs] (the step's start)
         and controls u [..., n_act]."""
-        f = _mean_features(
-            np.asarray(obs, np.float64), np.asarray(u, np.float64), *self.arrays()[1:]
-        )
-        return np.asarray(f, np.float64) @ np.asarray(self.coef, np.float64).T
+        return self.features(obs, u) @ np.asarray(self.coef, np.float64).T
 
 
 def _mean_features(obs, u, rest_speed, speed_scale, q_scale, angular, u_mid, u_half):
@@ -645,8 +651,7 @@ class Designer:
         made = MismatchMean(
             np.zeros((obs.shape[-1], 0)), rest, speed_scale, q_scale, angular, mid, half
         )
-        feats = _mean_features(states, u.reshape(-1, u.shape[-1]), *made.arrays()[1:])
-        feats = np.asarray(feats, np.float64)
+        feats = made.features(states, u.reshape(-1, u.shape[-1]))
         size = np.maximum(np.sqrt(np.mean(feats**2, axis=0)), 1e-12)
         x = feats / size
         gram = x.T @ x
