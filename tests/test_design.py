@@ -14,6 +14,7 @@ from hds.data.excitation import random_steps
 from hds.discover.design import (
     Designer,
     Mismatch,
+    MismatchMean,
     WindowFit,
     get_designer,
     half_width,
@@ -338,6 +339,158 @@ def test_mismatch_estimate_recovers_an_injected_disturbance(small, analytic_cfg,
     rest_var = true_var[v < 0.05].mean()
     assert est[..., 2][v > 0.5].mean() < 0.1 * rest_var
     assert est[..., 3][v > 0.5].mean() < 0.1 * rest_var
+
+
+@pytest.fixture(scope="module")
+def drifted(small):
+    """Records [N, T+1, n_obs] of the model from x0 under open-loop controls u [T, n_act] with a
+    law mismatch's mean added to every step, x_(t+1) = f(x_t, u_t) + bump exp(-(v_t / width)^2)
+    (v_t the cart's velocity: a law that differs near rest), plus sensor noise n [N, T+1,
+    n_obs]; and the records' windowed least-squares estimates (Gauss-Newton from theta, the
+    windows weighted by `weight`): [N, M]. Compiled once for the module."""
+    import jax
+
+    empty = jnp.zeros((0, 1), jnp.float32)
+
+    def one(theta, x0, u, bump, width, n):
+        params = small.model.params(theta)
+
+        def step(x, ut):
+            x1 = small.model.window(params, x, empty, ut[None])[0]
+            x1 = x1 + bump * jnp.exp(-((x[2] / width) ** 2))
+            return x1, x1
+
+        return jnp.concatenate([x0[None], jax.lax.scan(step, x0, u)[1]]) + n
+
+    records = jax.jit(jax.vmap(one, in_axes=(None, None, None, None, None, 0)))
+    residuals = jax.jit(small.residuals)
+
+    def estimates(theta, x0, u, bump, width, n, weight, iterations=3):
+        f32 = (jnp.asarray(a, jnp.float32) for a in (x0, u, bump, width, n, weight))
+        x0, u, bump, width, n, weight = f32
+        out = []
+        for rec in records(theta, x0, u, bump, width, n):
+            th = np.asarray(theta, np.float64)
+            for _ in range(iterations):
+                t32 = jnp.asarray(th, jnp.float32)
+                j = np.asarray(small._jac(t32, rec, u, weight), np.float64)
+                r = np.asarray(residuals(t32, rec, u, weight), np.float64)
+                th[small.slots] -= np.linalg.lstsq(j, r, rcond=None)[0]
+            out.append(th[small.slots])
+        return np.array(out), np.asarray(records(theta, x0, u, bump, width, n), np.float64)
+
+    return estimates
+
+
+def _bump_mean(width, size, u_half):
+    """A `MismatchMean` of size x exp(-(v / width)^2) on the cart's velocity alone."""
+    coef = np.zeros((4, 16))
+    coef[2, 13] = size  # the bump feature of the cart's velocity (`_mean_features`' order)
+    return MismatchMean(
+        coef,
+        np.array([width, 1.0]),
+        np.ones(2),
+        np.ones(2),
+        np.array([False, True]),
+        np.zeros(1),
+        np.atleast_1d(u_half),
+    )
+
+
+@pytest.mark.slow
+def test_mismatch_mean_shift_matches_the_disturbed_fits(small, analytic_cfg, drifted):
+    """A law mismatch's mean, a velocity disturbance near the cart's rest, on a linearised
+    (small) case: the predicted shift of the estimate (`Designer.drag_of`: -H^-1 g along the
+    model's trajectory) is the mean shift of the records' Gauss-Newton fits over 100 records
+    with sensor noise, against the same records without the mismatch, within 30% (of the
+    shift's size, the parameters relative to theirs), for three drives; and the mismatch's
+    mean regressed from the one-step residuals (`Designer.mismatch_mean`) gives the
+    disturbance back where the records go."""
+    estimate = {FRICTION: {"force": 30.0}, "actuator_gain@slide": {"gain": 0.9}}
+    theta = jnp.asarray(small.theta(estimate), jnp.float32)
+    limits = limits_of(analytic_cfg, 0.5)
+    noise = 0.01 * np.array([1e-3, 2e-3, 1e-2, 2e-2])
+    width, size = 0.3, 1e-3
+    mean = _bump_mean(width, size, limits.u_high)
+    bump = np.array([0.0, 0.0, size, 0.0])
+    n = np.random.default_rng(7).normal(size=(100, small.steps + 1, 4)) * noise
+    for seed, gain in ((6, 1.5), (5, 1.5), (3, 0.5)):
+        coef = np.random.default_rng(seed).normal(0.0, 0.6, (1, 6))
+        u = limits.u_high * np.clip(gain * fourier(small, coef), -1.0, 1.0)
+        predicted = small.drag_of(estimate, u[None], DOWN, noise, mean)
+        std = small.open_loop(estimate, u, DOWN).std(axis=0)
+        weight = 1.0 / np.maximum(std, 1e-6 * std.max())
+        with_bump, _ = drifted(theta, DOWN, u, bump, width, n, weight)
+        without, _ = drifted(theta, DOWN, u, 0 * bump, width, n, weight)
+        # relative to each parameter's size; a component near nil (the gain's, on one drive)
+        # is held to the shift's size, not its own
+        ref = np.asarray(theta)[small.slots]
+        shift = (with_bump - without).mean(axis=0) / ref
+        error = np.linalg.norm(predicted["shift"] / ref - shift)
+        assert error < 0.3 * np.linalg.norm(shift), (seed, predicted["shift"] / ref, shift)
+        # the scatter the sandwich predicts for one signal is the sensor noise's alone
+        np.testing.assert_allclose(predicted["se"], without.std(axis=0), rtol=0.3)
+    # regressed from the one-step residuals at the truth, over several drives: the mean
+    # disturbance on the cart's velocity within 25% of the bump where it matters, and on the
+    # pole's (none injected) no more than noise; the bump as wide as the model's rest feature
+    # (1 / sharpness + 3 noise: where a smoothed friction's law differs from a plant's)
+    width = 1.0 / small.sim.sharpness + 3.0 * noise[2]
+    recs, controls = [], []
+    for seed in range(24):
+        coef = np.random.default_rng(50 + seed).normal(0.0, 0.6, (1, 6))
+        u = limits.u_high * np.clip(1.5 * fourier(small, coef), -1.0, 1.0)
+        _, rec = drifted(theta, DOWN, u, bump, width, n[:1], np.ones(4))
+        recs.append(rec[0])
+        controls.append(u)
+    recs, controls = np.stack(recs), np.stack(controls)
+    est = small.mismatch_mean(theta, recs, controls, noise).mean(recs[:, :-1], controls)
+    true = size * np.exp(-((recs[:, :-1, 2] / width) ** 2))
+    assert np.abs(est[..., 2] - true).mean() < 0.25 * true.mean()
+    # the pole's velocity had none: what stays is the regression's noise, the residuals'
+    # noise (the pole's sensor noise and its initial state's, propagated) over sqrt(N / F)
+    assert np.abs(est[..., 3]).mean() < 3.0 * noise[3] * np.sqrt(16 / true.size)
+
+
+def test_bias_criterion_picks_the_less_dragged_signal(small, analytic_cfg, drifted):
+    """Two hand-made drives of one bound, the sensor-noise criterion preferring the first: with
+    a law mismatch's mean near the cart's rest, the mean-squared-error criterion (the drag
+    squared over 16 episodes beside the variance) picks the second, whose fits the mismatch
+    drags less (the records' mean shift, measured as above)."""
+    estimate = {FRICTION: {"force": 30.0}, "actuator_gain@slide": {"gain": 0.9}}
+    theta = jnp.asarray(small.theta(estimate), jnp.float32)
+    limits = limits_of(analytic_cfg, 0.5)
+    noise = 0.01 * np.array([1e-3, 2e-3, 1e-2, 2e-2])
+    width, size = 0.3, 1e-3
+    mean = _bump_mean(width, size, limits.u_high)
+    n = np.random.default_rng(8).normal(size=(40, small.steps + 1, 4)) * noise
+    signals, sensor, mse, dragged = [], [], [], []
+    for seed in (6, 5):
+        coef = np.random.default_rng(seed).normal(0.0, 0.6, (1, 6))
+        u = limits.u_high * np.clip(1.5 * fourier(small, coef), -1.0, 1.0)
+        signals.append(u)
+        sensor.append(small.criterion_of(estimate, u, DOWN, noise, "A"))
+        mse.append(
+            small.criterion_of(estimate, u, DOWN, noise, "A", mismatch_mean=mean, episodes=16)
+        )
+        std = small.open_loop(estimate, u, DOWN).std(axis=0)
+        weight = 1.0 / np.maximum(std, 1e-6 * std.max())
+        bump = np.array([0.0, 0.0, size, 0.0])
+        with_bump, _ = drifted(theta, DOWN, u, bump, width, n, weight, iterations=2)
+        without, _ = drifted(theta, DOWN, u, 0 * bump, width, n, weight, iterations=2)
+        rel = (with_bump - without).mean(axis=0) / np.asarray(theta)[small.slots]
+        dragged.append(float(np.sum(rel**2)))
+    assert sensor[0] < sensor[1]  # without the drag, the first
+    assert mse[1] < mse[0]  # with it, the second
+    assert dragged[1] < 0.5 * dragged[0]  # which the mismatch drags less
+    # the design carries the drag it predicts; without a mean, none
+    design = small.design(estimate, DOWN, noise, limits, iterations=2, mismatch_mean=mean)
+    assert design.predicted_shift is not None and np.isfinite(design.predicted_shift).all()
+    assert small.design(estimate, DOWN, noise, limits, iterations=2).predicted_shift is None
+    with pytest.raises(ValueError, match="episodes"):
+        small.design(estimate, DOWN, noise, limits, mismatch_mean=mean, episodes=0)
+    with pytest.raises(ValueError, match="mismatch_mean has"):
+        bad = dataclasses.replace(mean, coef=np.zeros((3, 16)))
+        small.criterion_of(estimate, signals[0], DOWN, noise, mismatch_mean=bad)
 
 
 def test_one_designer_per_simulator_and_the_estimate_taken_off_it(analytic_cfg):

@@ -189,6 +189,8 @@ def run_case(
     iterations=(200, 100),
     signals=SIGNALS,
     mismatch="none",
+    repeat_from=0,
+    drag="off",
 ):
     env_cfg = env_config(
         OmegaConf.to_container(OmegaConf.load(CONF / "env" / f"{spec['env']}.yaml"))
@@ -245,7 +247,7 @@ def run_case(
         return out
 
     rows = []
-    for rep in range(repeats):
+    for rep in range(repeat_from, repeats):
         plant = NoisyPlant(plant_base, spec["noise"], 1000 + rep)
         q0 = np.tile(x0[: env.sim.nq], (sum(ROUNDS), 1))
         qd0 = np.zeros((sum(ROUNDS), env.sim.n_obs - env.sim.nq))
@@ -261,6 +263,9 @@ def run_case(
                 # noise part); none before the first record
                 mis = {"raw": None, "calibrated": None}
                 pred_mis, pred_mis_raw, mis_scale, mis_size = [], [], [], []
+                # the law mismatch's mean measured so far (Designer.mismatch_mean) and what it
+                # predicts: the pooled estimate's shift and the noise part with the drags
+                mean, pred_drag, shift_pred, shift_design = None, [], [], []
                 for r, n in enumerate(ROUNDS):
                     design = designer.design(
                         estimate,
@@ -274,6 +279,11 @@ def run_case(
                         rivals=standard(104729 * rep + r + 1, 1),
                         parameterisation=parameterisation,
                         mismatch=mis.get(mismatch),
+                        mismatch_mean=mean if drag == "on" else None,
+                        # the pooled estimate's bias is this round's drag times its share,
+                        # n / (used + n), its variance the record's over used + n episodes:
+                        # the squared drag weighs n^2 / (used + n) per-episode variances
+                        episodes=n * n / (used + n),
                     )
                     chosen.append(design.signal)
                     ctrl = np.repeat(design.controls()[None], n, axis=0)
@@ -290,10 +300,18 @@ def run_case(
                                 estimate, u_so_far, x0, noise, mismatch=mis[key_]
                             )
                             out_.append(half_width(se_m, used + n).tolist())
+                        dragged = designer.drag_of(estimate, u_so_far, x0, noise, mean)
+                        pred_drag.append(half_width(dragged["se"], used + n).tolist())
+                        shift_pred.append(dragged["shift"].tolist())
+                        design_drag = designer.drag_of(estimate, ctrl, x0, noise, mean)
+                        shift_design.append(design_drag["shift"].tolist())
                     else:
                         predicted_now.append(design.predicted_half(n).tolist())
                         pred_mis.append(predicted_now[-1])
                         pred_mis_raw.append(predicted_now[-1])
+                        pred_drag.append(predicted_now[-1])
+                        shift_pred.append([0.0] * len(labels))
+                        shift_design.append([0.0] * len(labels))
                     ds = collect(plant, task, q0[used : used + n], qd0[used : used + n], ctrl)
                     # the controls the plant applied are the designed ones (open loop, within
                     # the bound: nothing clips or distorts them on the way)
@@ -319,6 +337,7 @@ def run_case(
                         designer, mis["raw"], fit["theta"], o, a, noise, fit["noise_half"]
                     )
                     mis_scale.append(mis["calibrated"].scale)
+                    mean = designer.mismatch_mean(fit["theta"], o, a, noise)
                     # its size: the mean variance over the record, per signal, over the noise's
                     var = mis["raw"].variance(o[:, :-1], a).reshape(-1, o.shape[-1]).mean(0)
                     mis_size.append((np.sqrt(var) / np.maximum(noise, 1e-12)).tolist())
@@ -399,6 +418,13 @@ def run_case(
                 row["predicted_half_now_mismatch_raw"] = pred_mis_raw
                 row["mismatch_scale"] = mis_scale  # the calibration factor per round's fit
                 row["mismatch_std_over_noise"] = mis_size
+                row["drag"] = drag  # whether the criterion held the mismatch mean's drag
+                # per round, predicted before it: the noise part with the drags' scatter, the
+                # pooled estimate's shift (against values[j] - values[j - 1]) and the round's
+                # own signal's shift alone
+                row["predicted_half_now_drag"] = pred_drag
+                row["predicted_shift"] = shift_pred
+                row["predicted_shift_round"] = shift_design
                 # the predictions are typical (median) widths: `half_width`'s typical_scale
                 row["typical"] = True
             rows.append(row)
@@ -561,12 +587,14 @@ def summarise(results) -> tuple[str, dict]:
         "carried from the fit so far, / achieved noise part | that, / achieved reported | "
         "with the mismatch model (calibrated), / achieved noise part | that plus the carried "
         "law-mismatch part, / achieved reported | the mismatch model uncalibrated, / achieved "
-        "noise part | that, / achieved reported |"
+        "noise part | that, / achieved reported | with the mismatch mean's drags "
+        "(`drag_of`), / achieved noise part | that plus the carried law-mismatch part, / "
+        "achieved reported |"
     )
-    lines.append("| --- " * 18 + "|")
+    lines.append("| --- " * 20 + "|")
     errors, errors_inflated, errors_now, errors_like = [], [], [], []
     errors_carried, errors_carried_full = [], []
-    model_errors = {"calibrated": ([], []), "raw": ([], [])}
+    model_errors = {"calibrated": ([], []), "raw": ([], []), "drag": ([], [])}
     for case, res in results.items():
         rows = [r for r in res["rows"] if r["signal"] == "designed"]
         for i, label in enumerate(res["labels"]):
@@ -625,8 +653,9 @@ def summarise(results) -> tuple[str, dict]:
                 for kind, key_ in (
                     ("calibrated", "predicted_half_now_mismatch"),
                     ("raw", "predicted_half_now_mismatch_raw"),
+                    ("drag", "predicted_half_now_drag"),
                 ):
-                    if key_ not in rows[0]:
+                    if not all(key_ in r for r in rows):
                         modelled += ["", ""]
                         continue
                     # the noise part predicted with the mismatch measured so far; the reported
@@ -704,6 +733,19 @@ def summarise(results) -> tuple[str, dict]:
             model_errors["raw"][1],
             "The same, against the achieved reported half-width: {:.0%} of {} cells within 30%.",
         ),
+        (
+            "share_within_30pct_drag",
+            model_errors["drag"][0],
+            "With the mismatch mean's drags (`Designer.drag_of`: sensor noise plus the episodes' "
+            "predicted shifts' scatter; round 0: the sensor part alone), against the achieved "
+            "noise part: {:.0%} of {} cells within 30%.",
+        ),
+        (
+            "share_within_30pct_drag_reported",
+            model_errors["drag"][1],
+            "The same plus the carried law-mismatch part, against the achieved reported "
+            "half-width: {:.0%} of {} cells within 30%.",
+        ),
     ]
     for k, (key, errs, sentence) in enumerate(shares):
         if k == 0 or errs:
@@ -711,7 +753,47 @@ def summarise(results) -> tuple[str, dict]:
             summary[key] = within
             lines.append(sentence.format(within, len(errs)))
             summary[key + "_count"] = [int(np.sum(np.abs(np.asarray(errs) - 1) <= 0.3)), len(errs)]
+    lines += [""] + shift_table(results, summary)
     return "\n".join(lines), summary
+
+
+def shift_table(results, summary) -> list[str]:
+    """The mismatch mean's predicted shift of the pooled estimate per round against the
+    estimate's change that round (the designed rows that recorded it)."""
+    lines = [
+        "**The drag predicted against the estimate's change** (rounds 1-3: the pooled "
+        "estimate's shift predicted before the round from the mismatch mean measured so far, "
+        "`Designer.drag_of`, against values after the round minus before; medians over "
+        "repeats, each relative to the estimate; the sign's agreement over repeats).",
+        "",
+        "| case | parameter | episodes | predicted shift | achieved change | same sign |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    agree = []
+    for case, res in results.items():
+        rows = [r for r in res["rows"] if r["signal"] == "designed" and "predicted_shift" in r]
+        if not rows:
+            continue
+        for i, label in enumerate(res["labels"]):
+            for j, n in enumerate(np.cumsum(ROUNDS)):
+                if j == 0:
+                    continue
+                pred = [r["predicted_shift"][j][i] / r["values"][j - 1][i] for r in rows]
+                got = [
+                    (r["values"][j][i] - r["values"][j - 1][i]) / r["values"][j - 1][i]
+                    for r in rows
+                ]
+                same = [np.sign(a) == np.sign(b) for a, b in zip(pred, got, strict=True)]
+                agree += same
+                lines.append(
+                    f"| {case} | {label} | {n} | {np.median(pred):.3g} | {np.median(got):.3g} "
+                    f"| {sum(same)}/{len(same)} |"
+                )
+    if agree:
+        summary["drag_sign_agrees"] = [int(sum(agree)), len(agree)]
+        lines.append("")
+        lines.append(f"Same sign in {sum(agree)} of {len(agree)} (case, parameter, round, repeat).")
+    return lines
 
 
 def figure(results, path):
@@ -776,6 +858,21 @@ def main():
         "or none (sensor noise alone: the default, the better on the measurement, README); "
         "the predictions with the mismatch model are recorded for every choice",
     )
+    ap.add_argument(
+        "--drag",
+        default="off",
+        choices=["off", "on"],
+        help="on: the designed arm's criterion (from round 1) is the mean squared error with "
+        "the drag of the law mismatch's mean measured so far (Designer.mismatch_mean); the "
+        "drag's predictions are recorded either way",
+    )
+    ap.add_argument(
+        "--repeat-from",
+        type=int,
+        default=0,
+        help="run repeats from this one on (their noise seeds as in a whole run), keeping the "
+        "stored rows of the earlier repeats: a long case in pieces on a loaded machine",
+    )
     ap.add_argument("--out", default=str(HERE))
     ap.add_argument("--report", action="store_true", help="only rewrite the tables and figure")
     args = ap.parse_args()
@@ -822,9 +919,16 @@ def main():
                 iterations,
                 signals,
                 args.mismatch,
+                args.repeat_from,
+                args.drag,
             )
-            if c in results and set(signals) != set(SIGNALS):  # keep the other signals' rows
-                kept = [r for r in results[c]["rows"] if r["signal"] not in signals]
+            if c in results and (set(signals) != set(SIGNALS) or args.repeat_from):
+                # keep the other signals' rows and these signals' earlier repeats
+                kept = [
+                    r
+                    for r in results[c]["rows"]
+                    if r["signal"] not in signals or r["repeat"] < args.repeat_from
+                ]
                 new["rows"] = kept + new["rows"]
             results[c] = new
             results[c]["criterion"] = args.criterion

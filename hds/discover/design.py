@@ -197,6 +197,82 @@ def _mismatch_features(obs, u, nq, rest_speed, speed_scale, u_mid, u_half):
     )
 
 
+@dataclass(frozen=True)
+class MismatchMean:
+    """A law mismatch's mean as a function of the state and the drive: the plant steps
+    x_(t+1) = f(x_t, u_t) + m(x_t, u_t) (+ noise), m_o(x, u) = features(x, u) . coef_o per
+    observed signal o (`Designer.mismatch_mean` regresses the fit's one-step residuals on
+    them). A law that differs from the library's is deterministic in the state: for one
+    signal it shifts the estimate, H^-1 J^T (the windows' response to m), rather than adding
+    scatter (`Mismatch`, a white disturbance, models what averages away; this what does not).
+    The features, signed: a constant; each joint's position (an angle's sine and cosine, a
+    slider's position and its square over its spread); its speed over its spread and the
+    speed times its size (damping and drag laws); tanh of the speed over `rest_speed` and four
+    times wider, and a bump exp(-(v / rest_speed)^2) (a friction's reversal, stiction, a soft
+    constraint); and the drive ((u - mid) / half: a gain or a motor law)."""
+
+    coef: np.ndarray  # [n_obs, F] the mean per unit feature, per observed signal
+    rest_speed: np.ndarray  # [nv]
+    speed_scale: np.ndarray  # [nv]
+    q_scale: np.ndarray  # [nq] a slider's position spread (an angle's: unused)
+    angular: np.ndarray  # [nq] which joints are hinges (sine and cosine features)
+    u_mid: np.ndarray  # [n_act]
+    u_half: np.ndarray  # [n_act]
+
+    def arrays(self) -> tuple:
+        """The traced form (`Designer._mean_arrays`)."""
+        return _f32(
+            self.coef,
+            self.rest_speed,
+            self.speed_scale,
+            self.q_scale,
+            np.asarray(self.angular, np.float64),
+            self.u_mid,
+            self.u_half,
+        )
+
+    def features(self, obs, u) -> np.ndarray:
+        """[..., F] the features at the states obs [..., n_obs] and controls u [..., n_act]."""
+        scales = (self.rest_speed, self.speed_scale, self.q_scale, self.angular)
+        return _mean_features(
+            np.asarray(obs, np.float64),
+            np.asarray(u, np.float64),
+            *(np.asarray(x, np.float64) for x in (*scales, self.u_mid, self.u_half)),
+        )
+
+    def mean(self, obs, u) -> np.ndarray:
+        """[..., n_obs] the mismatch's mean at the states obs [..., n_obs] (the step's start)
+        and controls u [..., n_act]."""
+        return self.features(obs, u) @ np.asarray(self.coef, np.float64).T
+
+
+def _mean_features(obs, u, rest_speed, speed_scale, q_scale, angular, u_mid, u_half):
+    """[..., F] the features of `MismatchMean` at states obs and controls u; numpy or traced
+    (angular a float mask: 1 for a hinge)."""
+    xp = jnp if isinstance(obs, jax.Array) or isinstance(rest_speed, jax.Array) else np
+    nq = q_scale.shape[-1]
+    q, v = obs[..., :nq], obs[..., nq:]
+    qs = q / q_scale
+    pos_a = angular * xp.sin(q) + (1.0 - angular) * qs
+    pos_b = angular * xp.cos(q) + (1.0 - angular) * qs**2
+    z = v / rest_speed
+    vs = v / speed_scale
+    return xp.concatenate(
+        [
+            xp.ones(v.shape[:-1] + (1,), v.dtype),
+            pos_a,
+            pos_b,
+            vs,
+            vs * xp.abs(vs),
+            xp.tanh(z),
+            xp.tanh(z / 4.0),
+            xp.exp(-(z**2)),
+            (u - u_mid) / u_half,
+        ],
+        axis=-1,
+    )
+
+
 @dataclass
 class Design:
     """A designed excitation and what it is predicted to give."""
@@ -223,6 +299,9 @@ class Design:
     # [T, n_act] the per-step feedforward w in [-1, 1] (parameterisation "per_step"; None: the
     # Fourier series of `coefficients`)
     waveform: np.ndarray | None = None
+    # [M] the shift the law mismatch's mean drags an estimate by (`Designer.predicted_shift`;
+    # None: designed without a `MismatchMean`)
+    predicted_shift: np.ndarray | None = None
 
     @property
     def parameterisation(self) -> str:
@@ -378,7 +457,7 @@ class Designer:
         self.angular = angular
         self._rollout = jax.jit(self._rollout_fn)
         self._jac = jax.jit(self._jacobian)
-        self._predict = jax.jit(lambda *a: self._parts(*a)[:2])
+        self._predict = jax.jit(lambda *a: self._parts(*a)[:3])
         self._predict_open = jax.jit(self._parts_open)
         self._rollout_open = jax.jit(self._open_rollout)
         self._one_step = jax.jit(self._one_step_fn)
@@ -545,6 +624,60 @@ class Designer:
         coef = np.stack([scipy.optimize.nnls(feats / size, e)[0] / size for e in excess.T])
         return Mismatch(coef, rest, speed_scale, mid, half)
 
+    def mismatch_mean(self, theta, obs, u, noise, ridge: float = 1e-3) -> MismatchMean:
+        """The law mismatch's mean on records obs [E, T+1, n_obs] of controls u [E, T, n_act]
+        at theta (the fit's estimate), the sensor noise of std `noise` [n_obs] beside it: the
+        one-step residuals' signed regression on the state and the drive (`MismatchMean`).
+
+        From a measured state the one-step residual is r_t = A_t n_t - n_(t+1) - m(x_t, u_t):
+        the noise has mean zero, so least squares of -r_t on the features at the measured
+        state estimates m (per observed signal; each feature in units of its root mean
+        square, a `ridge` relative to the features' Gram matrix's mean diagonal: features
+        the record does not tell apart, e.g. an angle's cosine and the constant while it
+        hangs, share their part rather than cancel in large opposite coefficients). At the
+        fit's estimate the part of the mismatch the candidates' own laws can take has been
+        taken: what stays is what drags another signal's estimate away from this one."""
+        obs, u = _records(obs, u)
+        noise = np.maximum(np.asarray(noise, np.float64), 0.0)
+        res, _ = self._one_step_residuals(theta, obs, u)
+        nq = self.sim.nq
+        states = obs[:, :-1].reshape(-1, obs.shape[-1])
+        rest = 1.0 / self.sim.sharpness + 3.0 * noise[nq:]
+        speed_scale = np.maximum(states[:, nq:].std(axis=0), rest)
+        q_scale = np.maximum(states[:, :nq].std(axis=0), 1e-6)
+        ctrl = np.asarray(self.sim.ctrl_range, np.float64)
+        mid, half = ctrl.mean(1), np.maximum(0.5 * (ctrl[:, 1] - ctrl[:, 0]), 1e-12)
+        angular = np.asarray(self.angular[:nq], bool)
+        made = MismatchMean(
+            np.zeros((obs.shape[-1], 0)), rest, speed_scale, q_scale, angular, mid, half
+        )
+        feats = made.features(states, u.reshape(-1, u.shape[-1]))
+        size = np.maximum(np.sqrt(np.mean(feats**2, axis=0)), 1e-12)
+        x = feats / size
+        gram = x.T @ x
+        gram += ridge * np.trace(gram) / len(gram) * np.eye(len(gram))
+        coef = np.linalg.solve(gram, x.T @ (-res)).T / size  # [n_obs, F]
+        return dataclasses.replace(made, coef=coef)
+
+    def _mean_arrays(self, mean: MismatchMean | None) -> tuple:
+        """The traced mismatch-mean arguments: `mean`'s, or none (zero), so a design with and
+        one without share one program."""
+        nq, n_obs, n_act = self.sim.nq, self.sim.n_obs, self.sim.n_act
+        nv = n_obs - nq
+        if mean is None:
+            n_feat = 1 + 2 * nq + 5 * nv + n_act
+            angular = np.asarray(self.angular[:nq], np.float64)
+            return _f32(
+                np.zeros((n_obs, n_feat)), *np.ones((2, nv)), np.ones(nq), angular,
+                *np.ones((2, n_act)),
+            )  # fmt: skip
+        if mean.coef.shape[0] != n_obs:
+            raise ValueError(
+                f"mismatch_mean has {mean.coef.shape[0]} signals; this simulator observes "
+                f"{n_obs}: estimate it with this designer (`Designer.mismatch_mean`)"
+            )
+        return mean.arrays()
+
     def _mis(self, mismatch: Mismatch | None) -> tuple:
         """The traced mismatch arguments: `mismatch`'s, or none (zero variance), so a design
         with and one without share one program."""
@@ -571,7 +704,7 @@ class Designer:
         j = np.asarray(j, np.float64)
         return j.T @ j
 
-    def _sandwich_fn(self, theta, obs, u, noise, scale, mis=None):
+    def _sandwich_fn(self, theta, obs, u, noise, scale, mis=None, mean=None):
         """H [M, M] and B [M, (T+1) n_obs] of the fit's linearised estimator on one episode
         (windows weighted by 1 / scale, as the fit's normalized residuals are) under white
         measurement noise of std `noise`: the estimate moves by H^-1 B n for noise n.
@@ -591,7 +724,11 @@ class Designer:
         transition, so d_t pulls the fit's gradient by -sum over the windows holding it of
         L_j = sum_(i>=j) Phi^T w J_i, accumulated backwards through the one-step Jacobians
         A_t (L_j = w J_j + A_(s+1+j)^T L_(j+1)): no more derivatives of the simulator than
-        the sensor noise's."""
+        the sensor noise's.
+
+        `mean` (`MismatchMean.arrays`): a law mismatch's mean m(x, u) along this trajectory;
+        then also g [M], its pull on the fit's gradient, sum_t B_d,t m_t (the same adjoint):
+        the estimate shifts by -H^-1 g (`_shift`)."""
         model, k, m = self.model, self.horizon, len(self.slots)
         weight = 1.0 / scale
         slots = jnp.asarray(self.slots)
@@ -615,17 +752,31 @@ class Designer:
         b = b.at[starts].add(jnp.swapaxes(into_start, 1, 2))
         b = b.at[starts[:, None] + 1 + jnp.arange(k)[None, :]].add(into_target)
         b = jnp.moveaxis(b, -1, 0).reshape(m, -1)
-        if mis is None:
+        if mis is None and mean is None:
             return h, b
-        return h, jnp.concatenate([b, self._disturbance_pull(theta, obs, u, jt, weight, mis)], 1)
+        pulls, at = self._disturbance_pulls(theta, obs, u, jt, weight)
+        if mis is not None:
+            std = _mismatch_std(obs[:-1], u, self.sim.nq, mis)  # [T, n_obs]
+            b = jnp.concatenate([b, self._pull_columns(pulls, at, std)], 1)
+        if mean is None:
+            return h, b
+        drift = _mean_features(obs[:-1], u, *mean[1:]) @ mean[0].T  # [T, n_obs]
+        return h, b, -jnp.einsum("wkom,wko->m", pulls, drift[at])
 
-    def _disturbance_pull(self, theta, obs, u, jt, weight, mis):
+    def _pull_columns(self, pulls, at, std):
         """[M, T n_obs] the fit's gradient's pull by a unit of each step's disturbance times
-        its std (`_sandwich_fn`); jt [W, k, n_obs, M] the windows' weighted sensitivities."""
+        its std [T, n_obs] (`_sandwich_fn`)."""
+        bp = jnp.zeros((std.shape[0], std.shape[1], pulls.shape[-1]), pulls.dtype)
+        bp = bp.at[at].add(-pulls * std[at][..., None])
+        return jnp.moveaxis(bp, -1, 0).reshape(pulls.shape[-1], -1)
+
+    def _disturbance_pulls(self, theta, obs, u, jt, weight):
+        """The fit's gradient's response to a disturbance of the step s + j inside each window
+        (`_sandwich_fn`), [W, k, n_obs, M], and those steps [W, k]; jt [W, k, n_obs, M] the
+        windows' weighted sensitivities."""
         model, k, n_obs = self.model, self.horizon, obs.shape[-1]
         params = model.params(theta)
         empty = jnp.zeros((0, u.shape[-1]), u.dtype)
-        std = _mismatch_std(obs[:-1], u, self.sim.nq, mis)  # [T, n_obs]
 
         def one_step(x, ut):
             return model.window(params, x, empty, ut[None])[0]
@@ -646,30 +797,39 @@ class Designer:
             return jax.lax.scan(back, jnp.zeros_like(wj[0]), (wj, a_next), reverse=True)[1]
 
         pulls = jax.vmap(adjoint)(starts, wjt)  # [W, k, n_obs, M]
-        at = starts[:, None] + jnp.arange(k)[None, :]  # the disturbance's step s + j
-        bp = jnp.zeros((obs.shape[0] - 1, n_obs, pulls.shape[-1]), pulls.dtype)
-        bp = bp.at[at].add(-pulls * std[at][..., None])
-        return jnp.moveaxis(bp, -1, 0).reshape(pulls.shape[-1], -1)
+        return pulls, starts[:, None] + jnp.arange(k)[None, :]  # the disturbance's step s + j
 
-    def _parts(self, theta, ff, gain, x_ref, x0s, low, high, noise, mis):
+    def _parts(self, theta, ff, gain, x_ref, x0s, low, high, noise, mis, mean):
         """Per episode on average over the initial states x0s [S, n_obs]: H [M, M] and
-        B B^T [M, M] of the fit's estimator (sensor noise and the law mismatch `mis`); and the
-        trajectories [S, T+1, n_obs], [S, T, n_act]."""
+        B B^T [M, M] of the fit's estimator (sensor noise and the law mismatch `mis`), g [M]
+        the pull of the mismatch's mean `mean`; and the trajectories [S, T+1, n_obs],
+        [S, T, n_act]."""
         obs, u = jax.vmap(lambda x0: self._rollout_fn(theta, ff, gain, x_ref, x0, low, high))(x0s)
         flat = obs.reshape(-1, obs.shape[-1])
         std = flat.std(axis=0)
         scale = jnp.maximum(std, 1e-6 * std.max() + 1e-12)  # as the fit's `prepare` does
-        h, b = jax.vmap(lambda o, a: self._sandwich_fn(theta, o, a, noise, scale, mis))(obs, u)
+        h, b, g = jax.vmap(lambda o, a: self._sandwich_fn(theta, o, a, noise, scale, mis, mean))(
+            obs, u
+        )
         meat = jnp.einsum("smp,snp->smn", b, b)
-        return h.mean(0), meat.mean(0), obs, u
+        return h.mean(0), meat.mean(0), g.mean(0), obs, u
 
     def predicted_se(self, theta, design: Design, x0s, noise, mismatch=None) -> np.ndarray:
         """[M] one episode's standard errors of discovery's fit (measured initial states) of a
         record of this design from the initial states x0s [S, n_obs] (averaged over them),
         under the sensor noise and the law mismatch `mismatch` (a `Mismatch`; None: none)."""
-        mis = self._mis(mismatch)
-        h, meat = self._predict(*_f32(*_rollout_args(theta, design, x0s), noise), mis)
+        mis, mean = self._mis(mismatch), self._mean_arrays(None)
+        h, meat, _ = self._predict(*_f32(*_rollout_args(theta, design, x0s), noise), mis, mean)
         return np.sqrt(np.maximum(np.diag(_covariance(h, meat)), 0.0))
+
+    def predicted_shift(self, theta, design: Design, x0s, noise, mean: MismatchMean):
+        """[M] the shift of one episode's estimate (any number of episodes of this design:
+        it does not average away) that the law mismatch's mean `mean` drags it by, from the
+        initial states x0s (averaged over them): -H^-1 g, the linearised estimator's response
+        to m(x, u) along the predicted trajectory (`MismatchMean`)."""
+        args = _f32(*_rollout_args(theta, design, x0s), noise)
+        h, _, g = self._predict(*args, self._mis(None), self._mean_arrays(mean))
+        return _shift(h, g)
 
     def _open_rollout(self, theta, u, x0):
         """[T+1, n_obs] the model's trajectory under the open-loop controls u [T, n_act]."""
@@ -688,15 +848,19 @@ class Designer:
         theta = jnp.asarray(self.theta(estimate), jnp.float32)
         return np.asarray(self._rollout_open(theta, *_f32(controls, x0)), np.float64)
 
-    def _parts_open(self, theta, u, x0, noise, scale=None, mis=None):
+    def _parts_open(self, theta, u, x0, noise, scale=None, mis=None, mean=None):
         """H and B B^T of one episode of the open-loop controls u [T, n_act] from x0, its
-        residuals over `scale` (None: the episode's own std, a record of it repeated)."""
+        residuals over `scale` (None: the episode's own std, a record of it repeated); with
+        `mean`, also g, the mismatch mean's pull (before the trajectory)."""
         obs = self._open_rollout(theta, u, x0)
         if scale is None:
             std = obs.std(axis=0)
             scale = jnp.maximum(std, 1e-6 * std.max() + 1e-12)
-        h, b = self._sandwich_fn(theta, obs, u, noise, scale, mis)
-        return h, b @ b.T, obs
+        if mean is None:
+            h, b = self._sandwich_fn(theta, obs, u, noise, scale, mis)
+            return h, b @ b.T, obs
+        h, b, g = self._sandwich_fn(theta, obs, u, noise, scale, mis, mean)
+        return h, b @ b.T, g, obs
 
     def predicted_se_of(
         self, estimate: dict | None, controls, x0, noise, mismatch=None
@@ -723,6 +887,37 @@ class Designer:
             he, me, _ = self._predict_open(theta, *_f32(ue), x0, noise, scale, mis)
             h, meat = h + np.asarray(he, np.float64), meat + np.asarray(me, np.float64)
         return np.sqrt(np.maximum(np.diag(_covariance(h / len(u), meat / len(u))), 0.0))
+
+    def drag_of(self, estimate: dict | None, controls, x0, noise, mean: MismatchMean) -> dict:
+        """What the law mismatch's mean `mean` (`MismatchMean`) does to the fit of the
+        open-loop records controls [E, T, n_act] from x0 [n_obs] pooled (each episode weighted
+        as the fit weighs them): "shift" [M], the pooled estimate's shift -H^-1 sum_e g_e
+        (H summed over the episodes, g_e each episode's pull); "se" [M], one episode's standard
+        error of the fit's cluster-robust noise part, sensor noise plus the episodes' drags'
+        scatter: at the pooled estimate each episode's gradient is g_e + H_e shift (they sum to
+        nil), and episodes of different signals, dragged apart, count as scatter; one signal
+        repeated from one state adds nothing. Both in the parameters' own units."""
+        u = np.asarray(controls, np.float64)
+        if u.ndim != 3 or u.shape[1:] != (self.steps, self.sim.n_act):
+            raise ValueError(
+                f"controls have shape {u.shape}; give [E, {self.steps}, {self.sim.n_act}]"
+            )
+        theta = jnp.asarray(self.theta(estimate), jnp.float32)
+        x0, noise = _f32(x0, np.maximum(np.asarray(noise, np.float64), 1e-9))
+        mean_args = self._mean_arrays(mean)
+        obs = np.concatenate([np.asarray(self._rollout_open(theta, *_f32(ue), x0)) for ue in u])
+        std = obs.std(axis=0)
+        scale = jnp.asarray(np.maximum(std, 1e-6 * std.max() + 1e-12), jnp.float32)
+        parts = [
+            self._predict_open(theta, *_f32(ue), x0, noise, scale, None, mean_args)[:3] for ue in u
+        ]
+        hs, meats, gs = (np.stack([np.asarray(p[i], np.float64) for p in parts]) for i in range(3))
+        h = hs.sum(0)
+        shift = _shift(h, gs.sum(0))
+        grads = gs + hs @ shift  # [E, M] each episode's gradient at the pooled estimate
+        meat = meats.sum(0) + grads.T @ grads
+        cov = _covariance(h, meat) * len(u)  # one episode's
+        return {"shift": shift, "se": np.sqrt(np.maximum(np.diag(cov), 0.0))}
 
     def _noise_loss_fn(self, theta, obs, u, noise, scale):
         """The sum over one episode's windows of the squared residuals (each over `scale`)
@@ -799,15 +994,31 @@ class Designer:
     # -- the design -----------------------------------------------------------------------
 
     def _objective(
-        self, wave, theta, noise, mis, ref, pick, amplitude, middle, gain, x_ref, x0s, lim
+        self,
+        wave,
+        theta,
+        noise,
+        mis,
+        mean,
+        bias_weight,
+        ref,
+        pick,
+        amplitude,
+        middle,
+        gain,
+        x_ref,
+        x0s,
+        lim,
     ):
         """The criterion plus the limits' penalty of the feedforward middle + amplitude x wave
         (wave [T, n_act] in [-1, 1]); also the criterion alone and the trajectories and
-        controls [S, ...], to keep the best iterate that keeps the limits."""
-        h, meat, obs, u = self._parts(
-            theta, middle + amplitude * wave, gain, x_ref, x0s, lim[0], lim[1], noise, mis
+        controls [S, ...], to keep the best iterate that keeps the limits. The criterion's
+        covariance is the mean squared error of `bias_weight` episodes (times them):
+        H^-1 (B B^T + bias_weight g g^T) H^-1, the mismatch mean's drag not averaging away."""
+        h, meat, g, obs, u = self._parts(
+            theta, middle + amplitude * wave, gain, x_ref, x0s, lim[0], lim[1], noise, mis, mean
         )
-        value = _traced_criterion(h, meat, ref, pick)
+        value = _traced_criterion(h, meat + bias_weight * jnp.outer(g, g), ref, pick)
         return value + PENALTY * _penalty(obs, lim) / x0s.shape[0], (value, obs, u)
 
     def _optimiser(self, parameterisation: str, learning_rate: float):
@@ -890,6 +1101,8 @@ class Designer:
         rivals: dict | None = None,
         parameterisation: str = "per_step",
         mismatch: Mismatch | None = None,
+        mismatch_mean: MismatchMean | None = None,
+        episodes: float = 1.0,
     ) -> Design:
         """Optimise the excitation at `estimate` ({key: {param: value}}; missing: the
         simulator's own value) for episodes from the initial state x0 [n_obs] (or the
@@ -913,7 +1126,16 @@ class Designer:
         to the fit's noise part): the criterion's covariance holds its disturbance besides the
         sensor noise, so the design seeks information where the parameters' sensitivities
         stand out of the law mismatch (e.g. away from a friction's reversals, where the
-        plant's law differs most), and the prediction holds it. None: sensor noise alone."""
+        plant's law differs most), and the prediction holds it. None: sensor noise alone.
+
+        `mismatch_mean` (a `MismatchMean`, e.g. `Designer.mismatch_mean` of the records so
+        far): the criterion is the mean squared error of `episodes` episodes, the shift the
+        mismatch's mean drags each episode's estimate by (`predicted_shift`, which does not
+        average away) squared beside the variance (which does): H^-1 (B B^T + episodes g g^T)
+        H^-1, so the design prefers signals whose estimate the mismatch does not drag.
+        `Design.predicted_shift` holds that shift. None: no shift."""
+        if not episodes > 0:
+            raise ValueError(f"episodes = {episodes} must be positive (the bias term's weight)")
         if parameterisation not in PARAMETERISATIONS:
             raise ValueError(
                 f"parameterisation {parameterisation!r} is unknown: choose one of "
@@ -956,11 +1178,13 @@ class Designer:
             noise = 0.01 * np.maximum(np.asarray(obs).std(axis=0), 1e-9)
         noise = np.maximum(np.asarray(noise, np.float64), 1e-9)
         pick32 = None if pick is None else jnp.asarray(pick, jnp.float32)
-        mis = self._mis(mismatch)
+        mis, mean = self._mis(mismatch), self._mean_arrays(mismatch_mean)
+        weight = float(episodes) if mismatch_mean is not None else 0.0
         args = (
             *_f32(theta, noise),
             mis,
-            *_f32(ref),
+            mean,
+            *_f32(weight, ref),
             pick32,
             *_f32(amplitude, middle, gain, x_ref, x0s),
             _f32(*lim),
@@ -1013,18 +1237,26 @@ class Designer:
             history=history,
             waveform=best if parameterisation == "per_step" else None,
         )
-        design = self.finish(design, theta, x0s, noise, mismatch=mismatch)
+        design = self.finish(
+            design, theta, x0s, noise, mismatch=mismatch, mismatch_mean=mismatch_mean
+        )
         if rivals:
-            design = self._against(design, rivals, theta, x0s[0], noise, ref, pick, mis)
+            design = self._against(
+                design, rivals, theta, x0s[0], noise, ref, pick, mis, mean, weight
+            )
         return design
 
-    def _against(self, design: Design, rivals: dict, theta, x0, noise, ref, pick, mis) -> Design:
+    def _against(
+        self, design: Design, rivals: dict, theta, x0, noise, ref, pick, mis, mean, weight
+    ) -> Design:
         """The design, or the rival signal of least criterion on the model (open loop, from
         x0, keeping the limits)."""
         if np.any(design.gain != 0):
             raise ValueError("rivals are open-loop signals: give them to an open-loop design")
-        h, meat = self._predict(*_f32(*_rollout_args(theta, design, x0[None]), noise), mis)
-        best = _criterion_value(_covariance(h, meat), ref, pick)
+        args = _f32(*_rollout_args(theta, design, x0[None]), noise)
+        h, meat, g = self._predict(*args, mis, mean)
+        best = _criterion_value(_mse(h, meat, g, weight), ref, pick)
+        theta32, x032, noise32 = _f32(theta, x0, noise)
         for name, u in rivals.items():
             u = np.asarray(u, np.float64)
             if u.shape != (self.steps, self.sim.n_act):
@@ -1033,17 +1265,60 @@ class Designer:
                 )
             if (u > design.limits.u_high + 1e-9).any() or (u < design.limits.u_low - 1e-9).any():
                 continue  # beyond the amplitude bound: no fair rival
-            h, meat, obs = self._predict_open(*_f32(theta, u, x0, noise), mis=mis)
+            value, (h, meat, g, obs) = self._open_criterion(
+                theta32, u, x032, noise32, ref, pick, mis, mean, weight
+            )
             if max(design.limits.violation(np.asarray(obs), u).values()) > 0:
                 continue
-            cov = _covariance(h, meat)
-            value = _criterion_value(cov, ref, pick)
             if value < best:
                 best = value
                 design.signal, design.planned_controls = name, u
                 design.trajectory = np.asarray(obs, np.float64)
+                cov = _covariance(h, meat)
                 design.predicted_se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+                if design.predicted_shift is not None:
+                    design.predicted_shift = _shift(h, g)
         return design
+
+    def _open_criterion(self, theta, u, x0, noise, ref, pick, mis, mean, weight):
+        """The design's criterion of one episode of open-loop controls u [T, n_act] from x0
+        (`_mse`: with the mismatch mean's drag over `weight` episodes), and its parts
+        H, B B^T, g and the trajectory."""
+        h, meat, g, obs = self._predict_open(theta, *_f32(u), x0, noise, mis=mis, mean=mean)
+        return _criterion_value(_mse(h, meat, g, weight), ref, pick), (h, meat, g, obs)
+
+    def criterion_of(
+        self,
+        estimate: dict | None,
+        controls,
+        x0,
+        noise,
+        criterion="D",
+        mismatch: Mismatch | None = None,
+        mismatch_mean: MismatchMean | None = None,
+        episodes: float = 1.0,
+    ) -> float:
+        """The value of `design`'s criterion (lower is better) for one episode of the open-loop
+        controls [T, n_act] from x0 [n_obs] at `estimate`: how `design` ranks a signal against
+        its rivals, with the same `mismatch`, `mismatch_mean` and `episodes` (the mean squared
+        error's bias weight)."""
+        u = np.asarray(controls, np.float64)
+        if u.shape != (self.steps, self.sim.n_act):
+            raise ValueError(
+                f"controls have shape {u.shape}; give [{self.steps}, {self.sim.n_act}]"
+            )
+        theta = self.theta(estimate)
+        weight = float(episodes) if mismatch_mean is not None else 0.0
+        return self._open_criterion(
+            *_f32(theta),
+            u,
+            *_f32(x0, np.maximum(np.asarray(noise, np.float64), 1e-9)),
+            self.reference(theta),
+            _pick(criterion, self.labels),
+            self._mis(mismatch),
+            self._mean_arrays(mismatch_mean),
+            weight,
+        )[0]
 
     def per_step(
         self,
@@ -1101,7 +1376,8 @@ class Designer:
         args = (
             *_f32(theta, noise),
             mis,
-            *_f32(ref),
+            self._mean_arrays(None),
+            *_f32(0.0, ref),
             pick32,
             *_f32(amplitude, middle, gain, x0, x0[None]),
             _f32(*lim),
@@ -1133,6 +1409,7 @@ class Designer:
         shrink: float = 0.8,
         tries: int = 30,
         mismatch=None,
+        mismatch_mean=None,
     ):
         """Shrink the feedforward's swing until the predicted trajectories keep every limit,
         then fill in the trajectory (from the first initial state) and the predicted
@@ -1152,6 +1429,8 @@ class Designer:
             )
         design.trajectory, design.planned_controls = obs[0], u[0]
         design.predicted_se = self.predicted_se(theta, design, x0s, noise, mismatch)
+        if mismatch_mean is not None:
+            design.predicted_shift = self.predicted_shift(theta, design, x0s, noise, mismatch_mean)
         return design
 
 
@@ -1268,6 +1547,17 @@ def _covariance(h, meat) -> np.ndarray:
     """[M, M] the fit's per-episode covariance H^-1 B B^T H^-1."""
     inv = np.linalg.pinv(np.asarray(h, np.float64))
     return inv @ np.asarray(meat, np.float64) @ inv
+
+
+def _shift(h, g) -> np.ndarray:
+    """[M] the linearised estimator's shift -H^-1 g under a pull g of its gradient."""
+    return -np.linalg.pinv(np.asarray(h, np.float64)) @ np.asarray(g, np.float64)
+
+
+def _mse(h, meat, g, weight) -> np.ndarray:
+    """[M, M] `weight` episodes' mean squared error times them: H^-1 (B B^T + w g g^T) H^-1."""
+    g = np.asarray(g, np.float64)
+    return _covariance(h, np.asarray(meat, np.float64) + float(weight) * np.outer(g, g))
 
 
 def _criterion_value(cov, ref, pick) -> float:
