@@ -451,27 +451,46 @@ def test_mismatch_mean_shift_matches_the_disturbed_fits(small, analytic_cfg, dri
     assert np.abs(est[..., 3]).mean() < 3.0 * noise[3] * np.sqrt(16 / true.size)
 
 
-def test_bias_criterion_picks_the_less_dragged_signal(small, analytic_cfg, drifted):
-    """Two hand-made drives of one bound, the sensor-noise criterion preferring the first: with
-    a law mismatch's mean near the cart's rest, the mean-squared-error criterion (the drag
-    squared over 16 episodes beside the variance) picks the second, whose fits the mismatch
-    drags less (the records' mean shift, measured as above)."""
+def _two_drives(small, analytic_cfg):
+    """Two hand-made drives of one bound, an estimate, the sensor noise and a law mismatch's
+    mean (a bump near the cart's rest) for the bias criterion's tests."""
     estimate = {FRICTION: {"force": 30.0}, "actuator_gain@slide": {"gain": 0.9}}
-    theta = jnp.asarray(small.theta(estimate), jnp.float32)
     limits = limits_of(analytic_cfg, 0.5)
     noise = 0.01 * np.array([1e-3, 2e-3, 1e-2, 2e-2])
     width, size = 0.3, 1e-3
     mean = _bump_mean(width, size, limits.u_high)
-    n = np.random.default_rng(8).normal(size=(40, small.steps + 1, 4)) * noise
-    signals, sensor, mse, dragged = [], [], [], []
+    signals = []
     for seed in (6, 5):
         coef = np.random.default_rng(seed).normal(0.0, 0.6, (1, 6))
-        u = limits.u_high * np.clip(1.5 * fourier(small, coef), -1.0, 1.0)
-        signals.append(u)
-        sensor.append(small.criterion_of(estimate, u, DOWN, noise, "A"))
-        mse.append(
-            small.criterion_of(estimate, u, DOWN, noise, "A", mismatch_mean=mean, episodes=16)
-        )
+        signals.append(limits.u_high * np.clip(1.5 * fourier(small, coef), -1.0, 1.0))
+    return estimate, limits, noise, (width, size), mean, signals
+
+
+def test_bias_criterion_turns_the_choice_of_two_drives(small, analytic_cfg):
+    """The sensor-noise criterion prefers the first drive; with the mismatch's mean, the
+    mean-squared-error criterion (the drag squared over 16 episodes beside the variance) the
+    second; a mean of the wrong size is refused."""
+    estimate, _, noise, _, mean, signals = _two_drives(small, analytic_cfg)
+    sensor = [small.criterion_of(estimate, u, DOWN, noise, "A") for u in signals]
+    mse = [
+        small.criterion_of(estimate, u, DOWN, noise, "A", mismatch_mean=mean, episodes=16)
+        for u in signals
+    ]
+    assert sensor[0] < sensor[1] and mse[1] < mse[0]
+    with pytest.raises(ValueError, match="mismatch_mean has"):
+        bad = dataclasses.replace(mean, coef=np.zeros((3, 16)))
+        small.criterion_of(estimate, signals[0], DOWN, noise, mismatch_mean=bad)
+
+
+@pytest.mark.slow  # 40 Gauss-Newton fits and two designs: about 20 s of CPU
+def test_bias_criterion_picks_the_less_dragged_signal(small, analytic_cfg, drifted):
+    """Of the two drives, the one the bias criterion picks is the one whose fits the mismatch
+    drags less (the records' mean shift, measured as above)."""
+    estimate, limits, noise, (width, size), mean, signals = _two_drives(small, analytic_cfg)
+    theta = jnp.asarray(small.theta(estimate), jnp.float32)
+    n = np.random.default_rng(8).normal(size=(40, small.steps + 1, 4)) * noise
+    dragged = []
+    for u in signals:
         std = small.open_loop(estimate, u, DOWN).std(axis=0)
         weight = 1.0 / np.maximum(std, 1e-6 * std.max())
         bump = np.array([0.0, 0.0, size, 0.0])
@@ -479,18 +498,13 @@ def test_bias_criterion_picks_the_less_dragged_signal(small, analytic_cfg, drift
         without, _ = drifted(theta, DOWN, u, 0 * bump, width, n, weight, iterations=2)
         rel = (with_bump - without).mean(axis=0) / np.asarray(theta)[small.slots]
         dragged.append(float(np.sum(rel**2)))
-    assert sensor[0] < sensor[1]  # without the drag, the first
-    assert mse[1] < mse[0]  # with it, the second
-    assert dragged[1] < 0.5 * dragged[0]  # which the mismatch drags less
+    assert dragged[1] < 0.5 * dragged[0]  # the second, which the criterion picks
     # the design carries the drag it predicts; without a mean, none
     design = small.design(estimate, DOWN, noise, limits, iterations=2, mismatch_mean=mean)
     assert design.predicted_shift is not None and np.isfinite(design.predicted_shift).all()
     assert small.design(estimate, DOWN, noise, limits, iterations=2).predicted_shift is None
     with pytest.raises(ValueError, match="episodes"):
         small.design(estimate, DOWN, noise, limits, mismatch_mean=mean, episodes=0)
-    with pytest.raises(ValueError, match="mismatch_mean has"):
-        bad = dataclasses.replace(mean, coef=np.zeros((3, 16)))
-        small.criterion_of(estimate, signals[0], DOWN, noise, mismatch_mean=bad)
 
 
 def test_one_designer_per_simulator_and_the_estimate_taken_off_it(analytic_cfg):
