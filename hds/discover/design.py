@@ -871,6 +871,17 @@ class Designer:
         the signals' std over all of them, as the fit weighs them); what a standard signal
         is predicted to give, on the same model and noise as a design's prediction (and the
         law mismatch `mismatch`, a `Mismatch`; None: sensor noise alone)."""
+        u, theta, x0, noise, scale = self._open_records(estimate, controls, x0, noise)
+        mis = self._mis(mismatch)
+        h = meat = 0.0
+        for ue in u:
+            he, me, _ = self._predict_open(theta, *_f32(ue), x0, noise, scale, mis)
+            h, meat = h + np.asarray(he, np.float64), meat + np.asarray(me, np.float64)
+        return np.sqrt(np.maximum(np.diag(_covariance(h / len(u), meat / len(u))), 0.0))
+
+    def _open_records(self, estimate: dict | None, controls, x0, noise):
+        """Open-loop records controls [E, T, n_act] checked, the estimate's parameters, x0 and
+        the noise as float32, and the signals' std over all records (the fit's weights)."""
         u = np.asarray(controls, np.float64)
         if u.ndim != 3 or u.shape[1:] != (self.steps, self.sim.n_act):
             raise ValueError(
@@ -878,15 +889,10 @@ class Designer:
             )
         theta = jnp.asarray(self.theta(estimate), jnp.float32)
         x0, noise = _f32(x0, np.maximum(np.asarray(noise, np.float64), 1e-9))
-        mis = self._mis(mismatch)
         obs = np.concatenate([np.asarray(self._rollout_open(theta, *_f32(ue), x0)) for ue in u])
         std = obs.std(axis=0)
         scale = jnp.asarray(np.maximum(std, 1e-6 * std.max() + 1e-12), jnp.float32)
-        h = meat = 0.0
-        for ue in u:
-            he, me, _ = self._predict_open(theta, *_f32(ue), x0, noise, scale, mis)
-            h, meat = h + np.asarray(he, np.float64), meat + np.asarray(me, np.float64)
-        return np.sqrt(np.maximum(np.diag(_covariance(h / len(u), meat / len(u))), 0.0))
+        return u, theta, x0, noise, scale
 
     def drag_of(self, estimate: dict | None, controls, x0, noise, mean: MismatchMean) -> dict:
         """What the law mismatch's mean `mean` (`MismatchMean`) does to the fit of the
@@ -897,17 +903,8 @@ class Designer:
         scatter: at the pooled estimate each episode's gradient is g_e + H_e shift (they sum to
         nil), and episodes of different signals, dragged apart, count as scatter; one signal
         repeated from one state adds nothing. Both in the parameters' own units."""
-        u = np.asarray(controls, np.float64)
-        if u.ndim != 3 or u.shape[1:] != (self.steps, self.sim.n_act):
-            raise ValueError(
-                f"controls have shape {u.shape}; give [E, {self.steps}, {self.sim.n_act}]"
-            )
-        theta = jnp.asarray(self.theta(estimate), jnp.float32)
-        x0, noise = _f32(x0, np.maximum(np.asarray(noise, np.float64), 1e-9))
+        u, theta, x0, noise, scale = self._open_records(estimate, controls, x0, noise)
         mean_args = self._mean_arrays(mean)
-        obs = np.concatenate([np.asarray(self._rollout_open(theta, *_f32(ue), x0)) for ue in u])
-        std = obs.std(axis=0)
-        scale = jnp.asarray(np.maximum(std, 1e-6 * std.max() + 1e-12), jnp.float32)
         parts = [
             self._predict_open(theta, *_f32(ue), x0, noise, scale, None, mean_args)[:3] for ue in u
         ]
