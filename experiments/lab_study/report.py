@@ -43,18 +43,18 @@ ABOUT = {
 WITHIN = 1.05  # the issue's target: within 1.05 of the oracle's cost
 
 
-def _truth_value():
-    """experiments/lab_plants/measure.py's truth_value: what a draw's truth holds for a library
-    effect discovery may name (one mapping for both experiments)."""
+def _truth_values():
+    """experiments/lab_plants/measure.py's truth_values: what a draw's truth holds for a
+    library effect discovery may name, per parameter (one mapping for both experiments)."""
     spec = importlib.util.spec_from_file_location(
         "lab_measure", HERE.parent / "lab_plants" / "measure.py"
     )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    return module.truth_value
+    return module.truth_values
 
 
-truth_value = _truth_value()
+truth_values = _truth_values()
 
 
 def draw_of(plant: str) -> int | None:
@@ -82,10 +82,13 @@ def config_of(run_dir: Path):
 def named_vs_truth(effects: list[dict], truth: dict) -> str:
     parts = []
     for e in effects:
+        values = truth_values(truth, e["name"], e["target"])
         for param, x in e["params"].items():
             lo, hi = e.get("ci95", {}).get(param, (float("nan"), float("nan")))
-            true = truth_value(truth, e["name"], e["target"])
-            true = "not in the plant" if true is None else f"{true:.3g}"
+            if values is None:
+                true = "not in the plant"
+            else:
+                true = f"{values[param]:.3g}" if param in values else "-"
             parts.append(f"{e['name']}@{e['target']} {x:.3g} [{lo:.3g}, {hi:.3g}] vs {true}")
     return "; ".join(parts) or "nothing"
 
