@@ -72,48 +72,49 @@ SHARED = ROOT.parent / "shared"
 # (--no-loadscope-reorder: xdist would put the files with most tests first). Every file is ranked
 # by its cost, longest first, so the workers finish together: a worker takes the next file when
 # it has two tests left, and a long file taken late leaves the other worker idle at the end.
-# Cost: CPU s of the file alone from an empty cache (2-core AMD EPYC, loaded, 2026-11-27;
-# experiments/test_suite_time/README.md): discover 158, sweeps 146, api 117, dynamics 104,
-# train 82, envs 68, robustness 61, tree 55, config 43, analytic 42, plants 38, loop 37, lab 37,
-# program_cache 31, improve 30, design 27, cli 27, data 20, regress 18, lab_study 15, bench 15,
-# install 13, effects 13, pictures 11, multiarm 10, story 10, sysid 9, dr 8, simulators 8; the
-# rest below 6. A new file not listed runs after these: add it where its cost
-# puts it.
+# Cost: CPU s of the file alone from an empty cache (2-core AMD EPYC, loaded, 2026-11-28, sixth
+# pass; test_breakaway seventh: experiments/test_suite_time/README.md): discover 173, sweeps 134,
+# api 100, dynamics 92, train 78, robustness 51, tree 49, envs 46, config 44, design 40, lab 38,
+# analytic 37, plants 37, program_cache 35, loop 34, improve 30, cli 25, data 20, regress 16,
+# lab_study 14, effects 13, multiarm 13, bench 12, install 10, sysid 10, breakaway 9,
+# pictures 8, story 7, dr 7, optuna 7, simulators 6, layers 6; the rest below 6. A new file not
+# listed runs after these: add it where its cost puts it.
 LONGEST_FIRST = (
     "test_discover.py",
     "test_sweeps.py",
     "test_api.py",
     "test_dynamics.py",
     "test_train.py",
-    "test_envs.py",
     "test_robustness.py",
     "test_tree.py",
+    "test_envs.py",
     "test_config.py",
+    "test_design.py",
+    "test_lab.py",
     "test_analytic.py",
     "test_plants.py",
-    "test_loop.py",
-    "test_lab.py",
     "test_program_cache.py",
+    "test_loop.py",
     "test_improve.py",
-    "test_design.py",
     "test_cli.py",
     "test_data.py",
     "test_regress.py",
     "test_lab_study.py",
+    "test_effects.py",
+    "test_multiarm.py",
     "test_bench.py",
     "test_install.py",
-    "test_effects.py",
-    "test_pictures.py",
-    "test_multiarm.py",
-    "test_story.py",
     "test_sysid.py",
+    "test_breakaway.py",
+    "test_pictures.py",
+    "test_story.py",
     "test_dr.py",
+    "test_optuna.py",
     "test_simulators.py",
     "test_layers.py",
-    "test_optuna.py",
+    "test_continuation.py",
     "test_results.py",
     "test_docs.py",
-    "test_continuation.py",
 )
 
 

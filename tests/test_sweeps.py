@@ -21,7 +21,7 @@ import pytest
 from hds import experiment
 from hds import run as hds_run
 from hds.envs import make_env
-from tests.conftest import ROOT, TINY, make_config, trained, wandb_records
+from tests.conftest import FAST, ROOT, TINY, make_config, trained, wandb_records
 
 
 def cli(*args) -> list[str]:
@@ -251,8 +251,10 @@ def killed_sweep(tmp_path_factory):
     offline, killed (SIGKILL) as soon as its first job has finished, then started again on that
     directory (`hydra.sweep.dir=`), as `hds_run_cli` starts any sweep."""
     tmp = tmp_path_factory.mktemp("killed")
-    tiny_wandb = [a for a in TINY if a != "logger=none"]  # conf/config.yaml: logger=wandb
-    args = ["-m", *tiny_wandb, "real=none", "method=pods,pods_cl"]
+    # conftest.FAST, not TINY: both methods' chunks are then programs other files compile
+    # (test_train's PODS and its closed-loop improvement), read from the shared cache
+    fast_wandb = [a for a in FAST if a != "logger=none"]  # conf/config.yaml: logger=wandb
+    args = ["-m", *fast_wandb, "real=none", "method=pods,pods_cl"]
     first = subprocess.Popen(
         cli(*args),
         cwd=tmp,  # outputs/multiruns/<name>/<time>/ lands in tmp

@@ -22,7 +22,6 @@ from hds.config.composition import (
     load_config,
     schema_of,
     sets_multirun,
-    sweeper_params,
 )
 from hds.config.schemas import (
     SEED_MAX,
@@ -89,7 +88,6 @@ __all__ = [
     "run_label",
     "schema_of",
     "sets_multirun",
-    "sweeper_params",
     "validate",
 ]
 
