@@ -114,12 +114,13 @@ def invalid_jobs(argv: list[str], config_name: str = "config", loop: bool = Fals
     option of a group or a value of the wrong type, included), naming a multirun's job by its
     swept values: a sweep with a bad value launches no job at all. A multirun's jobs are also
     refused for data past their limits (hds.data.budget; a single run checks its own, once).
-    Empty for sweeps the basic sweeper does not expand (interval sweeps of an optimizing
-    sweeper)."""
+    The config's own sweeps (`hydra.sweeper.params`) count as the command line's do; a key
+    the basic sweeper does not expand (an optimizing sweeper's interval) is left to each
+    job."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
-    from hds.config import Config, cli_overrides, compose, sets_multirun
+    from hds.config import Config, cli_overrides, compose, sets_multirun, sweeper_params
     from hds.data.budget import check_planned
 
     multirun = bool({"-m", "--multirun"} & set(argv))
@@ -134,11 +135,23 @@ def invalid_jobs(argv: list[str], config_name: str = "config", loop: bool = Fals
             multirun = sets_multirun(single, config_name, dirs)
         except (*cli.USER_ERRORS, HydraException) as err:
             return [cli.describe(err)]
-    fixed, swept = [], []
+    if multirun:
+        # the sweeper crosses the config's own sweeps (hydra.sweeper.params) with the command
+        # line's, a key on the command line replacing the config's: check the jobs it launches
+        single = [o.input_line for o in overrides if not o.is_sweep_override()]
+        try:
+            params = sweeper_params(single, config_name, [config_dir] if config_dir else [])
+        except (*cli.USER_ERRORS, HydraException) as err:
+            return [cli.describe(err)]
+        lines = [f"{key}={values}" for key, values in params.items()]
+        overrides = OverridesParser.create().parse_overrides(lines) + overrides
+    chosen = {}  # as Hydra's basic sweeper: the last override of a key, in its first place
     for override in overrides:
+        chosen[override.get_key_element()] = override
+    fixed, swept = [], []
+    for key, override in chosen.items():
         if override.key_or_group.startswith("hydra"):
             continue  # Hydra's own settings: no job's configuration
-        key = override.get_key_element()
         if override.is_sweep_override() and not multirun:
             return [
                 f"{override.input_line} sweeps several values: add -m (a multirun), or give "
@@ -149,8 +162,8 @@ def invalid_jobs(argv: list[str], config_name: str = "config", loop: bool = Fals
             continue
         try:
             values = list(override.sweep_string_iterator())
-        except Exception:  # an interval: the optimizing sweeper draws the values
-            return []
+        except Exception:  # an interval: the optimizing sweeper draws it, each job checks it
+            continue
         swept.append([f"{key}={v}" for v in values])
     jobs = list(itertools.product(*swept))
     lines = []

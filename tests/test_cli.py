@@ -395,6 +395,24 @@ def test_a_multirun_of_good_values_passes_and_a_single_run_is_not_expanded():
     assert line.startswith("real.friction_gap=0,2 sweeps several values: add -m")
 
 
+def test_a_sweep_the_experiment_sets_is_checked_as_the_command_lines(tmp_path):
+    """hydra.sweeper.params in an experiment sweeps as a command line's sweep does (the lab
+    study sweeps its methods so): its jobs are checked, and a key given on the command line
+    replaces the experiment's sweep of it, as Hydra's basic sweeper does."""
+    (tmp_path / "experiment").mkdir()
+    (tmp_path / "experiment" / "own_sweep.yaml").write_text(
+        "# @package _global_\nhydra:\n  sweeper:\n    params:\n      real.friction_gap: 0,-1\n"
+    )
+    argv = ["-m", "--config-dir", str(tmp_path), *S, "+experiment=own_sweep"]
+    lines = commands.invalid_jobs([*argv, "seed=0,1"])
+    assert [line.split(":")[0] for line in lines[:-1]] == [
+        "job 2 (real.friction_gap=-1 seed=0)",
+        "job 3 (real.friction_gap=-1 seed=1)",
+    ]
+    assert "2 of 4 jobs refused" in lines[-1]
+    assert commands.invalid_jobs([*argv, "real.friction_gap=2"]) == []
+
+
 @pytest.mark.parametrize(
     "override, fragments",
     [

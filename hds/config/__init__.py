@@ -22,6 +22,7 @@ from hds.config.composition import (
     load_config,
     schema_of,
     sets_multirun,
+    sweeper_params,
 )
 from hds.config.schemas import (
     SEED_MAX,
@@ -88,6 +89,7 @@ __all__ = [
     "run_label",
     "schema_of",
     "sets_multirun",
+    "sweeper_params",
     "validate",
 ]
 

@@ -149,6 +149,15 @@ def sets_multirun(overrides=(), config_name: str = "config", config_dirs=()) -> 
     return str(composed.hydra.mode).endswith("MULTIRUN")
 
 
+def sweeper_params(overrides=(), config_name: str = "config", config_dirs=()) -> dict[str, str]:
+    """The sweeps the config that `overrides` (none of them a sweep) compose asks its sweeper
+    for (`hydra.sweeper.params`, as an experiment's own sweep sets them), key -> the values
+    as Hydra's override grammar writes them (`0,1,2`, `choice(a,b)`)."""
+    composed = _hydra_compose(overrides, config_name, config_dirs, with_hydra=True)
+    params = OmegaConf.select(composed, "hydra.sweeper.params", default=None)
+    return {str(k): str(v) for k, v in (params or {}).items()}
+
+
 def env_config(env: dict) -> EnvConfig:
     """A checked EnvConfig from a plain dict (e.g. the env gap discovery corrected)."""
     cfg = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(EnvConfig), env))
