@@ -301,6 +301,32 @@ def section(results: list[dict], per_program: list[dict]) -> dict:
             "(source files edited in between change the HLO's source locations).",
             "A rerun of some backends or methods (`--set compile.backends=tree`) replaces "
             "their rows and keeps the others; compare rows measured under similar load.",
+            "Where a warm process's seconds go (2026-11-28, 2-core AMD EPYC shared, load ~5; "
+            "python -X importtime, cProfile, JAX_LOG_COMPILES=1 of bench.worker train): "
+            "analytic and tree import the same modules and compile the same programs; they "
+            "differ in the chunk's XLA executable only (analytic 4686 StableHLO lines, 468 KiB "
+            "compressed, against 4413 and 422 KiB): its load (XLA's native "
+            "deserialize_executable, ~97% of the 'XLA compile' column; the cache key ~30 ms) "
+            "took 0.43-0.50 CPU s against 0.31-0.42, and deserializing + lowering the exported "
+            "program 0.18-0.25 against 0.13-0.21. Imports after jax: Hydra ~0.1 CPU s (hds.config "
+            "registers its schemas with Hydra's ConfigStore on import, and validation parses "
+            "overrides with Hydra: kept, as Hydra compositions expect the store filled), "
+            "mujoco ~0.2 (half of it glfw, found by mujoco's renderer import), flax.linen ~0.2 "
+            "(absl.flags alone ~0.08), optax ~0.15 (optax.contrib), hds's own modules "
+            "~0.2 (the schemas' dataclasses, hds.config's ConfigStore registration).",
+            "Eager programs of a warm process: 10 before (4 in the trainer's build, one in the "
+            "program cache's key, iota/threefry/broadcast for the seeds and hyperparameters), 6 "
+            "now: the build's model counts and the key's dtypes are read in numpy "
+            "(hds.algo.pods._model_count, hds.utils.runtime.cached_lowering). Measured A/B on "
+            "the same load (4 alternating warm processes each): 3.30 CPU s before, 3.36 after: "
+            "the cut (~0.05 s) is within the load's noise.",
+            "Tried and dropped: keeping the compiled XLA executable itself in the program "
+            "cache (jax.experimental.serialize_executable) instead of the exported program and "
+            "jax's persistent cache: its load took 0.70-0.91 CPU s against 0.52-0.61 for "
+            "deserialize + lower + persistent-cache load, and an executable that was itself "
+            "loaded from the persistent cache serializes broken ('Function ... not found' when "
+            "run). XLA's xla_cpu_parallel_codegen_split_count=1: load 0.51-0.56 against "
+            "0.39-0.41 CPU s.",
         ],
         "data": results,
         "programs": per_program,

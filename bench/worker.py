@@ -80,7 +80,8 @@ def train(spec: dict) -> dict:
         trainer = make_train_from_config(cfg, env)
     rss_built = peak_rss_mb()
     seeds = int(spec.get("seeds", 1))
-    keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(seeds))
+    # the seeds as hds.experiment.compiled_programs gives them (a host array: no eager iota)
+    keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(list(range(seeds))))
     hparams = jax.tree.map(lambda x: jnp.stack([x] * seeds), trainer.default_hparams)
     vmapped = runs_vmapped(spec.get("vmapped"), seeds)
     out = {

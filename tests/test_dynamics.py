@@ -358,6 +358,18 @@ def test_branched_model_rollouts_start_from_states_the_used_simulator_rollouts_v
     np.testing.assert_array_equal(fewer, starts[:40])
 
 
+def test_the_builds_model_counts_in_numpy_are_the_traced_counts():
+    """Split.of counts the model's rollouts in numpy (no eager jax op at build time); the
+    traced epoch counts them in jax: the same float32 rounding (half to even) for every share."""
+    from hds.algo.pods import _model_count
+
+    shares = np.linspace(0.0, 1.0, 201, dtype=np.float64).tolist() + [0.125, 0.375, 1 / 3]
+    for rollouts in (1, 3, 8, 50, 64, 1000):
+        built = [int(_model_count(b, rollouts, np)) for b in shares]
+        traced = jax.jit(jax.vmap(lambda b, r=rollouts: _model_count(b, r)))(np.float32(shares))
+        assert built == np.asarray(traced).tolist()
+
+
 # make test-slow: a second compile of the trainer through the model; make test keeps branch 0
 # (test_a_model_drives_rollouts_inside_the_trainer)
 @pytest.mark.slow

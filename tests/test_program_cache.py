@@ -148,6 +148,26 @@ def test_init_from_the_program_cache_gives_the_numbers_of_jit_to_the_last_digit(
         np.testing.assert_array_equal(np.asarray(b), np.asarray(c))
 
 
+def test_a_programs_entry_is_keyed_by_the_dtypes_jax_sees(tmp_path):
+    """cached_lowering reads each argument's dtype as jax will see it, without converting it:
+    a float64 array and a Python int (float32 and int32 to jax) share the entry of float32 and
+    int32 arrays, with the same numbers; another dtype is another entry."""
+    from hds.utils.runtime import cached_lowering
+
+    def fn(x, n):
+        return x * n + 1.0
+
+    as_numpy = (np.arange(4, dtype=np.float64), 3)
+    as_jax = (jax.numpy.arange(4, dtype=jax.numpy.float32), jax.numpy.int32(3))
+    first = cached_lowering(fn, as_numpy, "k", tmp_path).compile()(*as_numpy)
+    entries = sorted(tmp_path.iterdir())
+    again = cached_lowering(fn, as_jax, "k", tmp_path).compile()(*as_jax)
+    assert sorted(tmp_path.iterdir()) == entries
+    np.testing.assert_array_equal(np.asarray(first), np.asarray(again))
+    cached_lowering(fn, (np.arange(4, dtype=np.int32), 3), "k", tmp_path)
+    assert len(list(tmp_path.iterdir())) == len(entries) + 2  # a new program and its tree
+
+
 # --- brax's System (hds.envs.system.brax_system), kept by cached_build ------------------------
 def build_counted(monkeypatch, **kwargs):
     """make_simulator's System and how many times brax's load_model built one."""

@@ -399,7 +399,12 @@ def cached_lowering(fn, args: tuple, key: str, directory: Path):
     from hds.utils.io import atomic_write_bytes
 
     leaves, in_tree = jax.tree.flatten(args)
-    avals = [(str(np.shape(x)), str(jax.numpy.asarray(x).dtype)) for x in leaves]
+    # each leaf's dtype as jax will see it, without converting it (an eager op per dtype)
+    dtypes = [x.dtype if hasattr(x, "dtype") else np.result_type(x) for x in leaves]
+    avals = [
+        (str(np.shape(x)), str(jax.dtypes.canonicalize_dtype(d)))
+        for x, d in zip(leaves, dtypes, strict=True)
+    ]
     digest = hashlib.sha256(f"{key}\n{in_tree}\n{avals}".encode()).hexdigest()
     path, tree_path = directory / f"{digest}.jaxexport", directory / f"{digest}.tree"
     exported = out_tree = None
