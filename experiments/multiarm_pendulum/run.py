@@ -60,7 +60,7 @@ INERTIAL = ["mass_scale", "com_scale", "inertia_scale"]
 # 10 ms samples, 1 s windows every 0.5 s (0.2 s windows showed no friction at all).
 # Initial states: discovery's own rule (`initial_state=auto`). Both rigs' velocities were
 # de-noised offline and disagree with the encoders' angles beyond white noise
-# (`hds.discover.data.velocity_error`: 0.26% of their std on the single, 0.50% and 0.72% on
+# (`hds.discover.data.velocity_error`: 0.25% of their std on the single, 0.50% and 0.72% on
 # the double at 10 ms); where that passes noise_threshold (the double), discovery runs with
 # measured and with estimated initial states and keeps the one its own held-out Y_id
 # segments support (`choose_initial_states`); Y_vad plays no part in it.
