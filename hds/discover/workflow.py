@@ -264,7 +264,8 @@ def discover(
     estimate = cfg.initial_state == "estimated" or (
         cfg.initial_state == "auto" and float(np.median(relative_noise)) > cfg.noise_threshold
     )
-    if cfg.initial_state == "auto" and not estimate and smooth_velocity_error(data, cfg):
+    smooth = not estimate and smooth_velocity_error(data, cfg)
+    if cfg.initial_state == "auto" and smooth:
         return choose_initial_states(dataset, env_cfg, cfg, validation, data.velocity_error)
     nominal, no_delay = model.nominal, np.zeros(len(model.sim.action_names), np.int32)
     before = compare(engine, data, nominal, no_delay)
@@ -290,7 +291,7 @@ def discover(
     floor = float(np.sqrt(np.mean(relative_noise**2)))
     ident = data.arrays("identification")
     carried = 0.0
-    if not estimate and smooth_velocity_error(data, cfg):
+    if smooth:
         # measured states whose velocities carry a smooth error: a correct model would still
         # leave what that error (and the states' white noise) carries through each window,
         # and the error of every compared velocity sample, which the white-noise floor
@@ -446,7 +447,6 @@ def choose_initial_states(
     better = error["estimated"] < (1.0 - cfg.stop_margin) * error["measured"]
     result = runs["estimated" if better else "measured"]
     result.initial_state_choice = {
-        "velocity_error": [float(x) for x in velocity_error],
         "heldout_error": error,
         "chosen": result.initial_state,
         "selected_with_measured_states": path,
