@@ -7,7 +7,8 @@ judged against the draw's truth as measure.py judges the loop's data. No trainin
 
 Each draw's data are kept in outputs/lab_plants/oneshot/dK.npz (recorded once: discovery is
 rerun on the same data), its result in experiments/lab_plants/oneshot.json under the label
-(default `now`), so two code versions' results stand side by side.
+(default `now`), so two code versions' results stand side by side. `--table L1 L2`
+prints the README's tables of labels L1 and L2.
 """
 
 from __future__ import annotations
@@ -70,6 +71,76 @@ def one(k: int) -> dict:
     }
 
 
+def _named(row: dict) -> str:
+    parts = []
+    for e in row["named"]:
+        ((q, x),) = list(e["params"].items())[:1]
+        lo, hi = e["ci95"][q]
+        truth = "none" if e["truth"] is None else f"{e['truth'][q]:.3g}"
+        mark = " **spurious**" if e["verdict"][q]["spurious"] else ""
+        mark += " (truth outside)" if e["verdict"][q]["covers"] is False else ""
+        parts.append(f"{e['name']} {x:.3g} [{lo:.3g}, {hi:.3g}] vs {truth}{mark}")
+    return "; ".join(parts) or "nothing"
+
+
+def table(results: dict, labels: list[str]) -> str:
+    """Per draw, each label's named effects against the truth; then per label: the draws
+    with a spurious name, the delays named of those the plant has, the rail frictions
+    within 25% of the Stribeck sliding level, the truth inside the intervals."""
+    draws = sorted({int(k) for lab in labels for k in results[lab]})
+    lines = ["| draw | delay | " + " | ".join(labels) + " |", "|---" * (len(labels) + 2) + "|"]
+    for k in draws:
+        delay = lab_delay(results[labels[0]][str(k)])
+        cells = [_named(results[lab][str(k)]) for lab in labels]
+        lines.append(f"| {k} | {delay} | " + " | ".join(cells) + " |")
+    lines += ["", "| | " + " | ".join(labels) + " |", "|---" * (len(labels) + 1) + "|"]
+    stats = {lab: counts([results[lab][str(k)] for k in draws]) for lab in labels}
+    for what in stats[labels[0]]:
+        lines.append(f"| {what} | " + " | ".join(stats[lab][what] for lab in labels) + " |")
+    return "\n".join(lines)
+
+
+def lab_delay(row: dict) -> int:
+    return int(row["truth"]["values"]["action_delay@slide.steps"])
+
+
+def counts(rows: list[dict]) -> dict:
+    n = len(rows)
+    spurious = [
+        r for r in rows if any(v["spurious"] for e in r["named"] for v in e["verdict"].values())
+    ]
+    with_delay = [r for r in rows if lab_delay(r)]
+    delay_named = [
+        r
+        for r in with_delay
+        if any(
+            e["name"] == "action_delay" and e["params"]["steps"] == lab_delay(r) for e in r["named"]
+        )
+    ]
+    frictions = [
+        e
+        for r in rows
+        for e in r["named"]
+        if e["name"] == "coulomb_friction" and e["target"] == "slider"
+    ]
+    close = [e for e in frictions if e["verdict"]["force"]["close"]]
+    covered = [
+        v["covers"]
+        for r in rows
+        for e in r["named"]
+        for v in e["verdict"].values()
+        if v["covers"] is not None
+    ]
+    return {
+        "draws with a spurious name": f"{len(spurious)} of {n}",
+        "the delay named (its length) where the plant has one": (
+            f"{len(delay_named)} of {len(with_delay)}"
+        ),
+        "rail friction within 25% of the sliding level": f"{len(close)} of {len(frictions)}",
+        "truth inside the interval": f"{sum(covered)} of {len(covered)}",
+    }
+
+
 def main(draws: list[int], label: str) -> None:
     out = HERE / "oneshot.json"
     results = read_json(out) if out.is_file() else {}
@@ -78,8 +149,7 @@ def main(draws: list[int], label: str) -> None:
         results.setdefault(label, {})[str(k)] = row
         atomic_write_json(out, results)
         said = [
-            f"{e['name']}@{e['target']} {e['params']} {e['ci95']} truth {e['truth']} "
-            f"{e['verdict']}"
+            f"{e['name']}@{e['target']} {e['params']} {e['ci95']} truth {e['truth']} {e['verdict']}"
             for e in row["named"]
         ]
         print(f"draw {k} ({row['cpu_seconds']:.0f} CPU s):", *said, sep="\n  ", flush=True)
@@ -87,6 +157,9 @@ def main(draws: list[int], label: str) -> None:
 
 if __name__ == "__main__":
     args = sys.argv[1:]
+    if "--table" in args:  # --table LABEL [LABEL ...]: the README's tables
+        print(table(read_json(HERE / "oneshot.json"), args[args.index("--table") + 1 :]))
+        sys.exit()
     label = args[args.index("--label") + 1] if "--label" in args else "now"
     picked = [int(a) for a in args if a.isdigit()]
     main(picked, label)
