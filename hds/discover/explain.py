@@ -263,9 +263,8 @@ def forward_selection(
             split = []
     if not split:
         states = _finish(fit, states, mismatch)
-    states, simpler = _simplest_actuator_law(fit, states, banned, mismatch)
     states, refined = _refine(fit, states, banned, mismatch)
-    dropped += simpler + refined
+    dropped += refined
     shown = _shown(fit, states[-1])
     return Selection(states, rounds, stopped, dropped, mismatch, unidentified, shown, path)
 
@@ -546,82 +545,6 @@ def _refine(fit, states: list[State], banned, mismatch: list) -> tuple[list[Stat
         states, refined = judged, refined + [named]
         mismatch[:] = kept
         banned = set(banned) | {named.key}
-
-
-def _simplest_actuator_law(
-    fit, states: list[State], banned, mismatch: list
-) -> tuple[list[State], list]:
-    """Once the final model is judged: whether a named law of how fast an actuator follows
-    its command (`Effect.needs == "changes"`) with a fitted continuous parameter (a lag's
-    time constant) has been shown to be that law rather than a rival of the same kind with
-    none (a delay of a whole number of steps, `shifts_actions`). The two differ only in the
-    steps right after the command changes; where the rest of the model's mismatch (a belt's
-    backlash, a friction's static peak) swamps that, a time constant bends to take some of
-    the mismatch too and wins by a sliver (a lab cart-pole with a one-step delay: a 0.064 s
-    lag, held-out error 0.0326 against the delay's 0.0330). A law counts as shown against its
-    rival only as an effect is against none: by lowering the held-out error by the selection
-    margin (`stop_margin`, `min_improvement`). Where it does not, the rival with no
-    continuous parameter to bend takes its place (every length tried in one batched fit,
-    the others refitted with it; the best by held-out error), and the chain is judged again
-    (`_finish`); it stands only if it survives that judgement. Returns (the chain, [the
-    effects replaced])."""
-    model, cfg = fit.engine.model, fit.cfg
-    state = states[-1]
-    for j, named in enumerate(state.selected):
-        if named.shifts_actions or effect_type(named.name).needs != "changes":
-            continue
-        rivals = [
-            c
-            for c in model.candidates
-            if c.shifts_actions
-            and c.target == named.target
-            and effect_type(c.name).needs == "changes"
-            and c.key not in state.keys
-            and c.key not in banned
-        ]
-        if not rivals:
-            continue
-        sets = [state.selected[:j] + [r] + state.selected[j + 1 :] for r in rivals]
-        delays = []
-        for r in rivals:
-            d = state.delay.copy()
-            d[r.actuator] = r.steps
-            delays.append(d)
-        fitted = fit.sets(state, sets, delays)
-        best = int(np.argmin([f.heldout_error for f in fitted]))
-        rival, trial = rivals[best], fitted[best]
-        needed = max(cfg.stop_margin * trial.heldout_error, cfg.min_improvement)
-        if (
-            not np.isfinite(trial.heldout_error)
-            or trial.heldout_error - state.heldout_error >= needed
-        ):
-            log.info(
-                "%s is shown against %s: held-out error %.4g against %.4g",
-                named.key,
-                rival.label,
-                state.heldout_error,
-                trial.heldout_error,
-            )
-            continue
-        chosen = sets[best]
-        prefixes = [chosen[:n] for n in range(j + 1, len(chosen))]
-        start = dataclasses.replace(state, delay=delays[best])
-        kept = list(mismatch)
-        judged = _finish(fit, states[: j + 1] + fit.sets(start, prefixes) + [trial], kept)
-        if rival.key not in judged[-1].keys:
-            log.info("%s in the place of %s did not stand as named", rival.label, named.key)
-            continue
-        log.info(
-            "%s is not shown against %s (held-out error %.4g against %.4g): %s is named",
-            named.key,
-            rival.label,
-            state.heldout_error,
-            trial.heldout_error,
-            rival.label,
-        )
-        mismatch[:] = kept
-        return judged, [named]
-    return states, []
 
 
 def _unidentifiable_explains_more(model, keys: set[str], held, best: int) -> str:
@@ -1003,9 +926,8 @@ class _Fitter:
             batch.z[i] if self.estimate else None,
         )
 
-    def sets(self, state: State, sets: list[list[Candidate]], delays=None) -> list[State]:
-        """Each set of effects (already in `state`) refitted jointly from state's values;
-        `delays`: each set's own action delays [n_act] (default: state's)."""
+    def sets(self, state: State, sets: list[list[Candidate]]) -> list[State]:
+        """Each set of effects (already in `state`) refitted jointly from state's values."""
         if not sets:
             return []
         model = self.engine.model
@@ -1018,10 +940,9 @@ class _Fitter:
             own = [s for c in chosen for s in c.slots]
             theta0[i, own] = state.theta[own]
             slots[i, : len(own)] = own
-            own_delay = state.delay if delays is None else delays[i]
             for c in chosen:
                 if c.shifts_actions:
-                    delay[i, c.actuator] = own_delay[c.actuator]
+                    delay[i, c.actuator] = state.delay[c.actuator]
         batch = self.run(theta0, slots, delay, rows=len(sets), z0=state.z)
         return [self.state(chosen, batch, i) for i, chosen in enumerate(sets)]
 
