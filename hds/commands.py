@@ -127,10 +127,10 @@ def invalid_jobs(argv: list[str], config_name: str = "config", loop: bool = Fals
     config_name = _flag_value(argv, ("--config-name", "-cn")) or config_name
     config_dir = _flag_value(argv, ("--config-dir", "-cd"))
     overrides = OverridesParser.create().parse_overrides(cli_overrides(argv))
+    single = [o.input_line for o in overrides if not o.is_sweep_override()]
+    dirs = [config_dir] if config_dir else []
     if not multirun and any(o.is_sweep_override() for o in overrides):
         # an experiment may make itself a multirun (hydra.mode: MULTIRUN): then a sweep is one
-        single = [o.input_line for o in overrides if not o.is_sweep_override()]
-        dirs = [config_dir] if config_dir else []
         try:
             multirun = sets_multirun(single, config_name, dirs)
         except (*cli.USER_ERRORS, HydraException) as err:
@@ -138,9 +138,8 @@ def invalid_jobs(argv: list[str], config_name: str = "config", loop: bool = Fals
     if multirun:
         # the sweeper crosses the config's own sweeps (hydra.sweeper.params) with the command
         # line's, a key on the command line replacing the config's: check the jobs it launches
-        single = [o.input_line for o in overrides if not o.is_sweep_override()]
         try:
-            params = sweeper_params(single, config_name, [config_dir] if config_dir else [])
+            params = sweeper_params(single, config_name, dirs)
         except (*cli.USER_ERRORS, HydraException) as err:
             return [cli.describe(err)]
         lines = [f"{key}={values}" for key, values in params.items()]
@@ -175,7 +174,7 @@ def invalid_jobs(argv: list[str], config_name: str = "config", loop: bool = Fals
                 [*fixed, *job],
                 config_name,
                 check_memory=not multirun,
-                config_dirs=[config_dir] if config_dir else [],
+                config_dirs=dirs,
             )
             if multirun and type(cfg) is Config:  # hds.discover checks its data as it loads it
                 check_planned(cfg, loop)
