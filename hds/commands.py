@@ -120,29 +120,24 @@ def invalid_jobs(argv: list[str], config_name: str = "config", loop: bool = Fals
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
-    from hds.config import Config, cli_overrides, compose, sets_multirun, sweeper_params
+    from hds.config import Config, cli_overrides, compose, sweep_settings
     from hds.data.budget import check_planned
 
-    multirun = bool({"-m", "--multirun"} & set(argv))
     config_name = _flag_value(argv, ("--config-name", "-cn")) or config_name
     config_dir = _flag_value(argv, ("--config-dir", "-cd"))
     overrides = OverridesParser.create().parse_overrides(cli_overrides(argv))
     single = [o.input_line for o in overrides if not o.is_sweep_override()]
     dirs = [config_dir] if config_dir else []
-    if not multirun and any(o.is_sweep_override() for o in overrides):
-        # an experiment may make itself a multirun (hydra.mode: MULTIRUN): then a sweep is one
-        try:
-            multirun = sets_multirun(single, config_name, dirs)
-        except (*cli.USER_ERRORS, HydraException) as err:
-            return [cli.describe(err)]
+    try:
+        settings = sweep_settings(single, config_name, dirs)
+    except (*cli.USER_ERRORS, HydraException) as err:
+        return [cli.describe(err)]
+    # -m, or an experiment that makes itself a multirun (hydra.mode: MULTIRUN)
+    multirun = bool({"-m", "--multirun"} & set(argv)) or settings.multirun
     if multirun:
         # the sweeper crosses the config's own sweeps (hydra.sweeper.params) with the command
         # line's, a key on the command line replacing the config's: check the jobs it launches
-        try:
-            params = sweeper_params(single, config_name, dirs)
-        except (*cli.USER_ERRORS, HydraException) as err:
-            return [cli.describe(err)]
-        lines = [f"{key}={values}" for key, values in params.items()]
+        lines = [f"{key}={values}" for key, values in settings.params.items()]
         overrides = OverridesParser.create().parse_overrides(lines) + overrides
     chosen = {}  # as Hydra's basic sweeper: the last override of a key, in its first place
     for override in overrides:

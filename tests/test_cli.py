@@ -413,6 +413,22 @@ def test_a_sweep_the_experiment_sets_is_checked_as_the_command_lines(tmp_path):
     assert commands.invalid_jobs([*argv, "real.friction_gap=2"]) == []
 
 
+def test_an_experiment_that_makes_itself_a_multirun_has_its_own_sweep_checked(tmp_path):
+    """Without -m and without a sweep on the command line, an experiment that sets hydra.mode:
+    MULTIRUN launches its own sweep: its jobs are checked, not the one job its defaults
+    compose (the lab study's swing-ups were refused so, for the default method)."""
+    (tmp_path / "experiment").mkdir()
+    (tmp_path / "experiment" / "own_multirun.yaml").write_text(
+        "# @package _global_\nhydra:\n  mode: MULTIRUN\n  sweeper:\n    params:\n"
+        "      real.friction_gap: 0,-1\n"
+    )
+    argv = ["--config-dir", str(tmp_path), *S, "+experiment=own_multirun"]
+    lines = commands.invalid_jobs(argv)
+    assert lines[0].startswith("job 1 (real.friction_gap=-1): invalid config: "), lines
+    assert "1 of 2 jobs refused" in lines[-1]
+    assert commands.invalid_jobs([*argv, "real.friction_gap=2"]) == []
+
+
 @pytest.mark.parametrize(
     "override, fragments",
     [

@@ -15,14 +15,14 @@ composing and loading configs. Every name is importable from `hds.config`:
 
 from hds.config.composition import (
     CONF_DIR,
+    SweepSettings,
     cli_overrides,
     compose,
     config_groups,
     env_config,
     load_config,
     schema_of,
-    sets_multirun,
-    sweeper_params,
+    sweep_settings,
 )
 from hds.config.schemas import (
     SEED_MAX,
@@ -77,6 +77,7 @@ __all__ = [
     "SEED_MAX",
     "SWEEP_KEYS",
     "SweepConfig",
+    "SweepSettings",
     "TaskConfig",
     "check_override_keys",
     "cli_overrides",
@@ -88,8 +89,7 @@ __all__ = [
     "register",
     "run_label",
     "schema_of",
-    "sets_multirun",
-    "sweeper_params",
+    "sweep_settings",
     "validate",
 ]
 

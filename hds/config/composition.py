@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from pathlib import Path
+from typing import NamedTuple
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -141,21 +142,37 @@ def _compose_now(overrides, config_name: str, config_dirs, with_hydra: bool = Fa
         )
 
 
-def sets_multirun(overrides=(), config_name: str = "config", config_dirs=()) -> bool:
-    """Whether the config that `overrides` (none of them a sweep) compose asks Hydra for a
-    multirun itself (`hydra.mode: MULTIRUN`, as `+experiment=optuna` sets it), so that a
-    sweep on its command line needs no -m."""
-    composed = _hydra_compose(overrides, config_name, config_dirs, with_hydra=True)
-    return str(composed.hydra.mode).endswith("MULTIRUN")
+class SweepSettings(NamedTuple):
+    """What a composed config asks of Hydra's sweeper itself."""
+
+    multirun: bool  # hydra.mode: MULTIRUN (as +experiment=optuna sets it): a sweep needs no -m
+    params: dict[str, str]  # hydra.sweeper.params: key -> values in Hydra's override grammar
 
 
-def sweeper_params(overrides=(), config_name: str = "config", config_dirs=()) -> dict[str, str]:
-    """The sweeps the config that `overrides` (none of them a sweep) compose asks its sweeper
-    for (`hydra.sweeper.params`, as an experiment's own sweep sets them), key -> the values
-    as Hydra's override grammar writes them (`0,1,2`, `choice(a,b)`)."""
-    composed = _hydra_compose(overrides, config_name, config_dirs, with_hydra=True)
-    params = OmegaConf.select(composed, "hydra.sweeper.params", default=None)
-    return {str(k): str(v) for k, v in (params or {}).items()}
+def sweep_settings(overrides=(), config_name: str = "config", config_dirs=()) -> SweepSettings:
+    """Whether the config that `overrides` (none of them a sweep) compose is a multirun by
+    itself, and the sweeps it sets its sweeper (`0,1,2`, `choice(a,b)`, an interval), from one
+    composition with Hydra's node, kept in the program cache as the job's composition is (a
+    single run asks it too; its key: everything Hydra composes from)."""
+
+    def build():
+        composed = _compose_now(overrides, config_name, config_dirs, with_hydra=True)
+        params = OmegaConf.select(composed, "hydra.sweeper.params", default=None)
+        return SweepSettings(
+            str(composed.hydra.mode).endswith("MULTIRUN"),
+            {str(k): str(v) for k, v in (params or {}).items()},
+        )
+
+    from hds.utils.runtime import cached_build
+
+    return cached_build(
+        "sweep_settings",
+        build,
+        config_name,
+        [str(o) for o in overrides],
+        [_yaml_files(d) for d in config_dirs],
+        _hydra_state(),
+    )
 
 
 def env_config(env: dict) -> EnvConfig:
