@@ -18,6 +18,7 @@ import pytest
 
 import hds
 from hds.experiment import Hooks
+from hds.utils.cli import run as cli_run
 from tests.conftest import ROOT, command_main, wandb_keys, wandb_records
 
 # Two step sizes x two seeds: four runs in one program.
@@ -33,6 +34,25 @@ def cli(*args, cwd=ROOT):
         [sys.executable, "-m", *args], cwd=cwd, env=ENV, capture_output=True, text=True
     )
     return proc
+
+
+# The key=value commands over a finished run (hds.evaluate, hds.export, hds.report) run in this
+# process: their main through hds.utils.cli.run, as their `__main__` calls it. A process of their
+# own would only add its start-up (jax, brax: some seconds each): test_cli runs the installed
+# hds-export's entry in a process of its own (and test_optuna `python -m hds.report`, slow).
+def command(name: str, *args: str):
+    """What `python -m hds.<name> args` returns (it prints `wrote <that>`)."""
+    return cli_run(command_main(f"hds.{name}"), list(args))
+
+
+def refused(capsys, name: str, *args: str) -> str:
+    """The one line on stderr with which `python -m hds.<name> args` exits with status 1."""
+    with pytest.raises(SystemExit) as ended:
+        command(name, *args)
+    err = capsys.readouterr().err
+    assert ended.value.code == 1 and "Traceback" not in err
+    (line,) = err.strip().splitlines()
+    return line
 
 
 @pytest.fixture(scope="module")
@@ -54,8 +74,7 @@ def test_a_sweep_of_two_step_sizes_is_labelled_everywhere(sweep_run, tmp_path):
         (0, 0.01), (0, 0.04), (1, 0.01), (1, 0.04)
     ]  # fmt: skip
     # report.md and report.csv: a row per setting (not averaged as seeds), a step_size column
-    proc = cli("hds.report", f"dir={out}", f"out={tmp_path}")
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    command("report", f"dir={out}", f"out={tmp_path}")
     report = (tmp_path / "report.md").read_text()
     assert "| pods step_size=0.01 | coulomb_friction@slider | 2 |" in report
     assert "| pods step_size=0.04 | coulomb_friction@slider | 2 |" in report
@@ -143,8 +162,8 @@ def test_a_policy_runs_on_a_raw_mujoco_data_as_the_readme_says(sweep_run):
 
 def test_the_exported_policy_gives_the_in_process_return_on_c_mujoco(sweep_run, tmp_path):
     out, _ = sweep_run
-    proc = cli("hds.export", f"run={out}", "seed=1", "step_size=0.01", f"out={tmp_path}")
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    written = command("export", f"run={out}", "seed=1", "step_size=0.01", f"out={tmp_path}")
+    assert written == tmp_path
     contract = json.loads((tmp_path / "policy.json").read_text())
     assert contract["observations"] == ["q_slider", "q_hinge", "qd_slider", "qd_hinge"]
     assert contract["actions"] == ["slide"] and contract["control_range"] == [[-3.0, 3.0]]
@@ -185,20 +204,16 @@ def test_the_exported_policy_gives_the_in_process_return_on_c_mujoco(sweep_run, 
 
 def test_hds_export_into_a_place_it_cannot_write_is_one_line(sweep_run, tmp_path, capsys):
     """out= below a file (a read-only directory reads the same, but root writes into those)."""
-    from hds.utils import cli
-
     out, _ = sweep_run
     (tmp_path / "a_file").write_text("")
     args = [f"run={out}", "seed=1", "step_size=0.01", f"out={tmp_path / 'a_file' / 'policy'}"]
-    with pytest.raises(SystemExit) as ended:
-        cli.run(command_main("hds.export"), args)
-    err = capsys.readouterr().err
-    assert ended.value.code == 1 and "Traceback" not in err
-    (line,) = err.strip().splitlines()
+    line = refused(capsys, "export", *args)
     assert str(tmp_path / "a_file") in line and "fix the path" in line, line
 
 
-def test_format_onnx_runs_in_onnxruntime_as_the_policy_does_on_c_mujoco(sweep_run, tmp_path):
+def test_format_onnx_runs_in_onnxruntime_as_the_policy_does_on_c_mujoco(
+    sweep_run, tmp_path, capsys
+):
     """hds.export format=onnx: policy.onnx in onnxruntime gives the in-process policy's
     controls (to 1e-5) and its return on the C MuJoCo plant; the JSON contract beside it."""
     import onnx
@@ -206,8 +221,7 @@ def test_format_onnx_runs_in_onnxruntime_as_the_policy_does_on_c_mujoco(sweep_ru
 
     out, _ = sweep_run
     args = (f"run={out}", "seed=1", "step_size=0.01", f"out={tmp_path}")
-    proc = cli("hds.export", *args, "format=onnx")
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert command("export", *args, "format=onnx") == tmp_path
     contract = json.loads((tmp_path / "policy.json").read_text())
     assert contract["onnx"] == {
         "file": "policy.onnx",
@@ -240,9 +254,8 @@ def test_format_onnx_runs_in_onnxruntime_as_the_policy_does_on_c_mujoco(sweep_ru
     returns = rollout(plant, task, q0, qd0, act, task.horizon).returns
     np.testing.assert_allclose(returns, in_process.returns, rtol=1e-5)
     # an unknown format is one line, before any checkpoint is read
-    bad = cli("hds.export", *args, "format=tflite")
-    assert bad.returncode != 0 and "Traceback" not in bad.stderr
-    assert "format='tflite' is not an export format; choose json" in bad.stderr
+    line = refused(capsys, "export", *args, "format=tflite")
+    assert "format='tflite' is not an export format; choose json" in line, line
 
 
 def test_the_api_lists_its_names_and_a_policy_prints_short(sweep_run):
@@ -256,11 +269,12 @@ def test_the_api_lists_its_names_and_a_policy_prints_short(sweep_run):
     assert ci.low <= ci.mean <= ci.high and tuple(ci) == (ci.mean, ci.low, ci.high)
 
 
-def test_hds_evaluate_runs_a_saved_policy_on_another_plant(sweep_run, tmp_path):
+def test_hds_evaluate_runs_a_saved_policy_on_another_plant(sweep_run, tmp_path, capsys):
     out, _ = sweep_run
     args = (f"run={out}", "seed=0", "step_size=0.04", "eval_episodes=4", f"out={tmp_path}")
-    proc = cli("hds.evaluate", *args, "real=brax", "real.friction_gap=3")
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    capsys.readouterr()
+    assert command("evaluate", *args, "real=brax", "real.friction_gap=3") == tmp_path
+    console = capsys.readouterr().out
     result = json.loads((tmp_path / "evaluation.json").read_text())
     assert result["real"]["plant"] == {
         "plant": "brax",
@@ -282,16 +296,15 @@ def test_hds_evaluate_runs_a_saved_policy_on_another_plant(sweep_run, tmp_path):
         f"return on the simulator it trained on: {sim['mean']:.4g} [{sim['ci95'][0]:.4g}, ",
         f"sim2real gap (simulator - plant): {result['gap']:.4g} [{lo:.4g}, {hi:.4g}]",
     ):
-        assert line in proc.stdout, proc.stdout
+        assert line in console, console
     assert (tmp_path / "plots" / "trajectories.png").is_file()
     assert (tmp_path / "sim_vs_real.gif").stat().st_size > 0
     # more friction, a worse return than on the run's own plant
     own = hds.evaluate_policy(hds.load_policy(out, seed=0, step_size=0.04), episodes=4)
     assert result["real"]["mean"] < own.mean_ci()[0]
     # what the user can fix is one line
-    bad = cli("hds.evaluate", f"run={out}", "seed=7", "step_size=0.04")
-    assert bad.returncode != 0 and "Traceback" not in bad.stderr
-    assert "none of this run's runs match seed=7" in bad.stderr
+    line = refused(capsys, "evaluate", f"run={out}", "seed=7", "step_size=0.04")
+    assert "none of this run's runs match seed=7" in line, line
 
 
 def test_hds_evaluate_runs_a_policy_through_a_learned_model(sweep_run, tmp_path):

@@ -79,12 +79,22 @@ def test_a_rerun_with_other_settings_is_refused_naming_the_keys(tmp_path):
             pass
 
 
-def test_a_refused_rerun_prints_one_line_and_keeps_hydras_record(tmp_path):
+def test_a_refused_rerun_prints_one_line_and_keeps_hydras_record(tmp_path, capsys, monkeypatch):
     """The issue's command on a finished run's directory, through the command line."""
+    from hds.commands import before_hydra
+
     out = tmp_path / "run"
-    first = hds_run_cli(*S, "real.friction_gap=-1", f"hydra.run.dir={out}")  # refused fast
-    assert first.returncode == 1 and len(first.stderr.strip().splitlines()) == 1, first.stderr
-    assert first.stderr.startswith("error: invalid config: real.friction_gap = -1.0")
+    # refused at once: by what `python -m hds.run` calls before Hydra (in this process, as a
+    # process of its own would only add its start-up), so before Hydra writes anything
+    monkeypatch.setattr(
+        sys, "argv", ["hds.run", *S, "real.friction_gap=-1", f"hydra.run.dir={out}"]
+    )
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    with pytest.raises(SystemExit) as first:
+        before_hydra()
+    err = capsys.readouterr().err
+    assert first.value.code == 1 and len(err.strip().splitlines()) == 1, err
+    assert err.startswith("error: invalid config: real.friction_gap = -1.0")
     assert not out.exists()  # refused before Hydra wrote anything
     hydra_dir = out / ".hydra"
     hydra_dir.mkdir(parents=True)
