@@ -238,7 +238,10 @@ def section(results: list[dict], per_program: list[dict]) -> dict:
         {
             "caption": "Seconds, each row its own process (reference configuration"
             + "".join(f", {o}" for o in overrides)
-            + ", 1 seed; run = one compiled chunk of epochs; process CPU s: user + system "
+            + ", 1 seed; init (jit): init traced, its XLA compile and run on a second thread "
+            "while the chunk is traced and compiled (hds.utils.runtime.start_and_compile; "
+            "before 2026-11-28 10:30 UTC, all three); XLA compile: the chunk's, and the wait "
+            "for init; run = one compiled chunk of epochs; process CPU s: user + system "
             "seconds of the process, less inflated than its wall time on a loaded machine; "
             "measured: the run the row comes from, UTC, with the 1-minute load average "
             "before/after it)",

@@ -33,6 +33,49 @@ def chunk_outputs(run_chunk, trainer, cfg):
     return jax.tree.leaves(run_chunk.lower(state, hparams).compile()(state, hparams))
 
 
+@pytest.mark.parametrize("cached", [False, True])
+def test_init_run_beside_the_chunk_s_compile_gives_the_numbers_of_one_after_the_other(
+    cached, tiny, tmp_path, monkeypatch
+):
+    """start_and_compile (init compiled and run on a second thread, the chunk lowered from
+    init's output shapes): the state and a chunk's outputs of init called, then the chunk
+    lowered on its state, to the last digit; a prepared state of other shapes gets its own
+    chunk."""
+    cfg, trainer = tiny
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path) if cached else "off")
+    hparams = batch_hparams(cfg, trainer)
+    init, chunk, keys, hparams = compiled_programs(cfg, trainer, hparams)
+    assert isinstance(init, RunByRun)
+    before = init(keys, hparams)
+    expected = jax.tree.leaves(chunk.lower(before, hparams).compile()(before, hparams))
+    init, chunk, keys, hparams = compiled_programs(cfg, trainer, hparams)
+    timing = {}
+    state, compiled = runtime.start_and_compile(init, chunk, keys, hparams, timing=timing)
+    assert set(timing) == {"init_s", "trace_s", "compile_s"}
+    for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(state), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    for a, b in zip(expected, jax.tree.leaves(compiled(state, hparams)), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+    lowered = []  # (the state's per-run epoch shape) of each lowering of the chunk
+    real = chunk.lower
+
+    class Program:
+        def compile(self):
+            return "its own program"
+
+    def spy(state, hparams):
+        lowered.append(state.epoch.shape[1:])
+        return real(state, hparams) if len(lowered) == 1 else Program()
+
+    def wider(s):  # another shape than init's: the chunk lowered from init's would refuse it
+        return s.replace(epoch=jax.numpy.stack([s.epoch, s.epoch], axis=1))
+
+    monkeypatch.setattr(chunk, "lower", spy)
+    prepared, program = runtime.start_and_compile(init, chunk, keys, hparams, wider)
+    assert lowered == [(), (2,)] and program == "its own program"
+
+
 def test_a_hit_skips_tracing_and_gives_the_numbers_of_jit_to_the_last_digit(
     tiny, tmp_path, monkeypatch
 ):
