@@ -335,10 +335,12 @@ def section(results: list[dict], per_program: list[dict]) -> dict:
             "and 3.7/3.6): env build 1.24 -> 0.21 and 1.40 -> 0.33 s, process 13.7 -> 11.4 "
             "and 16.3 -> 14.8 CPU s (12.2 -> 8.4 and 16.1 -> 14.8 s wall). Both changes "
             "(10:03-10:19, load 6-13): tree 18.8 -> 17.0, 17.0 -> 15.9, 17.9 -> 16.2 CPU s; "
-            "analytic 21.5 -> 17.7, 19.4 -> 20.7, 20.5 -> 17.0 CPU s; env build 4.7-18.5 s "
-            "-> 0.6-1.8 s wall at those loads; init's own column (its trace, now) 0.41-1.2 s "
-            "against 4.9-8.5. Idle, the build's ~1 s and init's compile and run (~0.5 s) "
-            "should leave the cold tree process at ~8 s: the rows above are the measure.",
+            "10:22-10:24, load 4-7: tree 13.8 -> 12.3 and 15.3 -> 15.1 CPU s (22.3 -> 19.1 and "
+            "36.5 -> 42.0 s wall); analytic 21.5 -> 17.7, 19.4 -> 20.7, 20.5 -> 17.0 CPU s; "
+            "env build 2.4-18.5 s -> 0.5-1.8 s wall at those loads; init's own column (its "
+            "trace, now) 0.28-1.2 s against 2.1-8.5. Idle, the build's ~1 s and init's "
+            "compile and run (~0.5 s) should leave the cold tree process at ~8 s: the rows "
+            "above are the measure.",
             "Tried and dropped: keeping the compiled XLA executable itself in the program "
             "cache (jax.experimental.serialize_executable) instead of the exported program and "
             "jax's persistent cache: its load took 0.70-0.91 CPU s against 0.52-0.61 for "
