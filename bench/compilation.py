@@ -340,7 +340,8 @@ def section(results: list[dict], per_program: list[dict]) -> dict:
             "env build 2.4-18.5 s -> 0.5-1.8 s wall at those loads; init's own column (its "
             "trace, now) 0.28-1.2 s against 2.1-8.5. Idle, the build's ~1 s and init's "
             "compile and run (~0.5 s) should leave the cold tree process at ~8 s: the rows "
-            "above are the measure.",
+            "above are the measure. A warm process is not slower (10:31-10:33, load 8-11, tree: "
+            "2.67 -> 2.31 and 2.13 -> 2.10 CPU s; their cold ones 17.4 -> 14.1, 14.1 -> 12.7).",
             "Tried and dropped: keeping the compiled XLA executable itself in the program "
             "cache (jax.experimental.serialize_executable) instead of the exported program and "
             "jax's persistent cache: its load took 0.70-0.91 CPU s against 0.52-0.61 for "
