@@ -238,7 +238,10 @@ def section(results: list[dict], per_program: list[dict]) -> dict:
         {
             "caption": "Seconds, each row its own process (reference configuration"
             + "".join(f", {o}" for o in overrides)
-            + ", 1 seed; run = one compiled chunk of epochs; process CPU s: user + system "
+            + ", 1 seed; init (jit): init traced, its XLA compile and run on a second thread "
+            "while the chunk is traced and compiled (hds.utils.runtime.start_and_compile; "
+            "before 2026-11-28 10:30 UTC, all three); XLA compile: the chunk's, and the wait "
+            "for init; run = one compiled chunk of epochs; process CPU s: user + system "
             "seconds of the process, less inflated than its wall time on a loaded machine; "
             "measured: the run the row comes from, UTC, with the 1-minute load average "
             "before/after it)",
@@ -320,6 +323,25 @@ def section(results: list[dict], per_program: list[dict]) -> dict:
             "(hds.algo.pods._model_count, hds.utils.runtime.cached_lowering). Measured A/B on "
             "the same load (4 alternating warm processes each): 3.30 CPU s before, 3.36 after: "
             "the cut (~0.05 s) is within the load's noise.",
+            "A cold process, 2026-11-28 (2-core AMD EPYC shared with four sessions; cold "
+            "bench.worker train processes of the reference configuration, before/after "
+            "alternating, each on fresh caches; CPU s, as the wall time at load 4-13 is 2-15x "
+            "the idle one): the analytic and tree backends' System is built from MuJoCo's "
+            "model without brax (hds.envs.mjsystem: no import of brax, mujoco.mjx, "
+            "scipy.spatial or trimesh, none of load_model's 36 small compiles; the same "
+            "leaves and the same lowered programs), and init compiles and runs on a second "
+            "thread while the chunk is traced and compiled "
+            "(hds.utils.runtime.start_and_compile). Tree, System only (09:51, load 4.3/4.0 "
+            "and 3.7/3.6): env build 1.24 -> 0.21 and 1.40 -> 0.33 s, process 13.7 -> 11.4 "
+            "and 16.3 -> 14.8 CPU s (12.2 -> 8.4 and 16.1 -> 14.8 s wall). Both changes "
+            "(10:03-10:19, load 6-13): tree 18.8 -> 17.0, 17.0 -> 15.9, 17.9 -> 16.2 CPU s; "
+            "10:22-10:24, load 4-7: tree 13.8 -> 12.3 and 15.3 -> 15.1 CPU s (22.3 -> 19.1 and "
+            "36.5 -> 42.0 s wall); analytic 21.5 -> 17.7, 19.4 -> 20.7, 20.5 -> 17.0 CPU s; "
+            "env build 2.4-18.5 s -> 0.5-1.8 s wall at those loads; init's own column (its "
+            "trace, now) 0.28-1.2 s against 2.1-8.5. Idle, the build's ~1 s and init's "
+            "compile and run (~0.5 s) should leave the cold tree process at ~8 s: the rows "
+            "above are the measure. A warm process is not slower (10:31-10:33, load 8-11, tree: "
+            "2.67 -> 2.31 and 2.13 -> 2.10 CPU s; their cold ones 17.4 -> 14.1, 14.1 -> 12.7).",
             "Tried and dropped: keeping the compiled XLA executable itself in the program "
             "cache (jax.experimental.serialize_executable) instead of the exported program and "
             "jax's persistent cache: its load took 0.70-0.91 CPU s against 0.52-0.61 for "

@@ -6,7 +6,8 @@ compile, optionally run, and write timings, XLA's memory analysis and peak RSS t
   SPEC["program"]  "train": trainer.train over SPEC["seeds"] seeds (the whole run as one
                    program); "chunk": what hds.run compiles, trainer.run_chunk over the seeds
                    after a jitted init, mapped over the seeds as hds.run maps them (one run's
-                   program called on each, hds.utils.runtime.RunByRun, or over_runs)
+                   program called on each, hds.utils.runtime.RunByRun, with init compiled
+                   and run while the chunk compiles, start_and_compile; or over_runs)
   SPEC["vmapped"]  how many seeds are vmapped at a time, as hds.run's `vmap_runs` (default
                    null: what hds.run does here; 0: all; 1: a loop over them)
   SPEC["run"]      run the compiled program (default true): a first call (`first_run_s`, which
@@ -38,6 +39,7 @@ from hds.utils.runtime import (  # noqa: E402
     command_gc,
     over_runs,
     runs_vmapped,
+    start_and_compile,
 )
 
 
@@ -92,27 +94,33 @@ def train(spec: dict) -> dict:
         "vmapped": vmapped,
         "epochs": cfg.algo.epochs,
     }
-    if spec.get("program", "train") == "chunk":
-        if vmapped == 1:  # as hds.run: one run's program, called on each run (RunByRun), kept
-            # in the program cache beside the compilation cache (hds.experiment's key)
-            key = trainer_program_key(cfg, trainer.run_chunk)
-            init = RunByRun(trainer.init, key=trainer_program_key(cfg, trainer.init))
-            chunk = RunByRun(trainer.run_chunk, key=key)
-        else:
+    if spec.get("program", "train") == "chunk" and vmapped == 1:
+        # as hds.run: one run's program, called on each run (RunByRun), kept in the program
+        # cache beside the compilation cache (hds.experiment's key); init compiled and run on a
+        # second thread while the chunk is traced and compiled (init_s: init traced; compile_s:
+        # the chunk compiled, init compiled and run)
+        init = RunByRun(trainer.init, key=trainer_program_key(cfg, trainer.init))
+        chunk = RunByRun(trainer.run_chunk, key=trainer_program_key(cfg, trainer.run_chunk))
+        timing: dict = {}
+        state, compiled = start_and_compile(init, chunk, keys, hparams, timing=timing)
+        args = (block(state), hparams)
+        out.update(timing, epochs_per_call=trainer.chunk)
+    else:
+        if spec.get("program", "train") == "chunk":
             init = jax.jit(over_runs(trainer.init, vmapped, seeds))
             chunk = jax.jit(over_runs(trainer.run_chunk, vmapped, seeds))
-        with timed() as init_t:
-            state = block(init(keys, hparams))
-        fn, args = chunk, (state, hparams)
-        out.update(init_s=init_t.s, epochs_per_call=trainer.chunk)
-    else:
-        fn, args = jax.jit(over_runs(trainer.train, vmapped, seeds)), (keys, hparams)
-    with timed() as trace:
-        lowered = fn.lower(*args)
-    with timed() as comp:
-        compiled = lowered.compile()
-    memory = memory_analysis(getattr(compiled, "program", compiled))  # RunByRun: its one run's
-    out.update(trace_s=trace.s, compile_s=comp.s, memory=memory)
+            with timed() as init_t:
+                state = block(init(keys, hparams))
+            fn, args = chunk, (state, hparams)
+            out.update(init_s=init_t.s, epochs_per_call=trainer.chunk)
+        else:
+            fn, args = jax.jit(over_runs(trainer.train, vmapped, seeds)), (keys, hparams)
+        with timed() as trace:
+            lowered = fn.lower(*args)
+        with timed() as comp:
+            compiled = lowered.compile()
+        out.update(trace_s=trace.s, compile_s=comp.s)
+    out["memory"] = memory_analysis(getattr(compiled, "program", compiled))  # RunByRun: one run's
     if spec.get("run", True):
         out.update(run_calls(lambda: block(compiled(*args)), spec))
     out["peak_rss_mb"] = peak_rss_mb()

@@ -50,6 +50,7 @@ from hds.utils.runtime import (
     over_runs,
     program_key,
     runs_vmapped,
+    start_and_compile,
 )
 
 log = logging.getLogger("hds")
@@ -277,10 +278,13 @@ def train_batch(
     init, run_chunk, keys, hparams = compiled_programs(cfg, trainer, hparams)
 
     start = time.perf_counter()
-    state = init(keys, hparams)
-    if init_params is not None:
-        state = state.replace(policy=init_params)
-    compiled = run_chunk.lower(state, hparams).compile()
+    prepare = None if init_params is None else (lambda s: s.replace(policy=init_params))
+    if isinstance(init, RunByRun):  # init compiled and run while the chunk compiles
+        state, compiled = start_and_compile(init, run_chunk, keys, hparams, prepare)
+    else:
+        state = init(keys, hparams)
+        state = prepare(state) if prepare else state
+        compiled = run_chunk.lower(state, hparams).compile()
     timing = {"compile_s": time.perf_counter() - start}
 
     ckpt = Checkpoints(out_dir / "checkpoints" / method, keep=cfg.checkpoints_kept)

@@ -33,6 +33,49 @@ def chunk_outputs(run_chunk, trainer, cfg):
     return jax.tree.leaves(run_chunk.lower(state, hparams).compile()(state, hparams))
 
 
+@pytest.mark.parametrize("cached", [False, True])
+def test_init_run_beside_the_chunk_s_compile_gives_the_numbers_of_one_after_the_other(
+    cached, tiny, tmp_path, monkeypatch
+):
+    """start_and_compile (init compiled and run on a second thread, the chunk lowered from
+    init's output shapes): the state and a chunk's outputs of init called, then the chunk
+    lowered on its state, to the last digit; a prepared state of other shapes gets its own
+    chunk."""
+    cfg, trainer = tiny
+    monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path) if cached else "off")
+    hparams = batch_hparams(cfg, trainer)
+    init, chunk, keys, hparams = compiled_programs(cfg, trainer, hparams)
+    assert isinstance(init, RunByRun)
+    before = init(keys, hparams)
+    expected = jax.tree.leaves(chunk.lower(before, hparams).compile()(before, hparams))
+    init, chunk, keys, hparams = compiled_programs(cfg, trainer, hparams)
+    timing = {}
+    state, compiled = runtime.start_and_compile(init, chunk, keys, hparams, timing=timing)
+    assert set(timing) == {"init_s", "trace_s", "compile_s"}
+    for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(state), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    for a, b in zip(expected, jax.tree.leaves(compiled(state, hparams)), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+    lowered = []  # (the state's per-run epoch shape) of each lowering of the chunk
+    real = chunk.lower
+
+    class Program:
+        def compile(self):
+            return "its own program"
+
+    def spy(state, hparams):
+        lowered.append(state.epoch.shape[1:])
+        return real(state, hparams) if len(lowered) == 1 else Program()
+
+    def wider(s):  # another shape than init's: the chunk lowered from init's would refuse it
+        return s.replace(epoch=jax.numpy.stack([s.epoch, s.epoch], axis=1))
+
+    monkeypatch.setattr(chunk, "lower", spy)
+    prepared, program = runtime.start_and_compile(init, chunk, keys, hparams, wider)
+    assert lowered == [(), (2,)] and program == "its own program"
+
+
 def test_a_hit_skips_tracing_and_gives_the_numbers_of_jit_to_the_last_digit(
     tiny, tmp_path, monkeypatch
 ):
@@ -178,7 +221,7 @@ def build_counted(monkeypatch, **kwargs):
     calls = []
     real = mjcf.load_model
     monkeypatch.setattr(mjcf, "load_model", lambda m: calls.append(m) or real(m))
-    sim, _ = make_simulator("cartpole.xml", backend="analytic", **kwargs)
+    sim, _ = make_simulator("cartpole.xml", backend="generalized", **kwargs)
     sys = sim.sys  # built (or read) on first use: hds.envs.system.LazySystem
     monkeypatch.setattr(mjcf, "load_model", real)
     return sys, len(calls)
@@ -296,8 +339,10 @@ def test_a_corrupt_backend_check_is_run_again_and_a_refusal_is_never_kept(tmp_pa
     assert len(list(tmp_path.glob("*.backend_check.pickle"))) == 1
 
 
-def test_a_second_process_of_a_checked_model_never_imports_brax(tmp_path):
-    """What the warm path saves (~1 s): brax imports mujoco.mjx, trimesh and scipy.spatial."""
+def test_no_process_of_an_own_backend_imports_brax(tmp_path):
+    """What it saves (~1 s): brax imports mujoco.mjx, trimesh and scipy.spatial. The first
+    process builds the System without brax (hds.envs.mjsystem) and checks the model; the
+    second reads the check from the program cache."""
     import subprocess
 
     script = (
@@ -313,25 +358,30 @@ def test_a_second_process_of_a_checked_model_never_imports_brax(tmp_path):
         ).stdout.split()[-3:]
         for _ in range(2)
     ]
-    assert runs[1] == [runs[0][0], "False", "False"]  # the first built (and checked) it
-    assert runs[0][1] == "True"
+    assert runs[0][1:] == ["False", "False"]  # the first built (and checked) it
+    assert runs[1] == [runs[0][0], "False", "False"]
 
 
-def test_a_system_first_used_inside_a_trace_is_built_with_concrete_arrays(tmp_path, monkeypatch):
+@pytest.mark.parametrize("backend", ["analytic", "generalized"])
+def test_a_system_first_used_inside_a_trace_is_built_with_concrete_arrays(
+    backend, tmp_path, monkeypatch
+):
     """Discovery's fit reads the System while jit traces it: it is built eagerly all the same
-    (kept in the cache, the numbers of an eager build), never as the trace's values."""
+    (brax's kept in the cache, the numbers of an eager build), never as the trace's values."""
     from hds.envs import system
 
     monkeypatch.setenv("HDS_PROGRAM_CACHE", str(tmp_path))
-    eager, _ = system.make_simulator("cartpole.xml", backend="analytic")
+    eager, _ = system.make_simulator("cartpole.xml", backend=backend)
+    eager.sys  # noqa: B018 - built
     for entry in tmp_path.glob("*.brax_system.pickle"):
         entry.unlink()  # the check is kept: the next simulator builds its System on first use
-    lazy, _ = system.make_simulator("cartpole.xml", backend="analytic")
+    lazy, _ = system.make_simulator("cartpole.xml", backend=backend)
     damping = jax.jit(lambda x: x * lazy.sys.dof.damping)(np.float32(2.0))
     assert not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(lazy.sys))
     assert_same_system(lazy.sys, eager.sys)
     np.testing.assert_array_equal(damping, 2.0 * np.asarray(eager.sys.dof.damping))
-    assert len(list(tmp_path.glob("*.brax_system.pickle"))) == 1
+    kept = 1 if backend == "generalized" else 0  # the own backends' System is not pickled
+    assert len(list(tmp_path.glob("*.brax_system.pickle"))) == kept
 
 
 # --- the composed config (hds.config.composition): a second process skips Hydra's compose ------

@@ -13,16 +13,17 @@ Supported models (checked once, by `check(sys)`, when the simulator is built):
   (b) a single hinge on a body whose parent is the world (a pendulum), with q = [hinge].
 Any other model raises a ValueError that names backend=generalized as the way out.
 
-What it models, read from the brax System on every step (so effects that edit the System,
-mass_scale on `link.inertia` and actuator_gain on `actuator.gear`, act on it):
+What it models, read from the System (brax's fields, hds.envs.mjsystem) on every step (so
+effects that edit the System, mass_scale on `link.inertia` and actuator_gain on
+`actuator.gear`, act on it):
   - rigid-body dynamics from the Lagrangian of the structure: masses (`link.inertia.mass`),
     centre-of-mass offsets and inertia tensors with their principal frames (`link.inertia`),
     body frames (`link.transform`), hinge anchors (`link.joint.pos`), joint axes of any
     direction (`dof.motion`), gravity of any direction (`gravity`);
   - joint armature (added to the mass matrix), joint damping, joint stiffness with spring
     reference 0 (as brax does);
-  - actuators through `brax.actuator.to_tau` (gear, gain, bias, ctrl and force clipping;
-    the unlimited force motors through which effect forces enter);
+  - actuators as `brax.actuator.to_tau` (hds.envs.mjsystem.to_tau: gear, gain, bias, ctrl and
+    force clipping; the unlimited force motors through which effect forces enter);
   - joint limits as MuJoCo's soft constraints: the same reference acceleration from the
     joint's solref/solimp (`dof.solver_params`), the same regulariser from `dof.invweight`,
     and MuJoCo's `refsafe` rule (time constant at least twice the timestep). With one limit
@@ -49,6 +50,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from flax import struct
+
+from hds.envs.mjsystem import to_tau
 
 _SUPPORTED = (
     "the analytic backend supports a slide joint carrying a hinge, and a single hinge; "
@@ -354,15 +357,12 @@ def _limit_force(sys, q, qd, acc_free, mass_inv, h):
 
 def step(sys, state: State, act: jax.Array, *args, **kwargs) -> State:
     """One MuJoCo-style Euler step of `sys.opt.timestep` under actuator inputs `act`."""
-    from brax import actuator  # here, not at import: a process whose programs come from the
-    # program cache never traces a step, and so never imports brax (hds.envs.system.LazySystem)
-
     del args, kwargs
     h = sys.opt.timestep
     q, qd = state.q, state.qd
     mass, bias = _dynamics(sys, q, qd)
     damping = sys.dof.damping
-    force = actuator.to_tau(sys, act, q, qd) + bias - damping * qd - sys.dof.stiffness * q
+    force = to_tau(sys, act, q, qd) + bias - damping * qd - sys.dof.stiffness * q
     mass_inv = _inverse(mass)
     force = force + _limit_force(sys, q, qd, mass_inv @ force, mass_inv, h)
     qdd = _inverse(mass + jnp.diag(h * damping)) @ force  # damping implicit, as MuJoCo's Euler

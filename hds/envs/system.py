@@ -17,6 +17,7 @@ import numpy as np
 from flax import struct
 
 from hds.effects import EffectParams, EffectSet, place
+from hds.envs import mjsystem
 from hds.utils.quiet import quiet_brax
 from hds.utils.runtime import cached_build
 
@@ -153,7 +154,7 @@ class SimState:
 class Simulator:
     """Pure step functions over a Brax system; hashable by identity so jit can close over it."""
 
-    system: LazySystem  # brax's System, built on first use (`sys`)
+    system: LazySystem  # the System (brax's, or hds.envs.mjsystem's), built on first use (`sys`)
     pipeline: object
     frames: int
     timestep: float
@@ -172,7 +173,7 @@ class Simulator:
 
     @property
     def sys(self):
-        """brax's System (built, or read from the program cache, on first use)."""
+        """The System (brax's; hds.envs.mjsystem's for the own backends), built on first use."""
         return self.system.sys
 
     def with_sys(self, sys) -> Simulator:
@@ -243,7 +244,9 @@ class LazySystem:
     """brax's System of `model` on `backend`, built (or unpickled from the program cache) on
     first use: a process whose programs all come from the program cache never traces the
     simulator, so it never imports brax, mujoco.mjx, trimesh and scipy.spatial (~1 s) nor
-    unpickles the System (~0.3 s). Its content, for the program cache's keys
+    unpickles the System (~0.3 s). hds's own backends get the fields they read, built from
+    the model without brax (hds.envs.mjsystem), where the model is a tree they can simulate:
+    no process of theirs imports brax. Its content, for the program cache's keys
     (hds.utils.runtime.fingerprint), is its fields: the model's binary and the backend, from
     which the System is built deterministically (brax's version is in the key), or `given`,
     a System built elsewhere (an edited copy), used as it is."""
@@ -259,6 +262,8 @@ class LazySystem:
         # first used while a program is traced, as a rule: built eagerly all the same (concrete
         # arrays, as make_simulator built it before), never as the trace's values
         with jax.ensure_compile_time_eval():
+            if self.backend in _OWN_BACKENDS and mjsystem.supported(self.model):
+                return mjsystem.system_of(self.model)  # the fields they read, without brax
             sys = brax_system(self.model)
             if self.backend == "mjx":  # the default solver loop is a while_loop, which
                 sys = sys.tree_replace({"opt.iterations": 1})  # reverse mode rejects
@@ -266,7 +271,7 @@ class LazySystem:
 
     def check(self) -> None:
         """Refuse here, once, a model that hds's own backends cannot simulate (ValueError).
-        The check reads brax's System; that it passed is kept in the program cache under the
+        The check reads the System; that it passed is kept in the program cache under the
         model and backend, so a later process does not build the System for it."""
         if self.backend not in _OWN_BACKENDS or self.given is not None:
             return

@@ -11,15 +11,16 @@ Supported models (checked once, by `check(sys)`): every body has exactly one hin
 joint; no contacts, tendons, equality constraints or fluid forces; MuJoCo's Euler integrator.
 Anything else raises a ValueError that names the backend to use instead.
 
-What it models, read from the brax System on every step (so effects that edit the System,
-mass_scale on `link.inertia` and actuator_gain on `actuator.gear`, act on it):
+What it models, read from the System (brax's fields, hds.envs.mjsystem) on every step (so
+effects that edit the System, mass_scale on `link.inertia` and actuator_gain on
+`actuator.gear`, act on it):
   - rigid-body dynamics in world coordinates (spatial vectors about the world origin): the
     composite-rigid-body mass matrix and recursive Newton-Euler bias forces (Coriolis,
     centrifugal, gravity), from masses, COM offsets, inertia tensors and their principal
     frames, body frames, joint anchors and axes of any direction, gravity of any direction;
   - joint armature, damping (implicit, as MuJoCo's Euler), stiffness with spring reference 0;
-  - actuators through `brax.actuator.to_tau` (gear, gain, bias, ctrl and force clipping; the
-    unlimited motors through which effect forces enter);
+  - actuators as `brax.actuator.to_tau` (hds.envs.mjsystem.to_tau: gear, gain, bias, ctrl and
+    force clipping; the unlimited motors through which effect forces enter);
   - joint limits as MuJoCo's soft constraints (`analytic.limit_terms`: solref/solimp, refsafe,
     invweight regulariser), several active limits solved together as MuJoCo's constraint
     solver does (`_limit_force`);
@@ -45,6 +46,7 @@ from hds.envs.analytic import (
     quat_matrix,
     system_geometry,
 )
+from hds.envs.mjsystem import to_tau
 
 __all__ = ["State", "check", "init", "step"]
 
@@ -583,14 +585,12 @@ def step(sys, state: State, act: jax.Array, *args, **kwargs) -> State:
 
 
 def _euler_step(sys, state: State, act: jax.Array) -> State:
-    from brax import actuator  # at trace time only (see hds.envs.analytic.step)
-
     h = sys.opt.timestep
     q, qd = state.q, state.qd
     n = q.shape[0]
     mass, bias = _dynamics(sys, q, qd)
     damping, stiffness = _values(sys.dof.damping), _values(sys.dof.stiffness)
-    tau = actuator.to_tau(sys, act, q, qd)
+    tau = to_tau(sys, act, q, qd)
     force = [
         _sub(_sub(_sub(tau[i], bias[i]), _mul(damping[i], qd[i])), _mul(stiffness[i], q[i]))
         for i in range(n)

@@ -7,6 +7,7 @@ import hashlib
 import logging
 import os
 import sys
+import time
 from pathlib import Path
 
 import jax
@@ -108,7 +109,9 @@ class RunByRun:
         return jax.tree.map(lambda *xs: jax.device_put(np.stack(xs)), *outs)
 
     def lower(self, *args):
-        first = jax.tree.map(lambda x: np.asarray(x)[0], args)
+        """One run's program for the batch `args` (arrays, or jax.ShapeDtypeStruct: the
+        program needs their shapes and dtypes only)."""
+        first = jax.tree.map(_first_run, args)
         directory = program_cache_dir()
         if self.key and directory:
             cached = cached_lowering(self.fn, first, self.key, directory)
@@ -117,12 +120,61 @@ class RunByRun:
         return _LoweredRuns(self.fn, self.program.lower(*first))
 
 
+def _first_run(x):
+    if isinstance(x, jax.ShapeDtypeStruct):
+        return jax.ShapeDtypeStruct(x.shape[1:], x.dtype)
+    return np.asarray(x)[0]
+
+
 class _LoweredRuns:
     def __init__(self, fn, lowered):
         self.fn, self.lowered = fn, lowered
 
     def compile(self) -> RunByRun:
         return RunByRun(self.fn, self.lowered.compile())
+
+    @property
+    def out_info(self):
+        """One run's outputs: their shapes and dtypes (jax.ShapeDtypeStruct)."""
+        if isinstance(self.lowered, _CachedLowered):
+            return jax.tree.unflatten(self.lowered.out_tree, self.lowered.lowered.out_info)
+        return self.lowered.out_info
+
+
+def start_and_compile(init: RunByRun, chunk: RunByRun, keys, hparams, prepare=None, timing=None):
+    """`state = prepare(init(keys, hparams))` and `chunk.lower(state, hparams).compile()`: the
+    same two programs as called one after the other, with init's XLA compile and its run on a
+    second thread while this one traces and compiles the chunk (from init's output shapes).
+    XLA compiles a program on one core and releases the GIL meanwhile, so on two cores init's
+    ~0.5-1 s leaves a cold process's wall time (bench/RESULTS.md, section "compile"). Returns
+    (state, compiled chunk); `timing` (a dict) gets `init_s` (init traced), `trace_s` (the
+    chunk traced) and `compile_s` (the chunk compiled, init compiled and run)."""
+    import concurrent.futures
+
+    timing = {} if timing is None else timing
+    start = time.perf_counter()
+    lowered = init.lower(keys, hparams)
+    runs = jax.tree.leaves(keys)[0].shape[0]
+    batch = jax.tree.map(
+        lambda s: jax.ShapeDtypeStruct((runs, *s.shape), s.dtype), lowered.out_info
+    )
+    with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hds-init") as pool:
+        first_state = pool.submit(lambda: lowered.compile()(keys, hparams))
+        timing["init_s"] = (traced := time.perf_counter()) - start
+        program = chunk.lower(batch, hparams)
+        timing["trace_s"] = (compiling := time.perf_counter()) - traced
+        compiled = program.compile()
+        state = first_state.result()
+    state = prepare(state) if prepare else state
+    if _abstract(state) != _abstract(batch):  # a prepared state of other shapes: its own program
+        compiled = chunk.lower(state, hparams).compile()
+    timing["compile_s"] = time.perf_counter() - compiling
+    return state, compiled
+
+
+def _abstract(tree):
+    leaves, structure = jax.tree.flatten(tree)
+    return structure, [(tuple(x.shape), np.dtype(x.dtype)) for x in leaves]
 
 
 # --- the program cache: the trainer's traced and lowered program, kept across processes -------
