@@ -338,7 +338,10 @@ def section(results: list[dict], per_program: list[dict]) -> dict:
             "without, 1.45 with). Warm analytic processes, alternating, 9 each (two rounds, "
             "load 10-11): 2.42 CPU s mean before, 2.29 after the two cuts, 2.18 with the "
             "bytecode cache too. Trained numbers unchanged (the state after init + a chunk, "
-            "every leaf, analytic and tree, from jit and from the program cache).",
+            "every leaf, analytic and tree, from jit and from the program cache). The "
+            "analytic and tree rows above (10:25 UTC) were measured at load ~8: their CPU "
+            "seconds (2.3, 2.1) compare with the A/B, their wall seconds are the load's, not "
+            "an idle machine's.",
             "Tried and dropped: keeping the compiled XLA executable itself in the program "
             "cache (jax.experimental.serialize_executable) instead of the exported program and "
             "jax's persistent cache: its load took 0.70-0.91 CPU s against 0.52-0.61 for "
