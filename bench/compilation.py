@@ -33,6 +33,11 @@ DEFAULT_BUDGET = {
     "method_overrides": [],  # e.g. smaller budgets: algo.epochs=10
 }
 TOP = 8  # programs listed per method (the rest summed in one row)
+# Python's bytecode cache on, as a user's second process has it (pip writes it on install, an
+# editable install on first import): the shells these benchmarks ran from set
+# PYTHONDONTWRITEBYTECODE, and each warm process compiled hds's ~55 modules from source
+# again, ~0.2 CPU s of its ~2-3.5 (2026-11-28)
+BYTECODE = {"PYTHONDONTWRITEBYTECODE": ""}
 
 
 def entries_of(path: Path) -> set[str]:
@@ -62,9 +67,9 @@ def measure(backend: str, overrides: list[str]) -> dict:
             "run": True,
             "cache": str(cache),
         }
-        cold = run_worker("train", spec)
+        cold = run_worker("train", spec, env=BYTECODE)
         size, entries = cache_size_mib(cache), entries_of(cache)
-        warm = run_worker("train", spec)
+        warm = run_worker("train", spec, env=BYTECODE)
         new = sorted(entries_of(cache) - entries)
     finally:
         shutil.rmtree(cache, ignore_errors=True)
@@ -298,7 +303,7 @@ def section(results: list[dict], per_program: list[dict]) -> dict:
             "imports brax, mujoco.mjx, matplotlib or Orbax (hds.envs.system.LazySystem: the "
             "engine's check of the model is kept in the program cache too) and reads the "
             "composed config from the program cache (hds.config.compose); it still imports "
-            "jax, flax, optax, mujoco and Hydra, loads the chunk's executable (XLA's "
+            "jax, optax, mujoco and Hydra, loads the chunk's executable (XLA's "
             "deserialization, proportional to the program's code) and runs init and the "
             "chunk. A warm miss means the warm process's program differed from the cold one's "
             "(source files edited in between change the HLO's source locations).",
@@ -342,6 +347,24 @@ def section(results: list[dict], per_program: list[dict]) -> dict:
             "compile and run (~0.5 s) should leave the cold tree process at ~8 s: the rows "
             "above are the measure. A warm process is not slower (10:31-10:33, load 8-11, tree: "
             "2.67 -> 2.31 and 2.13 -> 2.10 CPU s; their cold ones 17.4 -> 14.1, 14.1 -> 12.7).",
+            "Cut since (2026-11-28, 2-core AMD EPYC shared): a warm process no longer imports "
+            "flax (hds's states are hds.utils.pytree dataclasses, the policy's flax module is "
+            "made on first use: hds.networks.Policy) nor GLFW (hds.run, hds.loop, hds.discover "
+            "and bench.worker import MuJoCo with MUJOCO_GL=disable, "
+            "hds.utils.runtime.headless_mujoco; they render in child processes only). optax "
+            "stays: init's output structure, read from the program cache, holds its state "
+            "types. And the workers run with Python's bytecode cache (BYTECODE): the shells "
+            "these runs came from set PYTHONDONTWRITEBYTECODE, so each warm process compiled "
+            "hds's ~55 modules from source again, where a user's second process reads them. "
+            "Warm analytic processes, alternating, CPU s mean (median): idle (load 0.7-0.9, 5 "
+            "each) 1.96 (1.97) before, 1.89 (1.84) after the two cuts, 1.88 (1.76) with the "
+            "bytecode cache too; at load 10-11 (9 each) 2.42, 2.29, 2.18. Trained numbers "
+            "unchanged (the state after init + a chunk, every leaf, analytic and tree, from jit "
+            "and from the program cache; python -m hds.run +experiment=sim2real_friction "
+            "method=pods_cl seeds=2 algo.epochs=4: summary.json and the saved policies byte for "
+            "byte). The rows above (10:40 UTC) are idle; this host (kernel "
+            "6.18.44-fc-v669) runs the warm process in ~1.8 CPU s where the 07:07 UTC rows' "
+            "(v657, load ~5) took 3.3-3.5.",
             "Tried and dropped: keeping the compiled XLA executable itself in the program "
             "cache (jax.experimental.serialize_executable) instead of the exported program and "
             "jax's persistent cache: its load took 0.70-0.91 CPU s against 0.52-0.61 for "

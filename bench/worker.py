@@ -32,6 +32,10 @@ import logging  # noqa: E402
 import re  # noqa: E402
 import sys  # noqa: E402
 
+from hds.utils.runtime import headless_mujoco  # noqa: E402
+
+headless_mujoco()  # as hds.run does, before hds's modules import MuJoCo
+
 from bench.common import best_of, block, compose, peak_rss_mb, timed  # noqa: E402
 from hds.experiment import trainer_program_key  # noqa: E402
 from hds.utils.runtime import (  # noqa: E402

@@ -24,6 +24,10 @@ from pathlib import Path
 os.environ.setdefault("WANDB_MODE", "offline")
 os.environ.setdefault("WANDB_SILENT", "true")
 
+from hds.utils.runtime import enable_compilation_cache, headless_mujoco  # noqa: E402
+
+headless_mujoco()  # before hds's modules import MuJoCo
+
 import hydra  # noqa: E402
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
@@ -43,7 +47,6 @@ from hds.results import PlantTime  # noqa: E402
 from hds.simulators import Simulator  # noqa: E402
 from hds.utils import cli  # noqa: E402
 from hds.utils.io import atomic_write_json, read_json  # noqa: E402
-from hds.utils.runtime import enable_compilation_cache  # noqa: E402
 
 log = logging.getLogger("hds")
 

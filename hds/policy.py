@@ -45,7 +45,7 @@ class Policy:
     `obs_names`) to controls [..., n_act] within `ctrl_range`. NumPy in, NumPy out (jitted);
     a JAX array in, a JAX array out (traceable, differentiable)."""
 
-    module: object  # hds.networks.Policy (flax)
+    module: object  # hds.networks.Policy (its flax module made on first use)
     params: dict  # its parameters (one run)
     env: EnvConfig  # the system and task the policy was trained for
     method: str  # the row label of the run (pods, hds+mlp, oracle, ...)

@@ -17,6 +17,10 @@ from pathlib import Path
 os.environ.setdefault("WANDB_MODE", "offline")
 os.environ.setdefault("WANDB_SILENT", "true")
 
+from hds.utils.runtime import command_gc, enable_compilation_cache, headless_mujoco  # noqa: E402
+
+headless_mujoco()  # before hds's modules import MuJoCo
+
 import hydra  # noqa: E402
 import numpy as np  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
@@ -31,7 +35,6 @@ from hds.gap import no_finite_result  # noqa: E402
 from hds.simulators import method_name  # noqa: E402
 from hds.utils import cli  # noqa: E402
 from hds.utils.io import atomic_write_bytes  # noqa: E402
-from hds.utils.runtime import command_gc, enable_compilation_cache  # noqa: E402
 
 log = logging.getLogger("hds")
 

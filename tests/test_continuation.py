@@ -58,3 +58,36 @@ def test_the_horizon_curriculum_counts_the_first_steps_at_the_first_epoch(start,
     else:
         assert float(weights.sum()) == counted and float(weights[:counted].min()) == 1.0
         assert float(continuation.at(continuation.init(POLICY), 5).counted.sum()) == 30
+
+
+def test_a_state_flattens_as_the_flax_struct_it_was_so_checkpoints_keep_their_structure():
+    """hds's states (this continuation's, the trainer's, the simulators') are
+    hds.utils.pytree dataclasses, no longer flax structs: the same leaves under the same key
+    paths (what a checkpoint stores), the same `replace`, frozen all the same."""
+    import dataclasses
+
+    from flax import struct
+
+    from hds.utils.pytree import pytree_dataclass
+
+    @pytree_dataclass
+    class Ours:
+        a: object
+        b: object
+
+    @struct.dataclass
+    class Flax:
+        a: object
+        b: object
+
+    def paths(tree):
+        leaves = jax.tree_util.tree_leaves_with_path(tree)
+        return [(jax.tree_util.keystr(p), np.asarray(x).tolist()) for p, x in leaves]
+
+    ours, theirs = (cls(np.arange(2.0), {"c": np.zeros(1)}) for cls in (Ours, Flax))
+    assert paths(ours) == paths(theirs) == [(".a", [0.0, 1.0]), (".b['c']", [0.0])]
+    assert paths(ours.replace(a=np.ones(1))) == paths(theirs.replace(a=np.ones(1)))
+    doubled = jax.tree.map(lambda x: 2 * x, ours)
+    assert isinstance(doubled, Ours) and doubled.a.tolist() == [0.0, 2.0]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        ours.a = None

@@ -362,6 +362,38 @@ def test_no_process_of_an_own_backend_imports_brax(tmp_path):
     assert runs[1] == [runs[0][0], "False", "False"]
 
 
+def test_a_second_process_of_a_trainer_imports_neither_flax_nor_glfw(tmp_path):
+    """A process whose trainer's init comes from the program cache never calls the policy's
+    flax module (hds.networks.Policy makes it on first use), and a command imports MuJoCo
+    without its in-process OpenGL (hds.utils.runtime.headless_mujoco), leaving MUJOCO_GL as
+    it was; the second process's init gives the first one's numbers."""
+    import subprocess
+
+    from tests.conftest import TINY
+
+    script = (
+        "import os, sys; from hds.utils.runtime import headless_mujoco; headless_mujoco();"
+        "import numpy as np; from hds.config import compose; from hds.envs import make_env;"
+        "from hds.algo.pods import make_train_from_config;"
+        "from hds.experiment import batch_hparams, compiled_programs;"
+        f"cfg = compose({list(TINY)!r}); trainer = make_train_from_config(cfg, make_env(cfg.env));"
+        "init, _, keys, hparams = compiled_programs(cfg, trainer, batch_hparams(cfg, trainer));"
+        "state = init(keys, hparams);"
+        "print(float(np.sum(state.policy['params']['Dense_0']['kernel'])),"
+        "'flax' in sys.modules, 'glfw' in sys.modules, 'MUJOCO_GL' in os.environ)"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"}
+    env["HDS_PROGRAM_CACHE"] = str(tmp_path)
+    runs = [
+        subprocess.run(
+            [sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True
+        ).stdout.split()[-4:]
+        for _ in range(2)
+    ]
+    assert runs[0][1:] == ["True", "False", "False"]  # the first traced init: flax it needs
+    assert runs[1] == [runs[0][0], "False", "False", "False"]
+
+
 @pytest.mark.parametrize("backend", ["analytic", "generalized"])
 def test_a_system_first_used_inside_a_trace_is_built_with_concrete_arrays(
     backend, tmp_path, monkeypatch

@@ -28,12 +28,12 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
 from hds.effects.library import effect_type
+from hds.utils.pytree import pytree_dataclass
 
 
-@struct.dataclass
+@pytree_dataclass
 class Progress:
     """What the continuation carries across epochs (each field exists in every setting; the
     ones a setting does not use keep their initial values)."""

@@ -32,7 +32,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from flax import struct
 
 from hds import anneal, noise
 from hds.algo.continuation import Continuation, Progress, ramp_effects
@@ -41,9 +40,10 @@ from hds.algo.randomize import Randomization
 from hds.algo.regress import regress
 from hds.algo.rollout import perturbed_rollout, policy_rollout
 from hds.networks import make_policy
+from hds.utils.pytree import pytree_dataclass
 
 
-@struct.dataclass
+@pytree_dataclass
 class TrainState:
     policy: dict
     opt_state: optax.OptState
@@ -148,7 +148,7 @@ class Trainer:
     train: Callable
     final_policy: Callable  # state -> the policy the run returns (keep-best); batched or not
     chunk: int  # epochs per chunk
-    policy: object  # the flax module; apply with TrainState.policy
+    policy: object  # init/apply as a flax module's (hds.networks.Policy); params: TrainState.policy
     default_hparams: dict
     stages: Stages
 

@@ -13,6 +13,10 @@ os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 os.environ.setdefault("WANDB_MODE", "offline")
 os.environ.setdefault("WANDB_SILENT", "true")
 
+from hds.utils.runtime import enable_compilation_cache, headless_mujoco  # noqa: E402
+
+headless_mujoco()  # before hds's modules import MuJoCo
+
 import hydra  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
@@ -26,7 +30,6 @@ from hds.discover.io import load_dataset  # noqa: E402
 from hds.discover.workflow import discover  # noqa: E402
 from hds.discover.write import corrected_env, write_report  # noqa: E402
 from hds.utils import cli  # noqa: E402
-from hds.utils.runtime import enable_compilation_cache  # noqa: E402
 
 log = logging.getLogger("hds")
 

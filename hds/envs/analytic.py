@@ -49,9 +49,9 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from flax import struct
 
 from hds.envs.mjsystem import to_tau
+from hds.utils.pytree import pytree_dataclass
 
 _SUPPORTED = (
     "the analytic backend supports a slide joint carrying a hinge, and a single hinge; "
@@ -61,7 +61,7 @@ _MINVAL = 1e-15  # MuJoCo's mjMINVAL
 _MINIMP, _MAXIMP = 0.0001, 0.9999  # MuJoCo's clamp of constraint impedance
 
 
-@struct.dataclass
+@pytree_dataclass
 class State:
     """Joint positions and velocities, and the acceleration of the last step."""
 

@@ -19,25 +19,26 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from flax import struct
+
+from hds.utils.pytree import pytree_dataclass, static_field
 
 _HINGE, _SLIDE = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)
 
 
-@struct.dataclass
+@pytree_dataclass
 class Transform:
     pos: jax.Array
     rot: jax.Array
 
 
-@struct.dataclass
+@pytree_dataclass
 class Inertia:
     transform: Transform
     i: jax.Array
     mass: jax.Array
 
 
-@struct.dataclass
+@pytree_dataclass
 class Link:
     transform: Transform
     joint: Transform
@@ -45,13 +46,13 @@ class Link:
     invweight: jax.Array
 
 
-@struct.dataclass
+@pytree_dataclass
 class Motion:
     ang: jax.Array
     vel: jax.Array
 
 
-@struct.dataclass
+@pytree_dataclass
 class DoF:
     motion: Motion
     armature: jax.Array
@@ -62,7 +63,7 @@ class DoF:
     solver_params: jax.Array
 
 
-@struct.dataclass
+@pytree_dataclass
 class Actuator:
     q_id: jax.Array
     qd_id: jax.Array
@@ -74,12 +75,12 @@ class Actuator:
     bias_qd: jax.Array
 
 
-@struct.dataclass
+@pytree_dataclass
 class Option:
     timestep: jax.Array
 
 
-@struct.dataclass
+@pytree_dataclass
 class System:
     """brax's System as the own backends and the effects read it: brax's field names, and
     MuJoCo's own fields that the effects edit beside them (body_mass, ...), as brax's System
@@ -96,13 +97,13 @@ class System:
     dof_damping: jax.Array
     dof_invweight0: jax.Array
     actuator_gear: jax.Array
-    link_names: list = struct.field(pytree_node=False)
-    link_types: str = struct.field(pytree_node=False)
-    link_parents: tuple = struct.field(pytree_node=False)
-    nq: int = struct.field(pytree_node=False)
-    nv: int = struct.field(pytree_node=False)
-    nu: int = struct.field(pytree_node=False)
-    mj_model: mujoco.MjModel = struct.field(pytree_node=False, default=None)
+    link_names: list = static_field()
+    link_types: str = static_field()
+    link_parents: tuple = static_field()
+    nq: int = static_field()
+    nv: int = static_field()
+    nu: int = static_field()
+    mj_model: mujoco.MjModel = static_field(default=None)
 
     def num_links(self) -> int:
         return len(self.link_types)

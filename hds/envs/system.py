@@ -14,10 +14,10 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from flax import struct
 
 from hds.effects import EffectParams, EffectSet, place
 from hds.envs import mjsystem
+from hds.utils.pytree import pytree_dataclass
 from hds.utils.quiet import quiet_brax
 from hds.utils.runtime import cached_build
 
@@ -136,7 +136,7 @@ def target_names(model: mujoco.MjModel) -> dict[str, dict[str, int]]:
     }
 
 
-@struct.dataclass
+@pytree_dataclass
 class SimState:
     pipeline: object  # the backend's state (q, qd, ...)
     effects: dict  # delay buffers and lag filters

@@ -49,6 +49,22 @@ def command_gc() -> None:
     atexit.register(gc.freeze)
 
 
+def headless_mujoco() -> None:
+    """Import MuJoCo with its in-process OpenGL off (MUJOCO_GL=disable while it is imported),
+    where MUJOCO_GL is not set and MuJoCo is not imported yet; for command-line entry points,
+    before they import hds's modules. A command renders only in child processes, which set
+    MUJOCO_GL themselves (hds.render), while MuJoCo's default on Linux, GLFW, cost each process
+    ~0.05 s at import (its library search starts a Python subprocess for a version check).
+    MUJOCO_GL is left unset again afterwards, so children choose their own backend."""
+    if "mujoco" in sys.modules or "MUJOCO_GL" in os.environ:
+        return
+    os.environ["MUJOCO_GL"] = "disable"
+    try:
+        import mujoco  # noqa: F401
+    finally:
+        del os.environ["MUJOCO_GL"]
+
+
 def pyplot():
     """matplotlib's pyplot, headless (Agg), imported on the first figure: a process that draws
     none (a training whose programs come from the program cache) skips its ~0.4 s import."""
