@@ -163,7 +163,7 @@ def test_bench_run_writes_its_sections_where_told(tmp_path):
     """`python -m bench.run compile --out DIR` end to end on a small budget: each point a worker
     process, the results in DIR (the committed ones untouched), the warm process compiling from
     the cold one's persistent cache."""
-    sets = ("compile.backends=analytic", f"compile.overrides={SMALL}")
+    sets = ("compile.backends=analytic", f"compile.overrides={SMALL}", "compile.repeats=1")
     sections = bench_sections(tmp_path, "compile", *(a for s in sets for a in ("--set", s)))
     (compiled,) = sections["compile"]["data"]
     assert compiled["cache_mib"] > 0 and compiled["warm_hit"], compiled["warm_new_entries"]
