@@ -23,6 +23,7 @@ from __future__ import annotations
 import os
 import runpy
 import struct
+import warnings
 from pathlib import Path
 
 # The tests' budgets are tiny, so XLA's compiles are most of their time; LLVM at -O1 compiles
@@ -150,8 +151,12 @@ def make_config(*overrides: str, config_name: str = "config"):
 def command_main(module: str):
     """A command's main(argv), without importing its module under its name: `import
     hds.evaluate` would make the package's attribute `hds.evaluate` that module, hiding the
-    deprecated alias of hds.evaluate_policy for the rest of the session (as `import hds.export`)."""
-    return runpy.run_module(module)["main"]
+    deprecated alias of hds.evaluate_policy for the rest of the session (as `import hds.export`).
+    runpy warns where another test imported the module already: this run is a fresh copy of
+    it, which is the point, so the warning says nothing here."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "'hds[.a-z_]*' found in sys.modules", RuntimeWarning)
+        return runpy.run_module(module)["main"]
 
 
 def trained(*args, **kwargs):

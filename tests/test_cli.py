@@ -211,16 +211,16 @@ def test_discover_refuses_data_past_max_steps_with_the_numbers(
 def hydra_command(module: str, *overrides: str, tmp_path):
     """`python -m <module> <overrides>` in this process, as its __main__ runs it (Hydra's
     logging configures nothing), for a refusal that comes before anything compiles."""
-    import runpy
-
     from hydra.core.global_hydra import GlobalHydra
+
+    from tests.conftest import command_main
 
     def run():
         argv = sys.argv
         sys.argv = [module, *overrides, f"hydra.run.dir={tmp_path / 'run'}"]
         sys.argv += ["hydra.job_logging.root=null", "hydra.hydra_logging.root=null"]
         try:
-            runpy.run_module(module)["main"]()
+            command_main(module)()
         finally:
             sys.argv = argv
             GlobalHydra.instance().clear()
