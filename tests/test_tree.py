@@ -417,7 +417,10 @@ ACROBOT_SHORT = (  # the Furuta swing-up's recipe at the cart-pole's noise and s
 def test_the_acrobot_learns_only_when_its_cost_reads_the_links_world_angles():
     """Costing the elbow's own angle makes hanging still a local optimum: every bend of the
     elbow, which pumping needs, costs. With the links' world angles the return moves (measured,
-    2 seeds: -4,198 to -3,647; with joint angles -2,999 stays -2,999)."""
+    2 seeds: -4,198 to -3,647; with joint angles -2,999 stays -2,999). The gain's size depends
+    on the CPU's rounding (about 0.13 on the host these numbers come from; 0.089 and 0.141 for
+    seeds 0 and 1 on another 2-core host, 2026-11-28, where the joint angles' stayed under
+    3e-4): the assertion is the contrast, at a margin both hosts keep."""
     from hds.algo.pods import make_train_from_config
     from hds.envs import make_env
     from hds.gap import Evaluator
@@ -434,7 +437,7 @@ def test_the_acrobot_learns_only_when_its_cost_reads_the_links_world_angles():
         evaluator = Evaluator(env, trainer.policy, plant=None, episodes=16)
         r0 = evaluator.sim_returns(before).mean(axis=1)
         gains[angles] = (evaluator.sim_returns(state.policy).mean(axis=1) - r0) / np.abs(r0)
-    assert np.all(gains["world"] > 0.1), gains
+    assert np.all(gains["world"] > 0.05), gains
     assert np.all(np.abs(gains["joint"]) < 0.01), gains
 
 
