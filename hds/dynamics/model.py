@@ -28,9 +28,9 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
 from hds.networks import features
+from hds.utils.pytree import pytree_dataclass
 
 KINDS = ("mlp", "ensemble", "residual")
 
@@ -50,7 +50,7 @@ class MLP(nn.Module):
         return nn.Dense(self.out, kernel_init=init)(x)
 
 
-@struct.dataclass
+@pytree_dataclass
 class Normalizer:
     x_mean: jax.Array  # [n_in] network inputs: features(obs) ++ u
     x_std: jax.Array

@@ -28,7 +28,7 @@ def pytree_dataclass(cls):
 
 def static_field(**kwargs):
     """A field of a `pytree_dataclass` that is no leaf but part of the tree's structure
-    (hashable; a change of it is another tree), as flax's `field(pytree_node=False)`."""
+    (compared with ==: a change of it is another tree), as flax's `field(pytree_node=False)`."""
     return dataclasses.field(metadata={"static": True}, **kwargs)
 
 
