@@ -76,6 +76,33 @@ def test_init_run_beside_the_chunk_s_compile_gives_the_numbers_of_one_after_the_
     assert lowered == [(), (2,)] and program == "its own program"
 
 
+# XLA's own settings, whatever the session's XLA_FLAGS (tests/conftest.py sets RUN_ONCE's)
+XLA_DEFAULTS = {"xla_backend_optimization_level": 3, "xla_cpu_use_fusion_emitters": True}
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [TINY, ("env=double_cartpole_balance", "real.effects=[]", "algo.rollouts=4", "logger=none")],
+    ids=["cartpole-analytic", "double-cartpole-tree"],
+)
+def test_init_compiled_at_run_once_gives_the_numbers_of_xla_s_defaults(overrides):
+    """start_and_compile compiles init at RUN_ONCE (cheaper, same numbers): every leaf of the
+    state equals that of init compiled at XLA's defaults, to the last bit, on five seeds."""
+    from hds.algo.pods import make_train_from_config
+
+    cfg = make_config(*overrides)
+    trainer = make_train_from_config(cfg, make_env(cfg.env))
+    lowered = jax.jit(trainer.init).lower(jax.random.PRNGKey(0), trainer.default_hparams)
+    once, default = lowered.compile(runtime.RUN_ONCE), lowered.compile(XLA_DEFAULTS)
+    assert once.as_text() != default.as_text()  # two compilations, not one program twice
+    for seed in range(5):
+        key = jax.random.PRNGKey(seed)
+        a = jax.tree.leaves(once(key, trainer.default_hparams))
+        b = jax.tree.leaves(default(key, trainer.default_hparams))
+        for x, y in zip(a, b, strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
 def test_a_hit_skips_tracing_and_gives_the_numbers_of_jit_to_the_last_digit(
     tiny, tmp_path, monkeypatch
 ):

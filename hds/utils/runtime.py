@@ -146,8 +146,8 @@ class _LoweredRuns:
     def __init__(self, fn, lowered):
         self.fn, self.lowered = fn, lowered
 
-    def compile(self) -> RunByRun:
-        return RunByRun(self.fn, self.lowered.compile())
+    def compile(self, compiler_options: dict | None = None) -> RunByRun:
+        return RunByRun(self.fn, self.lowered.compile(compiler_options))
 
     @property
     def out_info(self):
@@ -157,10 +157,22 @@ class _LoweredRuns:
         return self.lowered.out_info
 
 
+# XLA's options for a program a process runs once (the trainer's init): LLVM at -O1 and XLA's
+# classic CPU emitters compile it in ~40% of the CPU time of XLA's defaults (0.40 against 0.95
+# CPU s, the reference configuration's init), and its outputs are the same to the last bit
+# (tests/test_program_cache.py). On one CPU that compile shares the cores with the chunk's
+# trace (start_and_compile): 0.3 s less trace, ~0.4 s less for the cold process (bench/RESULTS.md,
+# section "compile"). A program that runs for longer than it compiles keeps XLA's defaults:
+# with the classic emitters the reference chunk ran ~1.6 times slower and its numbers moved in
+# the 7th digit (experiments/test_suite_time/README.md).
+RUN_ONCE = {"xla_backend_optimization_level": 1, "xla_cpu_use_fusion_emitters": False}
+
+
 def start_and_compile(init: RunByRun, chunk: RunByRun, keys, hparams, prepare=None, timing=None):
     """`state = prepare(init(keys, hparams))` and `chunk.lower(state, hparams).compile()`: the
-    same two programs as called one after the other, with init's XLA compile and its run on a
-    second thread while this one traces and compiles the chunk (from init's output shapes).
+    same two programs as called one after the other, with init's XLA compile (at RUN_ONCE) and
+    its run on a second thread while this one traces and compiles the chunk (from init's
+    output shapes).
     XLA compiles a program on one core and releases the GIL meanwhile, so on two cores init's
     ~0.5-1 s leaves a cold process's wall time (bench/RESULTS.md, section "compile"). Returns
     (state, compiled chunk); `timing` (a dict) gets `init_s` (init traced), `trace_s` (the
@@ -175,7 +187,7 @@ def start_and_compile(init: RunByRun, chunk: RunByRun, keys, hparams, prepare=No
         lambda s: jax.ShapeDtypeStruct((runs, *s.shape), s.dtype), lowered.out_info
     )
     with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hds-init") as pool:
-        first_state = pool.submit(lambda: lowered.compile()(keys, hparams))
+        first_state = pool.submit(lambda: lowered.compile(RUN_ONCE)(keys, hparams))
         timing["init_s"] = (traced := time.perf_counter()) - start
         program = chunk.lower(batch, hparams)
         timing["trace_s"] = (compiling := time.perf_counter()) - traced
@@ -506,5 +518,5 @@ class _CachedLowered:
     def __init__(self, lowered, out_tree):
         self.lowered, self.out_tree = lowered, out_tree
 
-    def compile(self):
-        return _Unflatten(self.lowered.compile(), self.out_tree)
+    def compile(self, compiler_options: dict | None = None):
+        return _Unflatten(self.lowered.compile(compiler_options), self.out_tree)
