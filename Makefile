@@ -136,7 +136,8 @@ study: $(STAMP)
 # simulator, domain randomization over the family's distribution) evaluated on every draw, the
 # one-shot corrected simulator and the oracle per draw, then per draw the sim2real loop (3
 # rounds) without and with HDS's hybrid model (the two side by side, as the sweeps run two
-# jobs at a time on 2 cores), then the study's table. Resumable: finished jobs
+# jobs at a time on 2 cores; their round 0 restores the raw simulator's shared job, the same
+# training, loop.start_from), then the study's table. Resumable: finished jobs
 # and loop rounds are skipped (delete $(LAB_RUN) to start over). 5 draws for the balance tasks,
 # 3 for the swing-ups; 3 seeds each. LAB_TASKS=cartpole_balance runs one task.
 LAB_RUN := outputs/study/lab
@@ -153,9 +154,11 @@ study-lab: $(STAMP)
 			hydra.sweep.dir=$$out/shared || exit 1; \
 		for k in $$draws; do \
 			$(BIN)/python -m hds.loop "$$@" "+experiment=[lab_study_loop$$fam,$$t]" \
-				real.draw=$$k hydra.run.dir=$$out/loop/d$$k & plain=$$!; \
+				real.draw=$$k loop.start_from=$$out/shared/0 \
+				hydra.run.dir=$$out/loop/d$$k & plain=$$!; \
 			$(BIN)/python -m hds.loop "$$@" "+experiment=[lab_study_loop$$fam,$$t]" \
-				real.draw=$$k dynamics=residual hydra.run.dir=$$out/hybrid/d$$k & hybrid=$$!; \
+				real.draw=$$k loop.start_from=$$out/shared/0 dynamics=residual \
+				hydra.run.dir=$$out/hybrid/d$$k & hybrid=$$!; \
 			wait $$plain && wait $$hybrid || exit 1; done; done
 	$(BIN)/python experiments/lab_study/report.py $(LAB_RUN)
 

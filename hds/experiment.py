@@ -265,13 +265,16 @@ def train_batch(
     logger: RunLogger | None = None,
     init_params=None,
     randomization=None,
+    restore_from: Path | None = None,
 ) -> Training:
     """Train the batch of `cfg.runs()` together on `env` (and a learned `model`);
     `effects`: each run's effect parameters of env, stacked; `randomization`: each rollout's
     drawn (hds.algo.randomize). Resumes from out_dir/checkpoints/<method> when it has a
-    checkpoint; `logger` (optional) shows progress and records to W&B; `init_params` (the
-    policies of every run, stacked) warm-starts it. The returned policies are saved to
-    out_dir/policies/<method> (hds.policy_store), what `hds.load_policy` reads."""
+    checkpoint, else from `restore_from` (another run's checkpoints of the same training:
+    hds.loop's loop.start_from) when given; `logger` (optional) shows progress and records to
+    W&B; `init_params` (the policies of every run, stacked) warm-starts it. The returned
+    policies are saved to out_dir/policies/<method> (hds.policy_store), what
+    `hds.load_policy` reads."""
     hooks = hooks or Hooks()
     trainer = make_train_from_config(cfg, env, model, randomization)
     hparams = batch_hparams(cfg, trainer, effects)
@@ -288,12 +291,15 @@ def train_batch(
     timing = {"compile_s": time.perf_counter() - start}
 
     ckpt = Checkpoints(out_dir / "checkpoints" / method, keep=cfg.checkpoints_kept)
+    own = ckpt.latest() is not None or restore_from is None
+    source = ckpt if own else Checkpoints(restore_from)
     try:
         history: dict[str, list] = {}
-        if ckpt.latest() is not None:
-            state, meta = ckpt.restore(state, resuming=True)
+        if source.latest() is not None:
+            state, meta = source.restore(state, resuming=own)
             history = {k: [list(map(float, row)) for row in v] for k, v in meta["history"].items()}
-            log.info("resuming %s from epoch %d", method, int(state.epoch[0]))
+            where = "" if own else f" of {restore_from}"
+            log.info("resuming %s from epoch %d%s", method, int(state.epoch[0]), where)
         if logger:
             logger.start(int(state.epoch[0]))
         start, cpu_start = time.perf_counter(), time.process_time()
@@ -318,6 +324,8 @@ def train_batch(
         timing["train_cpu_s"] = time.process_time() - cpu_start
     finally:
         ckpt.close()
+        if not own:
+            source.close()
     params = trainer.final_policy(state)
     policy_store.save(
         out_dir / "policies" / method, trainer.policy, params, cfg.runs(), state.epoch
@@ -393,9 +401,11 @@ def train_and_evaluate(
     init_params=None,
     figures: bool = False,
     before_close: Callable | None = None,
+    restore_from: Path | None = None,
 ) -> tuple[Training, list[dict], list[dict]]:
     """One method: its progress bar and W&B run opened, trained on `simulator` (and a learned
-    `model`; warm-started from `init_params`), evaluated on `plants` (each run's) and on
+    `model`; warm-started from `init_params`; resumed from another run's checkpoints
+    `restore_from`, train_batch), evaluated on `plants` (each run's) and on
     cfg.eval_plants, the rows logged (with the learning curves and sim-vs-real figures when
     `figures`), `before_close(logger, training)` called, the logger closed however it ends.
     Returns (training, rows on the runs' plants, rows on eval_plants). `hds.train`, the
@@ -413,6 +423,7 @@ def train_and_evaluate(
             logger,
             init_params=init_params,
             randomization=simulator.randomization,
+            restore_from=restore_from,
         )
         rows, rows_eval_plants = evaluate_training(cfg, training, plants)
         logger.finish(rows, _method_figures(method, training.history, rows) if figures else {})

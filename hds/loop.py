@@ -32,6 +32,7 @@ import hydra  # noqa: E402
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
+from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from hds import experiment, plots, rundir  # noqa: E402
 from hds.commands import before_hydra  # noqa: E402
@@ -137,8 +138,74 @@ def afresh_config(cfg: Config, r: int) -> Config:
     return dataclasses.replace(round_cfg, algo=dataclasses.replace(round_cfg.algo, epochs=epochs))
 
 
-def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) -> list[dict]:
-    """Every round of the loop (see the module's doc); returns the rounds' reports."""
+# The settings a run's training does not read, for loop.start_from: where and how its policies
+# are evaluated, what the loop's later rounds do, and the learned model, which the loop fits
+# from round 1 on (round 0 trains without one). Every other setting must be the loop's.
+NOT_TRAINED_ON = (
+    "real",
+    "eval_plants",
+    "eval_episodes",
+    "eval_seed",
+    "oracle",
+    "gif",
+    "objective",
+    "name",
+    "checkpoints_kept",
+    "paths",
+    "loop",
+    "discover",
+    "dynamics",
+)
+
+
+def round_zero_source(dcfg: DictConfig) -> Path | None:
+    """The checkpoints round 0 restores instead of training: those of loop.start_from's
+    finished run, whose training must be round 0's (the nominal simulator, no learned model,
+    every setting in `NOT_TRAINED_ON`'s complement the loop's); None without it. Raises
+    ValueError, one line naming the problem, before anything compiles."""
+    start = dcfg.loop.get("start_from")
+    if not start:
+        return None
+    start = Path(start)
+    recorded = start / rundir.CONFIG
+    if not (start / "summary.json").is_file() or not recorded.is_file():
+        raise ValueError(
+            f"loop.start_from: {start} holds no finished run (summary.json, {rundir.CONFIG}); "
+            "point it at a finished hds.run directory, or leave it out to train round 0 here"
+        )
+    theirs = OmegaConf.load(recorded)
+    betas = [OmegaConf.select(theirs, k, default=None) or 0 for k in ("dynamics.beta",)]
+    betas += list(OmegaConf.select(theirs, "sweep.beta", default=None) or [])
+    model = OmegaConf.select(theirs, "dynamics.model", default="none") != "none" and max(betas) > 0
+    if theirs.simulator != "nominal" or model:
+        trained = f"the {theirs.simulator} simulator" + (" and a learned model" if model else "")
+        raise ValueError(
+            f"loop.start_from: {start} trained on {trained}; round 0 trains on the nominal "
+            "simulator alone: point it at such a run (simulator=nominal, dynamics=none)"
+        )
+    changed = rundir.differences(theirs, dcfg, ignored=NOT_TRAINED_ON)
+    if changed:
+        raise ValueError(
+            f"loop.start_from: {start} trained with other settings than this loop's round 0 "
+            f"({'; '.join(changed)}); give the loop its settings, or leave loop.start_from out"
+        )
+    source = start / "checkpoints" / str(theirs.algo.name)
+    if not source.is_dir():
+        raise ValueError(
+            f"loop.start_from: {start} has no checkpoints of {theirs.algo.name} ({source}); "
+            "train it again with checkpoints, or leave loop.start_from out"
+        )
+    return source
+
+
+def run_loop(
+    cfg: Config,
+    out_dir: Path,
+    hooks: experiment.Hooks | None = None,
+    round_zero: Path | None = None,
+) -> list[dict]:
+    """Every round of the loop (see the module's doc); returns the rounds' reports.
+    `round_zero`: checkpoints round 0 restores instead of training (`round_zero_source`)."""
     out_dir = Path(out_dir)
     hooks = hooks or experiment.Hooks()
     enable_compilation_cache()
@@ -168,7 +235,8 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
             spent += recorded
             env_cfg, found = discover_round(cfg, concatenate(data), rdir)
         start = params if cfg.loop.warm_start else None
-        report = train_round(cfg, r, env_cfg, start, data, rdir, hooks, plants)
+        restore = round_zero if r == 0 else None
+        report = train_round(cfg, r, env_cfg, start, data, rdir, hooks, plants, restore)
         params = report.pop("params")
         report |= {"round": r, "effects": found, "excitation_scale": scale, "notes": notes}
         report["data_episodes"] = int(sum(d.n_episodes for d in data))
@@ -208,11 +276,12 @@ def discover_round(cfg: Config, data: Dataset, rdir: Path):
     return env_config(corrected_env(cfg.env, result)), [e.to_json() for e in result.missing_effects]
 
 
-def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
+def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants, restore=None) -> dict:
     """Train (warm-started from `params`, None: from scratch) on the round's simulator and, for HDS,
     a model refitted on the loop's data; evaluate on `plants` (the runs' plants). A round
-    trained before is restored from its checkpoints. Returns its report (run_loop adds the
-    data used and writes round.json) and the trained parameters (`params`)."""
+    trained before is restored from its checkpoints, else from `restore` (another run's of the
+    same training) where given. Returns its report (run_loop adds the data used and writes
+    round.json) and the trained parameters (`params`)."""
     round_cfg = round_config(cfg, r)
     env = make_env(env_cfg)
     model, model_report = None, {}
@@ -221,13 +290,21 @@ def train_round(cfg, r, env_cfg, params, data, rdir, hooks, plants) -> dict:
     method = f"loop{r}"
     simulator = Simulator(env)
 
-    def train_and_evaluate(train_cfg, out_dir, init_params):
+    def train_and_evaluate(train_cfg, out_dir, init_params, restore_from=None):
         training, rows, _ = experiment.train_and_evaluate(
-            train_cfg, method, simulator, out_dir, plants, hooks, model, init_params
+            train_cfg,
+            method,
+            simulator,
+            out_dir,
+            plants,
+            hooks,
+            model,
+            init_params,
+            restore_from=restore_from,
         )
         return training.params, rows
 
-    trained, rows = train_and_evaluate(round_cfg, rdir, params)
+    trained, rows = train_and_evaluate(round_cfg, rdir, params, restore)
     # A warm-started run that still fails on the corrected simulator trains again from
     # scratch, its effects waiting until it balances, for every epoch the loop has spent on it
     # (`afresh_config`): warm-started from a policy that the named 2-step delay topples, every
@@ -324,7 +401,7 @@ def main(dcfg) -> float:
     with cli.one_line_errors(), rundir.claim(out_dir, dcfg, hydra_dir):  # locked
         cfg = validate(dcfg)  # every range check, before anything compiles
         check_planned(cfg, loop=True)  # its data past the limits: refused with the numbers
-        rounds = run_loop(cfg, out_dir)
+        rounds = run_loop(cfg, out_dir, round_zero=round_zero_source(dcfg))
     return float(rounds[-1]["real_return"][0])
 
 

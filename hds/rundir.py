@@ -88,10 +88,11 @@ def claim(out_dir: str | Path, cfg: DictConfig, hydra_dir: str | Path | None = N
             lock.truncate()  # the lock itself goes with the file's closing
 
 
-def differences(before: DictConfig, after: DictConfig) -> list[str]:
-    """`key: old -> new` for every result-changing key whose value differs (resolved). A
-    setting this version of hds no longer has, or one it added whose value is its default,
-    is no difference: a run directory stays resumable across versions."""
+def differences(before: DictConfig, after: DictConfig, ignored: tuple = ()) -> list[str]:
+    """`key: old -> new` for every result-changing key whose value differs (resolved), those
+    under the top-level keys `ignored` aside. A setting this version of hds no longer has, or
+    one it added whose value is its default, is no difference: a run directory stays
+    resumable across versions."""
     old, new = _flat(before), _flat(after)
     defaults = _flat(_schema_defaults())
 
@@ -105,7 +106,7 @@ def differences(before: DictConfig, after: DictConfig) -> list[str]:
     return [
         f"{key}: {old.get(key, '(absent)')} -> {new[key]}"
         for key in sorted(old.keys() | new.keys())
-        if changed(key) and key.split(".")[0] not in IGNORED
+        if changed(key) and key.split(".")[0] not in (*IGNORED, *ignored)
     ]
 
 

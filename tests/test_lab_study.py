@@ -94,3 +94,37 @@ def test_every_job_of_the_study_s_sweeps_composes(task):
             config_dirs=[CONF.parent],
         )
         assert cfg.env.name == task, (config, method)
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_the_study_s_loops_start_from_the_shared_sweep_s_raw_simulator_job(task, tmp_path):
+    """The Makefile starts each draw's loop, with and without HDS's hybrid, from the shared
+    sweep's first job (shared/0: the raw simulator on draw 0), whose training must be the
+    loops' round 0: a loop refused there would fail only after the sweeps, an hour in."""
+    from omegaconf import OmegaConf
+
+    from hds import loop, rundir
+    from hds.config import compose
+
+    family = _family(task)
+    shared = f"lab_study{family}_shared"
+    raw = compose(
+        [f"env={task}", f"+experiment=[{shared},lab_task_{task}]", "real.draw=0"]
+        + [f"method={_swept_methods(shared)[0]}"],
+        config_dirs=[CONF.parent],
+    )
+    assert raw.simulator == "nominal"
+    ran = tmp_path / "shared" / "0"
+    (ran / "checkpoints" / raw.algo.name).mkdir(parents=True)
+    OmegaConf.save(OmegaConf.structured(raw), ran / rundir.CONFIG, resolve=True)
+    (ran / "summary.json").write_text("{}")
+    makefile = (CONF.parents[3] / "Makefile").read_text()
+    assert makefile.count("loop.start_from=$$out/shared/0") == 2
+    for extra in ([], ["dynamics=residual"]):
+        ours = compose(
+            [f"env={task}", f"+experiment=[lab_study_loop{family},lab_task_{task}]"]
+            + ["real.draw=2", f"loop.start_from={ran}", *extra],
+            config_dirs=[CONF.parent],
+        )
+        source = loop.round_zero_source(OmegaConf.structured(ours))
+        assert source == ran / "checkpoints" / raw.algo.name

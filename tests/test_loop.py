@@ -11,12 +11,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from omegaconf import OmegaConf
 
-from hds import loop
+from hds import loop, policy_store, rundir
 from hds.checkpoint import Checkpoints
 from hds.data import Dataset
 from hds.envs import make_env
-from hds.experiment import Hooks, run_plants
+from hds.experiment import Hooks, run, run_plants
 from hds.results import PlantTime
 from tests.conftest import make_config
 
@@ -414,3 +415,77 @@ def test_each_round_reports_the_plant_time_its_recorded_data_cost():
     )
     with pytest.raises(ValueError, match="no whole number of records"):
         loop.plant_time(cfg, Dataset(np.zeros((5, 3, 4)), np.zeros((5, 2, 1)), dt))
+
+
+# --- loop.start_from: round 0 restored from a finished run of its training ----------------------
+ROUND_0 = (*LOOP, "loop.rounds=0")
+
+
+def recorded_run(directory, recorded, finished=True):
+    """A run directory as hds.run leaves it, without its training: config.yaml (the composed
+    config rundir.claim records), summary.json when finished, the checkpoints' folder."""
+    directory.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(recorded, directory / rundir.CONFIG, resolve=True)
+    (directory / "checkpoints" / recorded.algo.name).mkdir(parents=True, exist_ok=True)
+    if finished:
+        (directory / "summary.json").write_text("{}")
+    return directory
+
+
+def test_round_0_started_from_a_finished_run_restores_its_policies_untrained(tmp_path):
+    """A loop started from an hds.run of its training trains no epoch in round 0 and has the
+    rows and policies of a loop that trains round 0 itself, which are the run's policies."""
+    cfg = make_config(*ROUND_0)
+    ran = tmp_path / "run"
+    run(cfg, ran, Hooks(console=False))
+    OmegaConf.save(OmegaConf.structured(cfg), ran / rundir.CONFIG, resolve=True)
+    started_cfg = make_config(*ROUND_0, f"loop.start_from={ran}")
+    source = loop.round_zero_source(OmegaConf.structured(started_cfg))
+    assert source == ran / "checkpoints" / cfg.algo.name
+
+    epochs = []
+    hooks = Hooks(progress_fn=lambda epoch, metrics: epochs.append(epoch), console=False)
+    (started,) = loop.run_loop(started_cfg, tmp_path / "started", hooks, round_zero=source)
+    assert epochs == []  # restored, not trained
+    (trained,) = loop.run_loop(cfg, tmp_path / "trained", Hooks(console=False))
+    assert started["rows"] == trained["rows"]
+    policies = [
+        policy_store.load(d)[1]
+        for d in (
+            ran / "policies" / cfg.algo.name,
+            tmp_path / "started" / "rounds" / "0" / "policies" / "loop0",
+            tmp_path / "trained" / "rounds" / "0" / "policies" / "loop0",
+        )
+    ]
+    for other in policies[1:]:
+        jax.tree.map(np.testing.assert_array_equal, policies[0], other)
+
+
+def test_round_0_starts_from_a_run_that_differs_in_its_evaluation_and_model_only(tmp_path):
+    """The plant, the evaluation, the later rounds and the learned model (fitted from round 1)
+    are no part of round 0's training: a run that differs in them is accepted."""
+    theirs = make_config(*ROUND_0, "real.friction_gap=0.5", "eval_episodes=3", "name=other")
+    ran = recorded_run(tmp_path / "run", OmegaConf.structured(theirs))
+    ours = make_config(*LOOP, "dynamics=residual", f"loop.start_from={ran}")
+    assert loop.round_zero_source(OmegaConf.structured(ours)) == ran / "checkpoints" / "pods"
+
+
+@pytest.mark.parametrize(
+    "change, says",
+    [
+        ({"algo.epochs": 7}, "trained with other settings than this loop's round 0 (algo.epochs:"),
+        ({"seed": 3}, "(seed: 3 -> 0)"),
+        ({"simulator": "randomized"}, "trained on the randomized simulator; round 0 trains"),
+        ({"dynamics.model": "mlp", "dynamics.beta": 0.5}, "the nominal simulator and a learned"),
+        (None, "holds no finished run"),
+    ],
+)
+def test_round_0_refuses_a_run_of_another_training_in_one_line(tmp_path, change, says):
+    recorded = OmegaConf.structured(make_config(*ROUND_0))
+    for key, value in (change or {}).items():
+        OmegaConf.update(recorded, key, value)
+    ran = recorded_run(tmp_path / "run", recorded, finished=change is not None)
+    ours = OmegaConf.structured(make_config(*ROUND_0, f"loop.start_from={ran}"))
+    with pytest.raises(ValueError, match="^loop.start_from: ") as err:
+        loop.round_zero_source(ours)
+    assert says in str(err.value) and "\n" not in str(err.value)

@@ -526,6 +526,10 @@ class LoopConfig:
     # 0 (a swing-up learned without friction is a way of swinging that warm-started rounds
     # do not leave: experiments/sim2real_friction/README.md)
     warm_start: bool = True
+    # a finished run whose training is round 0's (hds.run on the nominal simulator, same
+    # settings, no learned model; e.g. a sweep's raw-simulator job): round 0 restores its
+    # policies and evaluates them on this loop's plant instead of training them again
+    start_from: str | None = None
 
     def check(self):
         _in_range("loop.rounds", self.rounds, 0)
