@@ -406,6 +406,19 @@ def section(results: list[dict], per_program: list[dict]) -> dict:
             "0.39-0.41 CPU s. The same flag at 2 and 8 on the cold process (tree, 3 pairs "
             "each, idle, 2026-11-28 11:32 UTC): 11.2 and 11.0 s against 8.5 s for XLA's "
             "default.",
+            "init compiled at hds.utils.runtime.RUN_ONCE (LLVM -O1, XLA's classic CPU "
+            "emitters; 2026-11-28, this host, idle): its XLA compile 0.40-0.43 against "
+            "0.92-1.01 CPU s (3 each), outputs the same to the last bit; cold tree processes, "
+            "6 interleaved pairs on fresh caches: the chunk's trace (beside init's compile) "
+            "0.16-0.80 s shorter in every pair, the process 0.47 s shorter on average (5 of "
+            "6). Options that keep the chunk's numbers, each its own process compiling the "
+            "reference chunk (tree, 4 alternating rounds, idle, 12:05 UTC): "
+            "xla_cpu_emitter_verification_level=0, "
+            "xla_cpu_enable_concurrency_optimized_scheduler=false and "
+            "xla_llvm_disable_expensive_passes=true compiled in 3.65-4.42, 3.83-4.79 and "
+            "3.92-5.08 s against 3.98-4.66 s for XLA's default: none pays. Neither did tracing "
+            "the open-loop rollout once for its gradient and its line search (a jitted "
+            "function called twice: 1.69-1.91 s against 1.68-1.72 s for export's trace).",
         ],
         "data": results,
         "programs": per_program,
