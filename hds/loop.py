@@ -32,11 +32,11 @@ import hydra  # noqa: E402
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
-from omegaconf import DictConfig, OmegaConf  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
 
 from hds import experiment, plots, rundir  # noqa: E402
 from hds.commands import before_hydra  # noqa: E402
-from hds.config import Config, env_config, validate  # noqa: E402
+from hds.config import Config, env_config, load_config, validate  # noqa: E402
 from hds.data.acquire import deployed_and_excited  # noqa: E402
 from hds.data.budget import check_planned  # noqa: E402
 from hds.data.format import Dataset, concatenate, load, save  # noqa: E402
@@ -158,38 +158,40 @@ NOT_TRAINED_ON = (
 )
 
 
-def round_zero_source(dcfg: DictConfig) -> Path | None:
+def round_zero_source(cfg: Config) -> Path | None:
     """The checkpoints round 0 restores instead of training: those of loop.start_from's
     finished run, whose training must be round 0's (the nominal simulator, no learned model,
     every setting in `NOT_TRAINED_ON`'s complement the loop's); None without it. Raises
     ValueError, one line naming the problem, before anything compiles."""
-    start = dcfg.loop.get("start_from")
-    if not start:
+    if not cfg.loop.start_from:
         return None
-    start = Path(start)
+    start = Path(cfg.loop.start_from)
     recorded = start / rundir.CONFIG
     if not (start / "summary.json").is_file() or not recorded.is_file():
         raise ValueError(
             f"loop.start_from: {start} holds no finished run (summary.json, {rundir.CONFIG}); "
             "point it at a finished hds.run directory, or leave it out to train round 0 here"
         )
-    theirs = OmegaConf.load(recorded)
-    betas = [OmegaConf.select(theirs, k, default=None) or 0 for k in ("dynamics.beta",)]
-    betas += list(OmegaConf.select(theirs, "sweep.beta", default=None) or [])
-    model = OmegaConf.select(theirs, "dynamics.model", default="none") != "none" and max(betas) > 0
-    if theirs.simulator != "nominal" or model:
-        trained = f"the {theirs.simulator} simulator" + (" and a learned model" if model else "")
+    try:
+        theirs = load_config(recorded)
+    except ValueError as err:
+        raise ValueError(f"loop.start_from: {recorded}: {err}") from None
+    if theirs.simulator != "nominal" or theirs.uses_model():
+        model = " and a learned model" if theirs.uses_model() else ""
         raise ValueError(
-            f"loop.start_from: {start} trained on {trained}; round 0 trains on the nominal "
-            "simulator alone: point it at such a run (simulator=nominal, dynamics=none)"
+            f"loop.start_from: {start} trained on the {theirs.simulator} simulator{model}; "
+            "round 0 trains on the nominal simulator alone: point it at such a run "
+            "(simulator=nominal, dynamics=none)"
         )
-    changed = rundir.differences(theirs, dcfg, ignored=NOT_TRAINED_ON)
+    changed = rundir.differences(
+        OmegaConf.structured(theirs), OmegaConf.structured(cfg), ignored=NOT_TRAINED_ON
+    )
     if changed:
         raise ValueError(
             f"loop.start_from: {start} trained with other settings than this loop's round 0 "
             f"({'; '.join(changed)}); give the loop its settings, or leave loop.start_from out"
         )
-    source = start / "checkpoints" / str(theirs.algo.name)
+    source = start / "checkpoints" / theirs.algo.name
     if not source.is_dir():
         raise ValueError(
             f"loop.start_from: {start} has no checkpoints of {theirs.algo.name} ({source}); "
@@ -198,14 +200,10 @@ def round_zero_source(dcfg: DictConfig) -> Path | None:
     return source
 
 
-def run_loop(
-    cfg: Config,
-    out_dir: Path,
-    hooks: experiment.Hooks | None = None,
-    round_zero: Path | None = None,
-) -> list[dict]:
-    """Every round of the loop (see the module's doc); returns the rounds' reports.
-    `round_zero`: checkpoints round 0 restores instead of training (`round_zero_source`)."""
+def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) -> list[dict]:
+    """Every round of the loop (see the module's doc); returns the rounds' reports. With
+    loop.start_from, round 0 restores that run's policies (`round_zero_source`)."""
+    round_zero = round_zero_source(cfg)  # refused, where it is, before anything compiles
     out_dir = Path(out_dir)
     hooks = hooks or experiment.Hooks()
     enable_compilation_cache()
@@ -401,7 +399,7 @@ def main(dcfg) -> float:
     with cli.one_line_errors(), rundir.claim(out_dir, dcfg, hydra_dir):  # locked
         cfg = validate(dcfg)  # every range check, before anything compiles
         check_planned(cfg, loop=True)  # its data past the limits: refused with the numbers
-        rounds = run_loop(cfg, out_dir, round_zero=round_zero_source(dcfg))
+        rounds = run_loop(cfg, out_dir)
     return float(rounds[-1]["real_return"][0])
 
 

@@ -126,5 +126,5 @@ def test_the_study_s_loops_start_from_the_shared_sweep_s_raw_simulator_job(task,
             + ["real.draw=2", f"loop.start_from={ran}", *extra],
             config_dirs=[CONF.parent],
         )
-        source = loop.round_zero_source(OmegaConf.structured(ours))
+        source = loop.round_zero_source(ours)
         assert source == ran / "checkpoints" / raw.algo.name

@@ -419,6 +419,8 @@ def test_each_round_reports_the_plant_time_its_recorded_data_cost():
 
 # --- loop.start_from: round 0 restored from a finished run of its training ----------------------
 ROUND_0 = (*LOOP, "loop.rounds=0")
+# a randomized simulator's run has its ranges (its config is refused without)
+DR_FRICTION = {"name": "coulomb_friction", "target": "slider", "ranges": {"force": [0.0, 80.0]}}
 
 
 def recorded_run(directory, recorded, finished=True):
@@ -440,12 +442,11 @@ def test_round_0_started_from_a_finished_run_restores_its_policies_untrained(tmp
     run(cfg, ran, Hooks(console=False))
     OmegaConf.save(OmegaConf.structured(cfg), ran / rundir.CONFIG, resolve=True)
     started_cfg = make_config(*ROUND_0, f"loop.start_from={ran}")
-    source = loop.round_zero_source(OmegaConf.structured(started_cfg))
-    assert source == ran / "checkpoints" / cfg.algo.name
+    assert loop.round_zero_source(started_cfg) == ran / "checkpoints" / cfg.algo.name
 
     epochs = []
     hooks = Hooks(progress_fn=lambda epoch, metrics: epochs.append(epoch), console=False)
-    (started,) = loop.run_loop(started_cfg, tmp_path / "started", hooks, round_zero=source)
+    (started,) = loop.run_loop(started_cfg, tmp_path / "started", hooks)
     assert epochs == []  # restored, not trained
     (trained,) = loop.run_loop(cfg, tmp_path / "trained", Hooks(console=False))
     assert started["rows"] == trained["rows"]
@@ -467,7 +468,7 @@ def test_round_0_starts_from_a_run_that_differs_in_its_evaluation_and_model_only
     theirs = make_config(*ROUND_0, "real.friction_gap=0.5", "eval_episodes=3", "name=other")
     ran = recorded_run(tmp_path / "run", OmegaConf.structured(theirs))
     ours = make_config(*LOOP, "dynamics=residual", f"loop.start_from={ran}")
-    assert loop.round_zero_source(OmegaConf.structured(ours)) == ran / "checkpoints" / "pods"
+    assert loop.round_zero_source(ours) == ran / "checkpoints" / "pods"
 
 
 @pytest.mark.parametrize(
@@ -475,7 +476,10 @@ def test_round_0_starts_from_a_run_that_differs_in_its_evaluation_and_model_only
     [
         ({"algo.epochs": 7}, "trained with other settings than this loop's round 0 (algo.epochs:"),
         ({"seed": 3}, "(seed: 3 -> 0)"),
-        ({"simulator": "randomized"}, "trained on the randomized simulator; round 0 trains"),
+        (
+            {"simulator": "randomized", "dr.effects": [DR_FRICTION]},
+            "trained on the randomized simulator; round 0 trains",
+        ),
         ({"dynamics.model": "mlp", "dynamics.beta": 0.5}, "the nominal simulator and a learned"),
         (None, "holds no finished run"),
     ],
@@ -485,7 +489,7 @@ def test_round_0_refuses_a_run_of_another_training_in_one_line(tmp_path, change,
     for key, value in (change or {}).items():
         OmegaConf.update(recorded, key, value)
     ran = recorded_run(tmp_path / "run", recorded, finished=change is not None)
-    ours = OmegaConf.structured(make_config(*ROUND_0, f"loop.start_from={ran}"))
+    ours = make_config(*ROUND_0, f"loop.start_from={ran}")
     with pytest.raises(ValueError, match="^loop.start_from: ") as err:
         loop.round_zero_source(ours)
     assert says in str(err.value) and "\n" not in str(err.value)
