@@ -139,19 +139,25 @@ study: $(STAMP)
 # jobs at a time on 2 cores; their round 0 restores the raw simulator's shared job, the same
 # training, loop.start_from), then the study's table. Resumable: finished jobs
 # and loop rounds are skipped (delete $(LAB_RUN) to start over). 5 draws for the balance tasks,
-# 3 for the swing-ups; 3 seeds each. LAB_TASKS=cartpole_balance runs one task.
-LAB_RUN := outputs/study/lab
+# 3 for the swing-ups; 3 seeds each. LAB_TASKS=cartpole_balance runs one task; LAB_DRAWS="5 6 7"
+# runs those draws of every task instead (the shared sweep trains on the first, its own plant,
+# and evaluates on the others: eval_plants); LAB_RUN=<dir> writes elsewhere.
+LAB_RUN ?= outputs/study/lab
 LAB_CONF := --config-dir experiments/lab_study/conf
 LAB_TASKS ?= cartpole_balance cartpole_swingup furuta_balance furuta_swingup
+LAB_DRAWS ?=
 study-lab: $(STAMP)
 	for task in $(LAB_TASKS); do \
-		case $$task in furuta*) fam=_furuta;; *) fam=;; esac; \
-		case $$task in *swingup) draws="0 1 2";; *) draws="0 1 2 3 4";; esac; \
+		case $$task in furuta*) fam=_furuta real=lab_furuta;; *) fam= real=lab_cartpole;; esac; \
+		draws="$(LAB_DRAWS)"; \
+		[ -n "$$draws" ] || case $$task in *swingup) draws="0 1 2";; *) draws="0 1 2 3 4";; esac; \
+		own=$${draws%% *}; others=; for k in $$draws; do [ $$k = $$own ] || \
+			others="$$others +real@eval_plants.d$$k=$$real eval_plants.d$$k.draw=$$k"; done; \
 		set -- $(LAB_CONF) env=$$task; out=$(LAB_RUN)/$$task; t=lab_task_$$task; \
 		$(BIN)/python -m hds.run -m "$$@" "+experiment=[lab_study$$fam,$$t]" \
 			real.draw=$$(echo $$draws | tr ' ' ,) hydra.sweep.dir=$$out/per_draw || exit 1; \
 		$(BIN)/python -m hds.run -m "$$@" "+experiment=[lab_study$${fam}_shared,$$t]" \
-			hydra.sweep.dir=$$out/shared || exit 1; \
+			real.draw=$$own $$others hydra.sweep.dir=$$out/shared || exit 1; \
 		for k in $$draws; do \
 			$(BIN)/python -m hds.loop "$$@" "+experiment=[lab_study_loop$$fam,$$t]" \
 				real.draw=$$k loop.start_from=$$out/shared/0 \

@@ -128,3 +128,77 @@ def test_the_study_s_loops_start_from_the_shared_sweep_s_raw_simulator_job(task,
         )
         source = loop.round_zero_source(ours)
         assert source == ran / "checkpoints" / raw.algo.name
+
+
+def _make_study_lab(tmp_path, tasks: str, draws: str) -> list[list[str]]:
+    """The commands `make study-lab` runs for `tasks` and `draws` (LAB_DRAWS), each as its
+    arguments, recorded by a stand-in for the venv's python that runs nothing."""
+    import subprocess
+
+    bin_dir, log = tmp_path / "bin", tmp_path / "calls"
+    bin_dir.mkdir()
+    (bin_dir / "python").write_text('#!/bin/sh\nprintf "%s\\037" "$@" >> "$LOG"\necho >> "$LOG"\n')
+    (bin_dir / "python").chmod(0o755)
+    root = CONF.parents[3]
+    subprocess.run(
+        ["make", "-s", "-o", ".venv/.installed", "study-lab", f"BIN={bin_dir}"]
+        + [f"LAB_TASKS={tasks}", f"LAB_DRAWS={draws}", f"LAB_RUN={tmp_path / 'lab'}"],
+        cwd=root,
+        env={"PATH": "/usr/bin:/bin", "LOG": str(log)},
+        check=True,
+        capture_output=True,
+    )
+    return [line.split("\x1f")[:-1] for line in log.read_text().splitlines()]
+
+
+def _composed(args: list[str], *extra: str):
+    """The config a recorded hds.run or hds.loop command composes (its sweep's values as
+    given; Hydra's own settings and the command-line flags left out)."""
+    from hds.config import compose
+
+    flags = {"-m", "--config-dir", str(CONF.parent.relative_to(CONF.parents[3]))}
+    overrides = [a for a in args[2:] if a not in flags and not a.startswith("hydra.")]
+    return compose([*overrides, *extra], config_dirs=[CONF.parent])
+
+
+def test_make_study_lab_runs_the_draws_it_is_given(tmp_path):
+    """`make study-lab LAB_DRAWS=...` runs each task on those draws, none other: the per-draw
+    sweep over all of them, the shared sweep trained on the first and evaluated on each other
+    one (eval_plants), and per draw a loop and a hybrid loop started from the shared sweep's
+    raw-simulator job; then the report. Every job's config composes (hds is judged on draws
+    that are not the study's)."""
+    calls = _make_study_lab(tmp_path, "cartpole_balance furuta_swingup", "7 3 12")
+    lab = tmp_path / "lab"
+    assert calls[-1] == ["experiments/lab_study/report.py", str(lab)]
+    for task, family in (("cartpole_balance", "lab_cartpole"), ("furuta_swingup", "lab_furuta")):
+        out = lab / task
+        ours = [c for c in calls if any(a.startswith(f"hydra.sweep.dir={out}/") for a in c)]
+        per_draw, shared = ours
+        assert "real.draw=7,3,12" in per_draw and f"hydra.sweep.dir={out}/per_draw" in per_draw
+        for method in _swept_methods(f"lab_study{_family(task)}_shared"):
+            cfg = _composed(shared, f"method={method}")
+            assert cfg.real.family == family and cfg.real.draw == 7, method
+            plants = {k: (v.family, v.draw) for k, v in cfg.eval_plants.items()}
+            assert plants == {"d3": (family, 3), "d12": (family, 12)}, method
+        loops = [c for c in calls if c[:2] == ["-m", "hds.loop"] and f"env={task}" in c]
+        assert len(loops) == 6
+        for k, pair in zip((7, 3, 12), (loops[0:2], loops[2:4], loops[4:6])):
+            for args, kind in zip(pair, ("none", "residual")):
+                cfg = _composed(args)
+                assert cfg.real.draw == k and cfg.dynamics.model == kind
+                assert cfg.loop.start_from == str(out / "shared" / "0")
+                assert f"hydra.run.dir={out}/{'loop' if kind == 'none' else 'hybrid'}/d{k}" in args
+
+
+def test_make_study_lab_s_own_draws_are_0_to_4_or_0_to_2_for_a_swing_up(tmp_path):
+    calls = _make_study_lab(tmp_path, "furuta_balance cartpole_swingup", "")
+    sweeps = [c for c in calls if c[:2] == ["-m", "hds.run"]]
+    assert [next(a for a in c if a.startswith("real.draw=")) for c in sweeps] == [
+        "real.draw=0,1,2,3,4",
+        "real.draw=0",
+        "real.draw=0,1,2",
+        "real.draw=0",
+    ]
+    assert sum("eval_plants.d4.draw=4" in c for c in sweeps) == 1  # the balance task's
+    loops = [next(a for a in c if a.startswith("real.draw=")) for c in calls if "hds.loop" in c]
+    assert loops == [f"real.draw={k}" for k in (0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 0, 0, 1, 1, 2, 2)]
