@@ -129,6 +129,52 @@ def test_residual_with_zero_correction_is_the_simulator(setup):
     np.testing.assert_allclose(model_rewards, sim_rewards, atol=1e-3, rtol=1e-4)
 
 
+DELAY = [EffectConfig("action_delay", "slide", {"steps": 2})]
+
+
+def test_a_residual_model_carries_its_simulator_s_delay_from_step_to_step(setup):
+    """On a simulator with a delay (and friction), the residual model with zero correction is
+    still that simulator along a whole trajectory: the delay's buffer is in the model's state
+    (restarted at rest each step, every delayed control would be 0)."""
+    from hds.algo.rollout import trajectory
+
+    cfg, *_ = setup
+    env = make_env(cfg.env, effects=DELAY + FRICTION)
+    model = dynamics.skeleton("residual", env, [16], 1)
+    assert model.delays == ((0, 2),) and model.history == 2
+    key = jax.random.PRNGKey(5)
+    actions = jax.random.uniform(key, (20, 1), minval=-1.0, maxval=1.0)
+    sim_states, _ = jax.jit(lambda a: trajectory(env, env.params, env.task, env.reset(key), a))(
+        actions
+    )
+    model_states, _ = jax.jit(lambda a: trajectory(model, None, env.task, model.reset(key), a))(
+        actions
+    )
+    np.testing.assert_allclose(model_states, sim_states, atol=2e-4, rtol=1e-4)
+    # a step after rest applies nothing yet: the cart is where friction and gravity leave it
+    assert model.applied_actions(np.ones((1, 3, 1)))[0, :, 0].tolist() == [0.0, 0.0, 1.0]
+
+
+def test_the_simulator_s_k_step_error_on_its_own_delayed_episodes_is_nil(setup):
+    """hds.dynamics.evaluate starts each window's delay buffer from the controls recorded
+    before it: on episodes of the simulator itself, its k-step error is its float error only,
+    and the model's (zero correction) the same."""
+    from hds.real.brax_plant import BraxPlant
+
+    cfg, *_ = setup
+    env = make_env(cfg.env, effects=DELAY)
+    plant = BraxPlant(make_env(cfg.env, effects=DELAY, sharpness=None))
+    data = dynamics.collect_data(
+        replace(cfg.dynamics, episodes=4), env, plant, jax.random.PRNGKey(2)
+    )
+    model = dynamics.skeleton("residual", env, [16], 1)
+    errors = dynamics.evaluate(model, data.obs, data.actions, KS, env)
+    for k in KS:
+        assert errors[str(k)]["simulator"] < 1e-3, (k, errors[str(k)])
+        assert errors[str(k)]["model"] < 1e-3, (k, errors[str(k)])
+        assert errors[str(k)]["baseline"] > 0.01, (k, errors[str(k)])  # the data do move
+
+
 def test_ensemble_disagrees_more_off_its_data(setup, fitted):
     *_, test = setup
     model, report = fitted("ensemble")
@@ -356,6 +402,22 @@ def test_branched_model_rollouts_start_from_states_the_used_simulator_rollouts_v
     assert len(set(step)) == steps
     fewer = np.asarray(branch_starts(visited, n_used, 40, key))
     np.testing.assert_array_equal(fewer, starts[:40])
+
+
+def test_branched_starts_give_a_delayed_model_the_controls_commanded_before_them():
+    from hds.algo.pods import branch_starts
+
+    n, steps, history = 4, 6, 2
+    visited = jnp.arange(n * steps * 4, dtype=jnp.float32).reshape(n, steps, 4)
+    commanded = -1.0 - jnp.arange(n * steps, dtype=jnp.float32).reshape(n, steps, 1)
+    key = jax.random.PRNGKey(3)
+    starts, before = branch_starts(visited, n, 60, key, commanded, history)
+    np.testing.assert_array_equal(starts, branch_starts(visited, n, 60, key))  # same draws
+    flat = np.asarray(visited).reshape(-1, 4)
+    for start, got in zip(np.asarray(starts), np.asarray(before), strict=True):
+        rollout, step = divmod(int(np.flatnonzero((flat == start).all(1))[0]), steps)
+        padded = np.concatenate([np.zeros((history, 1)), np.asarray(commanded[rollout])])
+        np.testing.assert_array_equal(got, padded[step : step + history])
 
 
 def test_the_builds_model_counts_in_numpy_are_the_traced_counts():

@@ -125,6 +125,7 @@ class BatchOutcome(NamedTuple):  # stages 1 and 2 of one batch of rollouts
     targets: Targets
     returns: jax.Array  # [B] each rollout's return
     visited: jax.Array  # [B, T, n_obs] the observations the rollouts visited
+    commanded: jax.Array  # [B, T, n_act] the controls they commanded there
 
 
 @dataclass(frozen=True)
@@ -158,16 +159,21 @@ def chunk_length(epochs: int, most: int) -> int:
     return max(d for d in range(1, min(epochs, most) + 1) if epochs % d == 0)
 
 
-def branch_starts(visited, n_used, count: int, key):
-    """`count` initial states for branched model rollouts, each drawn uniformly from the
-    states the first `n_used` (may be traced) of the rollouts `visited` ([n, T, n_obs]; a
-    model's state is its observation) reached. One key per draw, so a batch with more draws
-    begins with the same ones (a beta sweep)."""
+def branch_starts(visited, n_used, count: int, key, commanded=None, history: int = 0):
+    """`count` initial observations for branched model rollouts, each drawn uniformly from
+    the states the first `n_used` (may be traced) of the rollouts `visited` ([n, T, n_obs])
+    reached. One key per draw, so a batch with more draws begins with the same ones (a beta
+    sweep). With `history` > 0, also the `history` controls `commanded` ([n, T, n_act]) before
+    each, oldest first (zeros before the rollout's start): a model's delay buffers."""
 
     def draw(k):
         k_which, k_when = jax.random.split(k)
         which = jnp.floor(jax.random.uniform(k_which) * n_used).astype(jnp.int32)
-        return visited[which, jax.random.randint(k_when, (), 0, visited.shape[1])]
+        when = jax.random.randint(k_when, (), 0, visited.shape[1])
+        if not history:
+            return visited[which, when]
+        before = jnp.pad(commanded[which], ((history, 0), (0, 0)))
+        return visited[which, when], jax.lax.dynamic_slice_in_dim(before, when, history)
 
     return jax.vmap(draw)(jax.random.split(key, count))
 
@@ -210,10 +216,19 @@ def make_train(
             params = ramp_effects(params, env.sim.effects.sites, share)
         return stages.batch(env, params, split.n_sim, state, hparams, key, randomize is not None)
 
-    def on_model(state, hparams, visited, n_used, key) -> BatchOutcome:
+    def on_model(state, hparams, sim: BatchOutcome, n_used, key) -> BatchOutcome:
         starts = None  # whole rollouts from the task's initial states, or branches:
         if split.branched:
-            starts = branch_starts(visited, n_used, split.n_model, jax.random.fold_in(key, 1))
+            history = getattr(model, "history", 0)  # a model with delays: their buffers too
+            drawn = branch_starts(
+                sim.visited,
+                n_used,
+                split.n_model,
+                jax.random.fold_in(key, 1),
+                sim.commanded,
+                history,
+            )
+            starts = jax.vmap(model.start)(*drawn) if history else drawn
         return stages.batch(model, None, split.n_model, state, hparams, key, False, starts)
 
     def epoch(state: TrainState, hparams):
@@ -224,7 +239,7 @@ def make_train(
         used = split.used(hparams["beta"] * point.share)
         outs = [on_simulator(state, hparams, point.share, sim_key)]
         if split.n_model:
-            outs.append(on_model(state, hparams, outs[0].visited, used.n_sim, model_key))
+            outs.append(on_model(state, hparams, outs[0], used.n_sim, model_key))
         obs, targets, weights = split.regression_rows(outs, used, point.counted)
         params, opt_state, loss = stages.regress(
             state.policy, state.opt_state, obs, targets, regress_key, weights=weights
@@ -407,7 +422,7 @@ class _Stages:
             drawn,
             episodes,
         )
-        return BatchOutcome(targets, got.rewards.sum(-1), got.obs)
+        return BatchOutcome(targets, got.rewards.sum(-1), got.obs, got.actions)
 
     def collect(
         self,

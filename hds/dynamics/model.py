@@ -9,8 +9,12 @@ observation is the full state), so `observe` and `qqd` just read it. One step is
   ensemble  base = obs, K members trained independently; their spread is the disagreement
   residual  base = the simulator's step from (q, qd) = obs with the env's effect parameters;
             the network predicts what the simulator gets wrong. With a zero correction the
-            model is exactly the simulator (for effects without internal state: a delay buffer
-            or lag filter is restarted from rest at every step, as the state holds only q, qd).
+            model is exactly the simulator. Its action delays are the model's own: its state
+            is the observation and then their buffers (the last commanded controls, oldest
+            first), and the base and the network see the control the delay applies, so a
+            delay named by discovery carries over from step to step (fitted on the recorded
+            controls shifted as discovery shifts them: zeros before an episode). Other effects
+            with a state of their own (an actuator lag's filter) restart from rest each step.
 
 delta_k = y_mean + y_std * net_k((features(obs) ++ u - x_mean) / x_std): inputs and outputs are
 normalised with statistics of the training data. Hinge angles enter as (sin, cos) and their
@@ -29,6 +33,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hds.effects import effect_type
+from hds.effects.apply import EffectSet
 from hds.networks import features
 from hds.utils.pytree import pytree_dataclass
 
@@ -104,8 +110,11 @@ class DynamicsModel:
     dt: float
     ctrl_range: np.ndarray  # [n_act, 2]
     task: Any = None  # where reset draws initial states from (env.task)
-    sim: Any = None  # residual: the simulator whose step is corrected
+    sim: Any = None  # residual: the simulator whose step is corrected, less its action delays
     sim_params: Any = None  # residual: its effect parameters
+    # residual: the simulator's action delays, (action index, steps), which the model applies
+    # itself (`delayed`), their buffers in its state after the observation
+    delays: tuple[tuple[int, int], ...] = ()
 
     @property
     def nq(self) -> int:
@@ -118,6 +127,12 @@ class DynamicsModel:
     @property
     def n_act(self) -> int:
         return len(self.action_names)
+
+    @property
+    def history(self) -> int:
+        """How many past controls the state holds (the longest delay; 0: the state is the
+        observation)."""
+        return max((steps for _, steps in self.delays), default=0)
 
     @property
     def members(self) -> int:
@@ -161,6 +176,42 @@ class DynamicsModel:
         (0 for a single member). Large where the data did not pin the model down."""
         return jnp.mean(jnp.std(self.normalized_deltas(obs, u), axis=0))
 
+    # -- action delays -------------------------------------------------------------------------
+
+    def delayed(self, buffer, u):
+        """(the control applied when `u` is commanded, the buffer after it): each delayed
+        control is its buffer's oldest, and `u`'s joins the buffer, as the simulator's delay."""
+        applied, kept, at = u, [], 0
+        for index, steps in self.delays:
+            oldest, rest = buffer[at], buffer[at + 1 : at + steps]
+            applied = applied.at[index].set(oldest)
+            kept.append(jnp.concatenate([rest, u[index : index + 1]]))
+            at += steps
+        return applied, jnp.concatenate(kept)
+
+    def applied_actions(self, actions: np.ndarray) -> np.ndarray:
+        """[E, T, n_act] the controls applied when `actions` were commanded from the start of
+        each episode: every delayed control `steps` later, zeros before (a buffer at rest, as
+        the simulator's and the plant's start; discovery shifts the data the same way)."""
+        if not self.delays:
+            return actions
+        out = np.array(actions, copy=True)
+        for index, steps in self.delays:
+            out[:, :steps, index] = 0.0
+            out[:, steps:, index] = actions[:, :-steps, index]
+        return out
+
+    def start(self, obs, previous=None):
+        """The model's state at observation `obs`, its delays' buffers at rest, or holding
+        `previous` ([history, n_act]: the controls commanded before it, oldest first)."""
+        if not self.delays:
+            return obs
+        buffers = [
+            jnp.zeros(steps, obs.dtype) if previous is None else previous[-steps:, index]
+            for index, steps in self.delays
+        ]
+        return jnp.concatenate([obs, *buffers]).astype(obs.dtype)
+
     # -- the engine protocol ------------------------------------------------------------------
 
     def reset(self, key):
@@ -170,16 +221,19 @@ class DynamicsModel:
                 "with an env (hds.dynamics.load(path, env))"
             )
         q, qd = self.task.initial(key)
-        return jnp.concatenate([q, qd]).astype(jnp.float32)
+        return self.start(jnp.concatenate([q, qd]).astype(jnp.float32))
 
     def step(self, state, u, params=None):
-        return self.predict(state, u)
+        if not self.delays:
+            return self.predict(state, u)
+        applied, buffer = self.delayed(state[self.n_obs :], u)
+        return jnp.concatenate([self.predict(state[: self.n_obs], applied), buffer])
 
     def observe(self, state, params=None):
-        return state
+        return state[: self.n_obs] if self.delays else state
 
     def qqd(self, state):
-        return state[: self.nq], state[self.nq :]
+        return state[: self.nq], state[self.nq : self.n_obs]
 
 
 def make_net(kind: str, hidden: Sequence[int], n_obs: int) -> MLP:
@@ -203,6 +257,7 @@ def skeleton(
     if kind not in KINDS:
         raise ValueError(f"unknown dynamics model '{kind}'; choose one of {list(KINDS)}")
     sim = env.sim
+    base, base_params, delays = _base(env) if kind == "residual" else (None, None, ())
     net = make_net(kind, hidden, sim.n_obs)
     n_in = n_inputs(sim.angular, sim.n_obs, sim.n_act)
     if params is None:
@@ -218,9 +273,25 @@ def skeleton(
         dt=float(sim.dt),
         ctrl_range=np.asarray(sim.ctrl_range, dtype=np.float32),
         task=env.task,
-        sim=sim if kind == "residual" else None,
-        sim_params=env.params if kind == "residual" else None,
+        sim=base,
+        sim_params=base_params,
+        delays=delays,
     )
+
+
+def _base(env):
+    """(simulator, its effect parameters, action delays) of a residual model on `env`: env's
+    simulator less its action delays (effects that shift actions), which the model applies
+    itself, keeping their buffers in its state (a base step starts from rest)."""
+    sim, params = env.sim, tuple(env.params)
+    sites = sim.effects.sites
+    shifts = [effect_type(s.name).shifts_actions for s in sites]
+    if not any(shifts):
+        return sim, params, ()
+    delays = tuple((s.index, s.static("steps")) for s, shifted in zip(sites, shifts) if shifted)
+    kept = [i for i, shifted in enumerate(shifts) if not shifted]
+    base = replace(sim, effects=EffectSet(tuple(sites[i] for i in kept)))
+    return base, tuple(params[i] for i in kept), tuple(d for d in delays if d[1] > 0)
 
 
 _ZERO: dict = {}

@@ -208,6 +208,7 @@ def fit(
     members = int(cfg.ensemble_size) if cfg.model == "ensemble" else 1
     model = skeleton(cfg.model, env, cfg.hidden, members)
     inputs, base = jax.jit(jax.vmap(model.inputs)), jax.jit(jax.vmap(model.base))
+    commanded, actions = actions, model.applied_actions(actions)  # what each step applied
 
     def prepare(episodes):
         o, u, o2 = _transitions(obs[episodes], actions[episodes])
@@ -265,7 +266,7 @@ def fit(
         o, u, _ = _transitions(obs[val_ep], actions[val_ep])
         report["disagreement"] = _num(np.mean(np.asarray(spread(o, u))))
     report["multistep"] = evaluate(
-        model, obs[val_ep], actions[val_ep], cfg.eval_steps, env if compare_simulator else None
+        model, obs[val_ep], commanded[val_ep], cfg.eval_steps, env if compare_simulator else None
     )
     report["eval_s"] = round(time.perf_counter() - start_time - fit_s, 2)
     return model, report
@@ -277,11 +278,15 @@ def evaluate(model: DynamicsModel, obs, actions, ks, env=None) -> dict:
     the gap it closes): {k: {"model": x, "baseline": x, ["simulator": x,] "model_rmse":
     {name: x}, ...}} (None where a prediction was not finite)."""
     obs, actions = as_arrays(obs, actions)
-    args = (obs, actions, ks, model.angular, model.obs_names)
-    steps = {"model": model.predict, "baseline": constant_velocity(model.dt, model.nq)}
+    # from each measured state a step applies what was applied there (a delayed control from
+    # before the window: `applied_actions`), so a delay's buffer is exact in every window
+    steps = {"model": (model.predict, model.applied_actions(actions))}
+    steps["baseline"] = (constant_velocity(model.dt, model.nq), actions)
     if env is not None:
-        steps["simulator"] = zero_residual(env).predict
-    errors = {name: multistep_errors(step, *args) for name, step in steps.items()}
+        simulator = zero_residual(env)
+        steps["simulator"] = (simulator.predict, simulator.applied_actions(actions))
+    rest = (ks, model.angular, model.obs_names)
+    errors = {name: multistep_errors(step, obs, u, *rest) for name, (step, u) in steps.items()}
     out = {}
     for k in errors["model"]:
         row = {name: _num(e[k]["nrmse"]) for name, e in errors.items()}
