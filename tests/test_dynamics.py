@@ -420,6 +420,40 @@ def test_branched_starts_give_a_delayed_model_the_controls_commanded_before_them
         np.testing.assert_array_equal(got, padded[step : step + history])
 
 
+def test_a_branch_through_the_delayed_simulator_s_model_continues_the_simulator_s_rollout(setup):
+    """A branched rollout starts where a simulator rollout was, its delay buffer holding the
+    controls commanded before (branch_starts, DynamicsModel.start): through the residual model
+    with zero correction it goes on as the simulator's rollout did; the trainer runs on it."""
+    from hds.algo.pods import branch_starts, make_train_from_config
+    from hds.algo.rollout import trajectory
+
+    cfg, *_ = setup
+    env = make_env(cfg.env, effects=DELAY)
+    model = dynamics.skeleton("residual", env, [16], 1)
+    key = jax.random.PRNGKey(7)
+    commanded = jax.random.uniform(key, (3, 12, 1), minval=-1.0, maxval=1.0)
+
+    def visited(k, actions):  # the observations before each step, as a policy rollout's
+        start = env.reset(k)
+        states = trajectory(env, env.params, env.task, start, actions)[0]
+        return jnp.concatenate([env.observe(start, env.params)[None], states[:-1]])
+
+    obs = jax.jit(jax.vmap(visited))(jax.random.split(key, 3), commanded)
+    starts, before = branch_starts(obs, 3, 8, key, commanded, model.history)
+    flat = np.asarray(obs).reshape(-1, obs.shape[-1])
+    for start, previous in zip(starts, before, strict=True):
+        which, when = divmod(int(np.flatnonzero((flat == np.asarray(start)).all(1))[0]), 12)
+        if when > 8:
+            continue
+        state = model.start(start, previous)
+        went = trajectory(model, None, env.task, state, commanded[which, when : when + 3])[0]
+        np.testing.assert_allclose(went, obs[which, when + 1 : when + 4], atol=2e-4, rtol=1e-4)
+    branched = replace(cfg, dynamics=replace(cfg.dynamics, branch=5))
+    trainer = make_train_from_config(branched, env, model)
+    _, metrics = jax.jit(trainer.train)(key, trainer.default_hparams)
+    assert np.all(np.isfinite(np.asarray(metrics["loss"])))
+
+
 def test_the_builds_model_counts_in_numpy_are_the_traced_counts():
     """Split.of counts the model's rollouts in numpy (no eager jax op at build time); the
     traced epoch counts them in jax: the same float32 rounding (half to even) for every share."""
