@@ -1252,3 +1252,58 @@ def test_two_compensations_of_one_mismatch_are_both_refused():
     chain[-1] = _state([MASS, FRICTION], 100.0)
     kept = _refuse_law_mismatch(_Refits(misfits), chain, [])
     assert [s.keys for s in kept] == [set(), {"coulomb_friction@slider"}]
+
+
+class _HeldOut:
+    """A stand-in for selection's fitter in `_by_contribution`: each set of effects, refitted,
+    predicts the held-out episodes with the given error."""
+
+    def __init__(self, errors: dict):
+        self.errors = errors
+
+    def sets(self, _, sets):
+        from hds.discover.explain import State
+
+        zero = np.zeros(1, np.int32)
+        return [
+            State(s, np.zeros(3), zero, self.errors[frozenset(c.key for c in s)], 0.1) for s in sets
+        ]
+
+
+def test_a_strong_effect_after_a_weak_one_is_not_cut_with_it():
+    """Furuta draw 1's third loop round: a lag stood in for the delay in the first round and
+    was refused once the delay came in, leaving the chain mass, friction, delay. In that order
+    the friction removes less held-out error than the structured remainder (it adds nothing
+    until the delay is in), and the cut there refused the delay, 80% of the error, as law
+    mismatch with it. In the order of what each adds beside the others (delay, mass,
+    friction) the cut takes the friction alone. A chain already in that order is unchanged."""
+    from hds.discover.explain import Selection, _by_contribution
+    from hds.discover.workflow import _cut, explained_shares
+
+    mass = Candidate("mass_scale", "pendulum", (0,), ("scale",))
+    friction = Candidate("coulomb_friction", "arm", (1,), ("force",))
+    delay = Candidate("action_delay", "motor", (), (), actuator=0, steps=1)
+    mse = {  # of the base's held-out MSE: the round's shares 14.6%, -2.3%, 79.8%
+        frozenset(): 1.0,
+        frozenset({mass.key}): 0.854,
+        frozenset({mass.key, friction.key}): 0.877,
+        frozenset({friction.key, delay.key}): 0.2,
+        frozenset({mass.key, delay.key}): 0.085,
+        frozenset({delay.key}): 0.25,
+        frozenset({mass.key, friction.key, delay.key}): 0.079,
+    }
+    fit = _HeldOut({k: float(np.sqrt(v)) for k, v in mse.items()})
+    chain = fit.sets(None, [[], [mass], [mass, friction], [mass, friction, delay]])
+    selection = Selection(chain, [], "stopped")
+    shares = explained_shares(selection)
+    structured = 0.014  # of the base's held-out MSE: what the remainder's structure holds
+    assert _cut(shares, structured) == 1 and shares[2] > 0.5  # the delay cut with the friction
+    ordered = _by_contribution(fit, selection)
+    assert [s.selected for s in ordered.states] == [
+        [],
+        [delay],
+        [delay, mass],
+        [delay, mass, friction],
+    ]
+    assert _cut(explained_shares(ordered), structured) == 2  # the delay and the mass named
+    assert _by_contribution(fit, ordered) is ordered

@@ -19,6 +19,7 @@ from hds.discover.data import Data, prepare
 from hds.discover.explain import (
     Selection,
     State,
+    by_contribution,
     correlations,
     delay_range,
     forward_selection,
@@ -324,7 +325,18 @@ def discover(
     remainder = locate(data, model.sim, full["identification"][0], cfg.bins)
     shares = explained_shares(selection)
     structured = shares[-1] * structure(remainder)
-    mismatch = next((i for i, s in enumerate(shares[:-1]) if s < structured), len(shares) - 1)
+    mismatch = _cut(shares, structured)
+    if any(s >= structured for s in shares[mismatch + 1 : -1]):
+        # an effect below the structured remainder before one above it: the chain in the
+        # order of what each adds beside the others, so the cut takes only the weak ones
+        selection = by_contribution(
+            engine, ident, data.arrays("heldout"), cfg, selection, estimate, floor, carried
+        )
+        full = compare(engine, data, selection.final.theta, selection.final.delay)
+        remainder = locate(data, model.sim, full["identification"][0], cfg.bins)
+        shares = explained_shares(selection)
+        structured = shares[-1] * structure(remainder)
+        mismatch = _cut(shares, structured)
     named_count = min(mismatch, _separable_count(model, selection.final, selection.shown))
     final = selection.states[named_count]
     after = (
@@ -558,6 +570,13 @@ def structure(loc: Location) -> float:
     for row in loc.table:
         best[row["variable"]] = max(best.get(row["variable"], 0.0), row["eta2"])
     return float(sum(s * best.get(v, 0.0) for v, s in zip(loc.variables, loc.share)))
+
+
+def _cut(shares: list[float], structured: float) -> int:
+    """Where the chain's named effects end: at the first whose share (`explained_shares`) is
+    below the structured remainder (it and those after it compensate the named laws'
+    mismatch), else after the last."""
+    return next((i for i, s in enumerate(shares[:-1]) if s < structured), len(shares) - 1)
 
 
 def explained_shares(selection: Selection) -> list[float]:
