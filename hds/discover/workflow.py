@@ -318,25 +318,25 @@ def discover(
         selection = judge_path(
             engine, ident, data.arrays("heldout"), cfg, chosen, estimate, floor, carried
         )
+
     # What the selected effects leave: if a feature still explains much of it, the gap has a
     # structure no effect of the library has, and an effect that explains less than that
     # structured remainder is a compensation for it, not a finding: it stays tentative.
-    full = compare(engine, data, selection.final.theta, selection.final.delay)
-    remainder = locate(data, model.sim, full["identification"][0], cfg.bins)
-    shares = explained_shares(selection)
-    structured = shares[-1] * structure(remainder)
-    mismatch = _cut(shares, structured)
+    def judged(selection):
+        full = compare(engine, data, selection.final.theta, selection.final.delay)
+        remainder = locate(data, model.sim, full["identification"][0], cfg.bins)
+        shares = explained_shares(selection)
+        structured = shares[-1] * structure(remainder)
+        return full, remainder, shares, structured, _cut(shares, structured)
+
+    full, remainder, shares, structured, mismatch = judged(selection)
     if any(s >= structured for s in shares[mismatch + 1 : -1]):
         # an effect below the structured remainder before one above it: the chain in the
         # order of what each adds beside the others, so the cut takes only the weak ones
         selection = by_contribution(
             engine, ident, data.arrays("heldout"), cfg, selection, estimate, floor, carried
         )
-        full = compare(engine, data, selection.final.theta, selection.final.delay)
-        remainder = locate(data, model.sim, full["identification"][0], cfg.bins)
-        shares = explained_shares(selection)
-        structured = shares[-1] * structure(remainder)
-        mismatch = _cut(shares, structured)
+        full, remainder, shares, structured, mismatch = judged(selection)
     named_count = min(mismatch, _separable_count(model, selection.final, selection.shown))
     final = selection.states[named_count]
     after = (
