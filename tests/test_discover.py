@@ -1254,7 +1254,7 @@ def test_two_compensations_of_one_mismatch_are_both_refused():
     assert [s.keys for s in kept] == [set(), {"coulomb_friction@slider"}]
 
 
-class _HeldOut:
+class _HeldOutErrors:
     """A stand-in for selection's fitter in `_by_contribution`: each set of effects, refitted,
     predicts the held-out episodes with the given error."""
 
@@ -1292,7 +1292,7 @@ def test_a_strong_effect_after_a_weak_one_is_not_cut_with_it():
         frozenset({delay.key}): 0.25,
         frozenset({mass.key, friction.key, delay.key}): 0.079,
     }
-    fit = _HeldOut({k: float(np.sqrt(v)) for k, v in mse.items()})
+    fit = _HeldOutErrors({k: float(np.sqrt(v)) for k, v in mse.items()})
     chain = fit.sets(None, [[], [mass], [mass, friction], [mass, friction, delay]])
     selection = Selection(chain, [], "stopped")
     shares = explained_shares(selection)
