@@ -112,9 +112,15 @@ class DynamicsModel:
     task: Any = None  # where reset draws initial states from (env.task)
     sim: Any = None  # residual: the simulator whose step is corrected, less its action delays
     sim_params: Any = None  # residual: its effect parameters
-    # residual: the simulator's action delays, (action index, steps), which the model applies
-    # itself (`delayed`), their buffers in its state after the observation
-    delays: tuple[tuple[int, int], ...] = ()
+    # residual: the simulator's action delays and their parameters, which the model applies
+    # itself (`delayed`: the effects' own law), their buffers in its state after the observation
+    delay_effects: EffectSet = EffectSet()
+    delay_params: tuple = ()
+
+    @property
+    def delays(self) -> tuple[tuple[int, int], ...]:
+        """(action index, steps) of each action delay the model applies."""
+        return tuple((s.index, s.static("steps")) for s in self.delay_effects.sites)
 
     @property
     def nq(self) -> int:
@@ -179,15 +185,12 @@ class DynamicsModel:
     # -- action delays -------------------------------------------------------------------------
 
     def delayed(self, buffer, u):
-        """(the control applied when `u` is commanded, the buffer after it): each delayed
-        control is its buffer's oldest, and `u`'s joins the buffer, as the simulator's delay."""
-        applied, kept, at = u, [], 0
-        for index, steps in self.delays:
-            oldest, rest = buffer[at], buffer[at + 1 : at + steps]
-            applied = applied.at[index].set(oldest)
-            kept.append(jnp.concatenate([rest, u[index : index + 1]]))
-            at += steps
-        return applied, jnp.concatenate(kept)
+        """(the control applied when `u` is commanded, the buffer after it), by the delays'
+        own law (`hds.effects.apply.EffectSet.command`) on the buffers the state holds."""
+        ends = np.cumsum([steps for _, steps in self.delays])[:-1]
+        state = dict(enumerate(jnp.split(buffer, ends)))
+        applied, state = self.delay_effects.command(self.delay_params, state, u, None)
+        return applied, jnp.concatenate([state[i] for i in range(len(self.delays))])
 
     def applied_actions(self, actions: np.ndarray) -> np.ndarray:
         """[E, T, n_act] the controls applied when `actions` were commanded from the start of
@@ -257,7 +260,9 @@ def skeleton(
     if kind not in KINDS:
         raise ValueError(f"unknown dynamics model '{kind}'; choose one of {list(KINDS)}")
     sim = env.sim
-    base, base_params, delays = _base(env) if kind == "residual" else (None, None, ())
+    base, base_params, delays, delay_params = (
+        _base(env) if kind == "residual" else (None, None, EffectSet(), ())
+    )
     net = make_net(kind, hidden, sim.n_obs)
     n_in = n_inputs(sim.angular, sim.n_obs, sim.n_act)
     if params is None:
@@ -275,23 +280,26 @@ def skeleton(
         task=env.task,
         sim=base,
         sim_params=base_params,
-        delays=delays,
+        delay_effects=delays,
+        delay_params=delay_params,
     )
 
 
 def _base(env):
-    """(simulator, its effect parameters, action delays) of a residual model on `env`: env's
-    simulator less its action delays (effects that shift actions), which the model applies
-    itself, keeping their buffers in its state (a base step starts from rest)."""
+    """(simulator, its effect parameters, action delays, theirs) of a residual model on
+    `env`: env's simulator less its action delays (effects that shift actions, of one step or
+    more), which the model applies itself, keeping their buffers in its state (a base step
+    starts from rest)."""
     sim, params = env.sim, tuple(env.params)
     sites = sim.effects.sites
     shifts = [effect_type(s.name).shifts_actions for s in sites]
     if not any(shifts):
-        return sim, params, ()
-    delays = tuple((s.index, s.static("steps")) for s, shifted in zip(sites, shifts) if shifted)
+        return sim, params, EffectSet(), ()
     kept = [i for i, shifted in enumerate(shifts) if not shifted]
+    delayed = [i for i, shifted in enumerate(shifts) if shifted and sites[i].static("steps") > 0]
     base = replace(sim, effects=EffectSet(tuple(sites[i] for i in kept)))
-    return base, tuple(params[i] for i in kept), tuple(d for d in delays if d[1] > 0)
+    delays = EffectSet(tuple(sites[i] for i in delayed))
+    return base, tuple(params[i] for i in kept), delays, tuple(params[i] for i in delayed)
 
 
 _ZERO: dict = {}
