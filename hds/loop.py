@@ -10,8 +10,9 @@ Each round reports the named effects with intervals, the real return (mean and 9
 the runs), the sim2real gap and the data used (episodes, and the plant time they cost: seconds
 of deployment and of excitation, hds.results.PlantTime), in <out>/rounds/<r>/round.json and a
 final table; the loop stops when the real return no longer rises beyond the rounds' intervals
-(`improved`). Every round is checkpointed: a killed loop started again on its directory resumes
-and ends with the numbers of an uninterrupted one.
+(`improved`), and leaves its last round's policies, or the round's before where the last made
+the real return worse beyond them (`result_round`). Every round is checkpointed: a killed loop
+started again on its directory resumes and ends with the numbers of an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -245,11 +246,32 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
         if r > 0 and not improved(rounds[-2], rounds[-1]):
             log.info("round %d: the real return no longer improves; the loop stops", r)
             break
-    atomic_write_json(out_dir / "loop.json", {"rounds": rounds, "plant_time": spent.to_json()})
+    result = result_round(rounds)
+    atomic_write_json(
+        out_dir / "loop.json",
+        {"rounds": rounds, "result_round": result, "plant_time": spent.to_json()},
+    )
     plots.save(plots.loop_rounds(rounds), out_dir / "plots" / "loop_rounds.png")
     if hooks.console:
         print_table([round_row(x) for x in rounds], title=f"{cfg.name}: the sim2real loop")
+        (real, lo, hi) = rounds[result]["real_return"]
+        print(
+            f"the loop's policy: round {result}'s (real return {real:.4g} [{lo:.4g}, {hi:.4g}]), "
+            f"in {out_dir / 'rounds' / str(result)}"
+        )
     return rounds
+
+
+def result_round(rounds: list[dict]) -> int:
+    """The round whose policies the loop leaves: its last, unless that round made the real
+    return worse beyond the rounds' intervals (`improved`, read backwards), then the one
+    before it. Only the last can be worse (the loop stops at the first round that does not
+    improve), and a fall within the intervals keeps the last round: choosing the better of two
+    on the evaluation that measured them would favour noise."""
+    last = len(rounds) - 1
+    if last > 0 and improved(rounds[last], rounds[last - 1]):
+        return last - 1
+    return last
 
 
 def plant_time(cfg: Config, data: Dataset) -> PlantTime:
@@ -400,7 +422,7 @@ def main(dcfg) -> float:
         cfg = validate(dcfg)  # every range check, before anything compiles
         check_planned(cfg, loop=True)  # its data past the limits: refused with the numbers
         rounds = run_loop(cfg, out_dir)
-    return float(rounds[-1]["real_return"][0])
+    return float(rounds[result_round(rounds)]["real_return"][0])
 
 
 if __name__ == "__main__":

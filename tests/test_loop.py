@@ -59,6 +59,7 @@ def test_the_loop_names_the_friction_and_shrinks_the_gap(uninterrupted):
     afresh.close()
     report = json.loads((out / "loop.json").read_text())
     assert [r["round"] for r in report["rounds"]] == [0, 1]
+    assert report["result_round"] == loop.result_round(rounds)
     assert (out / "rounds" / "1" / "discovery" / "report.md").is_file()
     assert (out / "plots" / "loop_rounds.png").read_bytes()[:4] == b"\x89PNG"
 
@@ -204,6 +205,21 @@ def test_the_report_lists_the_runs_whose_learned_model_was_not_used(tmp_path):
 )
 def test_the_loop_goes_on_while_the_real_return_rises_beyond_the_intervals(before, after, rose):
     assert loop.improved({"real_return": before}, {"real_return": after}) is rose
+
+
+@pytest.mark.parametrize(
+    "returns, kept",
+    [
+        ([[-11.6, -12.8, -10.5]], 0),  # round 0 alone
+        ([[-11.6, -12.8, -10.5], [-6.2, -6.5, -5.9]], 1),  # the last improved
+        ([[-11.6, -12.8, -10.5], [-1.3, -1.5, -1.1], [-1.4, -1.9, -0.9]], 2),  # within both
+        # a last round that fell beyond the intervals (a lost delay: -1.3 -> -51.6)
+        ([[-11.6, -12.8, -10.5], [-1.3, -1.5, -1.1], [-51.6, -80.0, -23.2]], 1),
+    ],
+)
+def test_the_loop_leaves_its_last_round_unless_that_round_made_it_worse(returns, kept):
+    rounds = [{"real_return": r} for r in returns]
+    assert loop.result_round(rounds) == kept
 
 
 def test_a_warm_started_round_ramps_its_effects_in_at_once():

@@ -24,6 +24,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from hds.gap import mean_ci
+from hds.loop import result_round
 from hds.real import lab
 from hds.results import PlantTime, Row, Summary
 from hds.utils.io import atomic_write_json, read_json
@@ -144,7 +145,7 @@ def gather(task_dir: Path) -> dict:
                 }
                 for x in rounds
             ]
-            last = rounds[-1]
+            last = rounds[result_round(rounds)]  # the round whose policies the loop leaves
             rows = [Row.from_json(r) for r in last["rows"]]
             put(
                 draw,
