@@ -205,3 +205,37 @@ def test_make_study_lab_s_own_draws_are_0_to_4_or_0_to_2_for_a_swing_up(tmp_path
     loops = [next(a for a in c if a.startswith("real.draw=")) for c in calls if "hds.loop" in c]
     draws = [f"real.draw={k}" for k in (0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 0, 0, 1, 1, 2, 2)]
     assert loops == draws  # a draw's pair side by side, the draws one after the other
+
+
+def _study_report():
+    """experiments/lab_study/report.py as a module (the study's script, not a package)."""
+    import importlib.util
+
+    path = CONF.parents[1] / "report.py"
+    spec = importlib.util.spec_from_file_location("lab_study_report", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_study_counts_a_hybrid_win_only_where_the_loop_left_room():
+    """A draw has room where the oracle beats the loop beyond both intervals; the hybrid's
+    win counts there. A loop at the oracle's level leaves none, whatever the hybrid does."""
+    report = _study_report()
+    oracle = [10.0, 10.2, 9.8]
+    data = {
+        0: {"oracle": {"costs": oracle}, "loop": {"costs": [14.0, 14.3, 13.7]},
+            "hybrid": {"costs": [10.1, 10.0, 10.2]}},  # room, and the hybrid takes it
+        1: {"oracle": {"costs": oracle}, "loop": {"costs": [14.0, 14.3, 13.7]},
+            "hybrid": {"costs": [14.1, 13.9, 14.0]}},  # room, not taken
+        2: {"oracle": {"costs": oracle}, "loop": {"costs": [10.1, 9.9, 10.0]},
+            "hybrid": {"costs": [9.0, 9.1, 8.9]}},  # no room: the loop is at the oracle's
+    }  # fmt: skip
+    lines = report.room_for_a_model(data)
+    assert "Draws with room: 2 of 3; the hybrid beats the loop on 1 of them." in lines[1]
+    rows = [line.split(" | ") for line in lines if line.startswith("| ") and "---" not in line]
+    assert [(r[2], r[4].rstrip(" |")) for r in rows[1:]] == [
+        ("yes", "yes"),
+        ("yes", "no"),
+        ("no", "yes"),
+    ]
