@@ -419,6 +419,18 @@ def section(results: list[dict], per_program: list[dict]) -> dict:
             "3.92-5.08 s against 3.98-4.66 s for XLA's default: none pays. Neither did tracing "
             "the open-loop rollout once for its gradient and its line search (a jitted "
             "function called twice: 1.69-1.91 s against 1.68-1.72 s for export's trace).",
+            "The analytic engine's step rematerialised (jax.checkpoint, as the tree engine's; "
+            "2026-11-28 18:32 UTC, load ~1.4, cold bench.worker train processes of the "
+            "reference configuration, 3 interleaved pairs on fresh caches): the chunk's XLA "
+            "compile 4.04-4.29 s against 4.96-5.06 s, the process 8.13-8.41 s against "
+            "8.78-9.52 s; a compiled chunk of 5 epochs ran in 0.092-0.119 s against "
+            "0.093-0.123 s (5 alternating processes each, median of 7 calls). The trained "
+            "numbers move in float32's last digits, which training amplifies: make run's "
+            "mean real returns -4.12, -4.63, -3.35, -3.31 (pods_cl, hds, corrected, oracle) "
+            "against -3.95, -4.76, -3.30, -3.28, each inside the other's 95% interval. The "
+            "rows above were measured before it (17:41 UTC); a rerun at 18:47 found this "
+            "host a quarter slower on both engines (tree 9.8 s against 7.6 s, the same code), "
+            "so its rows were not kept.",
         ],
         "data": results,
         "programs": per_program,

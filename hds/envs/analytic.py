@@ -356,8 +356,16 @@ def _limit_force(sys, q, qd, acc_free, mass_inv, h):
 
 
 def step(sys, state: State, act: jax.Array, *args, **kwargs) -> State:
-    """One MuJoCo-style Euler step of `sys.opt.timestep` under actuator inputs `act`."""
+    """One MuJoCo-style Euler step of `sys.opt.timestep` under actuator inputs `act`.
+
+    Rematerialised, as the tree engine's step: reverse mode recomputes the step from its
+    inputs instead of keeping its intermediates for every step of a rollout, and XLA compiles
+    the trainer's program in less time (bench/RESULTS.md, section "compile")."""
     del args, kwargs
+    return jax.checkpoint(lambda s, a: _euler_step(sys, s, a))(state, act)
+
+
+def _euler_step(sys, state: State, act: jax.Array) -> State:
     h = sys.opt.timestep
     q, qd = state.q, state.qd
     mass, bias = _dynamics(sys, q, qd)
