@@ -24,7 +24,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from hds.gap import mean_ci
-from hds.loop import result_round
+from hds.loop import improved, result_round
 from hds.real import lab
 from hds.results import PlantTime, Row, Summary
 from hds.utils.io import atomic_write_json, read_json
@@ -294,10 +294,10 @@ def tables(task: str, family: str, data: dict) -> tuple[str, dict]:
 
 
 def beats(a: list[float], b: list[float]) -> bool:
-    """Whether costs `a` are lower than `b` beyond their 95% intervals over seeds (as the loop
-    judges a round, `hds.loop.improved`): a's mean below b's interval, or b's above a's."""
-    (mean_a, _, high_a), (mean_b, low_b, _) = mean_ci(a), mean_ci(b)
-    return mean_a < low_b or mean_b > high_a
+    """Whether costs `a` are lower than `b` beyond their 95% intervals over seeds: the loop's
+    rule for a round that improved (`hds.loop.improved`), on the returns -b then -a."""
+    returns = lambda costs: {"real_return": mean_ci([-c for c in costs])}  # noqa: E731
+    return improved(returns(b), returns(a))
 
 
 def room_for_a_model(data: dict) -> list[str]:
