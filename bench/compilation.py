@@ -127,7 +127,9 @@ def programs(method: str, overrides: list[str]) -> dict:
             ],
             "cache": str(cache),
         }
-        result = run_worker("programs", spec)
+        # the program cache off: each program keeps its own name in jax's log (with it, the
+        # trainer's and the evaluation's are jax.export's `flat` and `call`)
+        result = run_worker("programs", spec, env={"HDS_PROGRAM_CACHE": "off"})
         return {
             "method": method,
             "overrides": overrides,
@@ -300,7 +302,8 @@ def section(results: list[dict], per_program: list[dict]) -> dict:
         },
         {
             "caption": "Seconds per program, each method its own process from an empty "
-            "cache: python -m hds.run +experiment=sim2real_friction method=M"
+            "cache and the program cache off: python -m hds.run +experiment=sim2real_friction "
+            "method=M"
             + "".join(f" {o}" for o in method_overrides)
             + " (5 seeds; every program jax traced, lowered and compiled, from its own "
             "log records; ops: the trainer chunk's StableHLO ops as lowered and HLO "
