@@ -36,7 +36,7 @@ CONFIG = "config.yaml"
 LOCK = ".lock"
 ACCEPTED = "accepted"  # in .hydra/: Hydra's files of the accepted configuration
 RESULTS = ("summary.json", "checkpoints", "dynamics", "discovery")  # what a run leaves behind
-IGNORED = ("logger", "resume_changed")  # keys that change no result
+IGNORED = ("logger", "resume_changed", "discover.threads")  # keys that change no result
 
 
 class RunDirectoryError(ValueError):
@@ -90,9 +90,9 @@ def claim(out_dir: str | Path, cfg: DictConfig, hydra_dir: str | Path | None = N
 
 def differences(before: DictConfig, after: DictConfig, ignored: tuple = ()) -> list[str]:
     """`key: old -> new` for every result-changing key whose value differs (resolved), those
-    under the top-level keys `ignored` aside. A setting this version of hds no longer has, or
-    one it added whose value is its default, is no difference: a run directory stays
-    resumable across versions."""
+    of IGNORED and `ignored` and those under them aside. A setting this version of hds no
+    longer has, or one it added whose value is its default, is no difference: a run
+    directory stays resumable across versions."""
     old, new = _flat(before), _flat(after)
     defaults = _flat(_schema_defaults())
 
@@ -106,8 +106,12 @@ def differences(before: DictConfig, after: DictConfig, ignored: tuple = ()) -> l
     return [
         f"{key}: {old.get(key, '(absent)')} -> {new[key]}"
         for key in sorted(old.keys() | new.keys())
-        if changed(key) and key.split(".")[0] not in (*IGNORED, *ignored)
+        if changed(key) and not _under(key, (*IGNORED, *ignored))
     ]
+
+
+def _under(key: str, prefixes: tuple) -> bool:
+    return any(key == p or key.startswith(p + ".") for p in prefixes)
 
 
 def _schema_defaults() -> DictConfig:

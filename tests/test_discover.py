@@ -697,6 +697,47 @@ def test_a_batched_fit_fits_only_the_rows_it_fills(spring_result):
     assert engine.errors(two[0][:1], delay[:1], ident) == pytest.approx(batch[:1], rel=1e-6)
 
 
+def test_fits_dealt_to_threads_give_the_numbers_of_one_call(spring_result):
+    """`workers` > 1 deals a call's rows to calls of the one compiled program run at once on
+    threads: every output, rows left empty included, is the single call's to the last bit
+    (each row's fit is the same computation on the same inputs)."""
+    from hds.discover.fit import deal_rows
+
+    engine, model = spring_result.engine, spring_result.engine.model
+    ident = spring_result.data.arrays("identification")
+    estimate = spring_result.initial_state == "estimated"
+    n_c = len(model.candidates)
+    theta0 = np.tile(model.nominal, (n_c, 1))
+    slots = -np.ones((n_c, 3), np.int32)
+    for row, cand in enumerate([c for c in model.candidates if c.slots][:3]):
+        slots[row, 0] = cand.slots[0]
+        theta0[row, cand.slots[0]] = model.start[cand.slots[0]]
+    delay = np.zeros((n_c, len(model.sim.action_names)), np.int32)
+    rows = np.zeros(n_c, bool)
+    rows[[0, 1, 2]] = True
+    masks = deal_rows(rows, 2)
+    assert len(masks) == 2 and np.array_equal(masks[0] | masks[1], rows)
+    assert not (masks[0] & masks[1]).any()
+    args = (theta0, slots, delay, ident, CFG.iterations, estimate, rows)
+    one = engine.fit(*args, states=True, workers=1)
+    dealt = engine.fit(*args, states=True, workers=2)
+    assert len(one) == len(dealt) == 8
+    for a, b in zip(one, dealt, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert np.isfinite(one[1][:3]).all() and np.isnan(one[1][3:]).all()
+
+
+def test_rows_are_dealt_in_turn_to_at_most_as_many_masks_as_rows():
+    from hds.discover.fit import deal_rows
+
+    active = np.array([True, False, True, True, False, True, True])
+    masks = deal_rows(active, 2)
+    assert [np.flatnonzero(m).tolist() for m in masks] == [[0, 3, 6], [2, 5]]
+    assert [np.flatnonzero(m).tolist() for m in deal_rows(active, 8)] == [[0], [2], [3], [5], [6]]
+    assert len(deal_rows(active, 1)) == 1 and np.array_equal(deal_rows(active, 1)[0], active)
+    assert len(deal_rows(np.zeros(4, bool), 2)) == 1
+
+
 def open_loop(env, obs0, actions) -> np.ndarray:
     """[E, T, n_obs] of the env's simulator from measured states, replaying measured actions."""
 

@@ -365,6 +365,9 @@ class DiscoverConfig:
     # could (h b / M, hds.discover.explain.scale_margin) and by at least this much
     min_scale_change: float = 0.0
     iterations: int = 30  # most Levenberg-Marquardt iterations per fit
+    # fits run at once on the CPU (threads; one compiled program): 0 = one per core this
+    # process may use. The numbers do not depend on it; lower it where processes share cores
+    threads: int = 0
     # initial state of each fitted window: measured (as recorded), estimated along with the
     # effects (multiple shooting: unbiased under measurement noise, slower), or auto:
     # estimated when the median over variables of the estimated measurement noise exceeds
@@ -416,6 +419,7 @@ class DiscoverConfig:
         _in_range("discover.min_improvement", self.min_improvement, 0.0)
         _in_range("discover.min_scale_change", self.min_scale_change, 0.0, 1.0)
         _in_range("discover.iterations", self.iterations, 1)
+        _in_range("discover.threads", self.threads, 0)
         if self.initial_state not in ("auto", "measured", "estimated"):
             raise ValueError(
                 f"discover.initial_state = {self.initial_state!r} is not allowed; "

@@ -24,7 +24,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import stats
 
-from hds.discover.fit import Engine, confidence_intervals, curvature_inverse
+from hds.discover.fit import Engine, confidence_intervals, curvature_inverse, fit_workers
 from hds.discover.model import Candidate
 from hds.effects.library import effect_type
 
@@ -884,6 +884,7 @@ class _Fitter:
     def __init__(self, engine, ident, heldout, cfg, estimate, sizes, sw, floor, carried=0.0):
         self.engine, self.ident, self.heldout, self.cfg = engine, ident, heldout, cfg
         self.estimate, self.sizes, self.sw = estimate, sizes, sw
+        self.workers = fit_workers(cfg.threads)
         obs, _, _, _, mask, _ = ident
         self.count = float(np.sum(np.asarray(mask))) * engine.horizon * obs.shape[-1]
         # the squared residual per entry that noise alone leaves: estimated initial states
@@ -912,6 +913,7 @@ class _Fitter:
             z0,
             True,
             hold,
+            self.workers,
         )
         # (only the rows fitted: the others' are never read)
         held = engine.errors(theta, delay, self.heldout, rows)

@@ -31,6 +31,8 @@ would move on that part alone, the law-mismatch part of the intervals.
 from __future__ import annotations
 
 import json
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, is_dataclass
 
 import jax
@@ -57,10 +59,47 @@ def row_mask(rows, n: int) -> np.ndarray:
     return np.arange(n) < (n if rows is None else rows)
 
 
+def fit_workers(threads: int = 0) -> int:
+    """How many of a call's fits run at once (`Engine.fit`'s `workers`): `threads`, or (0) one
+    per core this process may use where jax runs on the CPU, whose XLA runs each fit's loops on
+    one core; one on an accelerator, which runs one program at a time."""
+    if threads > 0:
+        return int(threads)
+    if jax.default_backend() != "cpu":
+        return 1
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def deal_rows(active: np.ndarray, workers: int) -> list[np.ndarray]:
+    """The active rows dealt out in turn into up to `workers` masks, none empty (one mask,
+    `active` itself, where there is no one to share with)."""
+    rows = np.flatnonzero(active)
+    n = min(int(workers), len(rows))
+    if n <= 1:
+        return [np.asarray(active, bool)]
+    masks = [np.zeros(len(active), bool) for _ in range(n)]
+    for w, mask in enumerate(masks):
+        mask[rows[w::n]] = True
+    return masks
+
+
+def _merge(masks: list[np.ndarray], outs: list[tuple]) -> tuple:
+    """Each output's rows from the call that computed them (`masks`, as `deal_rows` made)."""
+
+    def pick(mask, a, b):
+        return np.where(mask.reshape((-1,) + (1,) * (np.ndim(a) - 1)), a, b)
+
+    merged = outs[0]
+    for mask, out in zip(masks[1:], outs[1:], strict=True):
+        merged = tuple(pick(mask, b, a) for a, b in zip(merged, out, strict=True))
+    return merged
+
+
 class Engine:
     def __init__(self, model: Model, horizon: int):
         self.model, self.horizon = model, int(horizon)
         self.views = self._views()
+        self._compiled: set = set()  # the fit's signatures called once already (`fit`)
         self.predict = jax.jit(self._predict)
         self.losses = jax.jit(self._losses_each)
         # `iterations` only bounds the while loop, so it is traced: fits of any budget share a
@@ -412,29 +451,51 @@ class Engine:
         z0=None,
         states: bool = False,
         hold: bool = False,
+        workers: int = 1,
     ):
         """The fits of `_fit_each`; only the first `rows` rows are fitted (default: all; or
         a [C] mask of the rows to fit), each from the windows' initial states z0 [W, n_obs]
         (`estimate`, or `hold`: kept there; default: the measurements). Returns theta, loss,
         H, G, iterations, then H and G of each view (zeros with `hold`: a screen only ranks),
-        and with `states` the estimated initial states z [C, W, n_obs]."""
+        and with `states` the estimated initial states z [C, W, n_obs].
+        With `workers` > 1 (`fit_workers`), the rows are dealt out to that many calls of the
+        one compiled program, run at once on threads (XLA releases the GIL while it runs):
+        each row's fit is the same computation on the same inputs, so the same numbers to
+        the last digit. A signature's first call runs alone, so that it is compiled once."""
         active = row_mask(rows, len(theta0))
         if z0 is None:
             z0 = np.zeros((np.shape(data[2])[0], self.model.sim.n_obs))
-        theta, loss, h, g, its, z = self._fit(
+        args = [
             jnp.asarray(theta0, jnp.float32),
             jnp.asarray(slots, jnp.int32),
             jnp.asarray(delay, jnp.int32),
-            jnp.asarray(active),
+            None,
             data,
             jnp.asarray(iterations, jnp.int32),
             bool(estimate),
             jnp.asarray(z0, jnp.float32),
             bool(hold and not estimate),
+        ]
+
+        def call(mask):
+            args_ = [*args[:3], jnp.asarray(mask), *args[4:]]
+            return tuple(np.asarray(x) for x in self._fit(*args_))
+
+        signature = (
+            *(np.shape(a) for a in args[:3]),
+            tuple(np.shape(x) for x in jax.tree.leaves(data)),
+            np.shape(z0),
+            *args[6::2],
         )
-        h, g = np.asarray(h), np.asarray(g)
+        masks = deal_rows(active, workers if signature in self._compiled else 1)
+        if len(masks) == 1:
+            theta, loss, h, g, its, z = call(masks[0])
+        else:
+            with ThreadPoolExecutor(len(masks), thread_name_prefix="hds-fit") as pool:
+                theta, loss, h, g, its, z = _merge(masks, list(pool.map(call, masks)))
+        self._compiled.add(signature)
         out = (theta, loss, h[:, 0], g[:, 0], its, h[:, 1:], g[:, 1:])
-        return tuple(np.asarray(x) for x in out) + ((np.asarray(z),) if states else ())
+        return out + ((z,) if states else ())
 
     def errors(self, theta, delay, data, rows=None) -> np.ndarray:
         """[C] normalized RMSE of each row of theta [C, N] with its delays [C, n_act]; with
