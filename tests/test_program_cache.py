@@ -14,7 +14,7 @@ from hds.envs import analytic, make_env
 from hds.experiment import batch_hparams, compiled_programs, trainer_program_key
 from hds.utils import runtime
 from hds.utils.runtime import RunByRun, Unhashable, fingerprint, program_key
-from tests.conftest import TINY, make_config
+from tests.conftest import ROOT, TINY, make_config
 
 
 @pytest.fixture(scope="module")
@@ -582,3 +582,41 @@ def test_an_unknown_override_is_refused_before_composing_and_never_kept(tmp_path
     with pytest.raises(ValueError, match="has no key 'sedes'"):
         compose_counted(monkeypatch, "sedes=2")
     assert not list(tmp_path.glob("*.composed_config.pickle"))
+
+
+def test_a_second_process_reads_discovery_s_programs_and_gives_their_numbers(tmp_path):
+    """Discovery's programs come from the program cache in a second process: nothing traced
+    again, the same report to the last digit. Its fits call LAPACK (getrf and trsm, from
+    jnp.linalg.solve), whose kernels jaxlib binds only when it lowers a linear-algebra op; a
+    program read from the cache is never lowered, so they are bound first
+    (hds.utils.runtime.cached_lowering): unbound, the second process crashed."""
+    import subprocess
+
+    script = (
+        "import json; from bench.discovery import record; from hds.config import compose;"
+        "from hds.discover import discover; from hds.discover.config import DiscoverConfig;"
+        "from hds.envs import make_env; from hds.real.mujoco_plant import MujocoPlant;"
+        "from hds.utils.runtime import enable_compilation_cache; enable_compilation_cache();"
+        "cfg = compose(['env.backend=analytic']);"
+        "friction = {'name': 'coulomb_friction', 'target': 'slider', 'params': {'force': 20.0}};"
+        "data = record(MujocoPlant(cfg.env, [friction]), make_env(cfg.env).task, 6, 40, 0);"
+        "cfg_d = DiscoverConfig(effects=['coulomb_friction'], max_delay=0, stride=2,"
+        " initial_state='measured', horizon=5);"
+        "r = discover(data, cfg.env, cfg_d);"
+        "print(json.dumps([[str(e) for e in r.missing_effects], r.candidates], default=str))"
+    )
+    env = {**os.environ, "HDS_PROGRAM_CACHE": str(tmp_path)}
+
+    def run():
+        out = subprocess.run(
+            [sys.executable, "-c", script], env=env, cwd=ROOT, capture_output=True, text=True
+        )
+        assert out.returncode == 0, out.stderr[-2000:]
+        return out.stdout.strip().splitlines()[-1]
+
+    first = run()
+    entries = sorted(p.name for p in tmp_path.glob("*.jaxexport"))
+    assert any(b"lapack_" in (tmp_path / e).read_bytes() for e in entries)
+    assert run() == first
+    assert sorted(p.name for p in tmp_path.glob("*.jaxexport")) == entries  # all read
+    assert "coulomb_friction" in first

@@ -41,6 +41,7 @@ import numpy as np
 from scipy import stats
 
 from hds.discover.model import Model, build_model
+from hds.utils.runtime import cached_lowering, program_cache_dir, program_key
 
 TOLERANCE = 1e-4  # an accepted step that lowers the error by less than this share: converged
 ABS_TOLERANCE = 1e-9  # ... or by less than this (mean squared normalized error): converged
@@ -95,17 +96,61 @@ def _merge(masks: list[np.ndarray], outs: list[tuple]) -> tuple:
     return merged
 
 
+class _Programs:
+    """An engine's programs, each compiled once per signature (a name for the function and
+    its static settings, the arguments' shapes) and kept in hds's program cache where that is
+    on: a later process reads the lowered program instead of tracing it
+    (hds.utils.runtime.cached_lowering; its XLA compile comes from jax's persistent cache), as
+    it does the trainer's. Tracing and lowering discovery's programs was about 8 of the 16 s
+    of a second process's first discovery (experiments/discovery_speed)."""
+
+    def __init__(self, *parts):
+        self.parts, self.compiled = parts, {}
+
+    def __call__(self, name: str, fn, *args):
+        leaves, tree = jax.tree.flatten(args)
+        signature = (name, tree, tuple((np.shape(x), np.result_type(x).str) for x in leaves))
+        program = self.compiled.get(signature)
+        if program is None:
+            program = self.compiled[signature] = self._compile(name, fn, args)
+        return program(*args)
+
+    def _compile(self, name: str, fn, args):
+        directory = program_cache_dir()
+        key = program_key(*self.parts, name) if directory else None
+        if key:
+            cached = cached_lowering(fn, args, key, directory)
+            if cached is not None:
+                return cached.compile()
+        return jax.jit(fn).lower(*args).compile()
+
+
 class Engine:
     def __init__(self, model: Model, horizon: int):
         self.model, self.horizon = model, int(horizon)
         self.views = self._views()
         self._compiled: set = set()  # the fit's signatures called once already (`fit`)
-        self.predict = jax.jit(self._predict)
-        self.losses = jax.jit(self._losses_each)
+        self._programs = _Programs("discovery engine", model, self.horizon)
+
+    def predict(self, theta, delay, data):
+        return self._programs("predict", self._predict, theta, delay, data)
+
+    def losses(self, theta, delay, active, data):
+        return self._programs("losses", self._losses_each, theta, delay, active, data)
+
+    def _fit(self, theta0, slots, delay, active, data, iterations, estimate: bool, z0, hold):
         # `iterations` only bounds the while loop, so it is traced: fits of any budget share a
-        # program; `estimate` changes the residuals' shapes and stays static
-        self._fit = jax.jit(self._fit_each, static_argnums=(6, 8))
-        self._carried = jax.jit(self._carried_each)
+        # program; `estimate` changes the residuals' shapes and stays static, as does `hold`
+        def fit(theta0, slots, delay, active, data, iterations, z0):
+            return self._fit_each(
+                theta0, slots, delay, active, data, iterations, estimate, z0, hold
+            )
+
+        name = f"fit estimate={estimate} hold={hold}"
+        return self._programs(name, fit, theta0, slots, delay, active, data, iterations, z0)
+
+    def _carried(self, theta, delay, data, spread):
+        return self._programs("carried", self._carried_each, theta, delay, data, spread)
 
     def _fit_each(
         self, theta0, slots, delay, active, data, iterations, estimate: bool, z0, hold=False

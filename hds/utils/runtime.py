@@ -490,7 +490,10 @@ def cached_lowering(fn, args: tuple, key: str, directory: Path):
     exported = out_tree = None
     if path.is_file() and tree_path.is_file():
         try:
-            exported = export.deserialize(bytearray(path.read_bytes()))
+            blob = path.read_bytes()
+            if b"lapack_" in blob:  # calls jaxlib's CPU LAPACK kernels: bind them first
+                _bind_lapack()
+            exported = export.deserialize(bytearray(blob))
             out_tree = pickle.loads(tree_path.read_bytes())
         except Exception as err:  # noqa: BLE001 - an unreadable entry is traced again
             log.warning("program cache: %s unreadable (%s); tracing again", path.name, err)
@@ -508,6 +511,18 @@ def cached_lowering(fn, args: tuple, key: str, directory: Path):
         atomic_write_bytes(path, blob)
     lowered = jax.jit(exported.call).lower(*leaves)
     return _CachedLowered(lowered, out_tree)
+
+
+@functools.cache
+def _bind_lapack() -> None:
+    """Have jaxlib bind its CPU LAPACK kernels, as it does when it lowers a linear-algebra op
+    (here a 1 x 1 solve, lowered, not compiled). A program read from the cache is never
+    lowered from Python, so without this its LAPACK calls (jnp.linalg.solve's getrf and trsm:
+    discovery's fits) ran unbound in a process that had lowered none: a segmentation fault."""
+    import jax.numpy as jnp
+
+    one = np.ones((1, 1), np.float32)
+    jax.jit(jnp.linalg.solve).lower(one, one[0])
 
 
 def _name_of(x) -> str:
