@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import logging
 import time
 from collections.abc import Callable
@@ -236,8 +237,9 @@ def compiled_programs(cfg: Config, trainer: Trainer, hparams):
     keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray([r["seed"] for r in runs]))
     vmapped = runs_vmapped(cfg.vmap_runs, len(runs))
     if vmapped == 1:  # one run's program, whatever the batch: compiled once (RunByRun)
-        chunk = RunByRun(trainer.run_chunk, key=trainer_program_key(cfg, trainer.run_chunk))
-        init = RunByRun(trainer.init, key=trainer_program_key(cfg, trainer.init))
+        key = functools.partial(trainer_program_key, cfg)
+        chunk = RunByRun(trainer.run_chunk, key=key(trainer.run_chunk), threads=cfg.threads)
+        init = RunByRun(trainer.init, key=key(trainer.init), threads=cfg.threads)
         return init, chunk, keys, hparams
     if vmapped == len(runs):  # a loop over the runs cannot be split across devices
         keys, hparams = _shard((keys, hparams))

@@ -36,7 +36,8 @@ CONFIG = "config.yaml"
 LOCK = ".lock"
 ACCEPTED = "accepted"  # in .hydra/: Hydra's files of the accepted configuration
 RESULTS = ("summary.json", "checkpoints", "dynamics", "discovery")  # what a run leaves behind
-IGNORED = ("logger", "resume_changed", "discover.threads")  # keys that change no result
+# keys that change no result
+IGNORED = ("logger", "resume_changed", "threads", "discover.threads")
 
 
 class RunDirectoryError(ValueError):

@@ -277,7 +277,7 @@ def test_a_run_of_an_older_hds_is_not_another_configuration_for_its_default_sett
     assert differences(before, now) == ["gif: (absent) -> True"]
     now.gif, now.algo.epochs = False, 7
     assert differences(before, now) == ["algo.epochs: 100 -> 7"]
-    now.discover.threads = 1  # how many fits run at once: the same results
+    now.threads, now.discover.threads = 1, 1  # how many runs and fits at once: same results
     assert differences(before, now) == ["algo.epochs: 100 -> 7"]
 
 

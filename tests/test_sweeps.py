@@ -138,10 +138,11 @@ def test_runs_map_as_vmap_runs_says(setting, vmapped):
         np.testing.assert_allclose(out[1][i], alone[1], rtol=1e-6)
 
 
-def test_run_by_run_compiles_one_runs_program_for_every_batch():
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_run_by_run_compiles_one_runs_program_for_every_batch(threads):
     """A single CPU trains a batch run by run through one program of one run's shapes
-    (RunByRun): each run's numbers bit for bit the lax.map loop's, and a batch of any size
-    reuses the one compile."""
+    (RunByRun), the runs shared out to `threads` threads: each run's numbers bit for bit the
+    lax.map loop's, in the batch's order, and a batch of any size reuses the one compile."""
     from hds.utils.runtime import RunByRun, over_runs
 
     def fn(x, scale):  # a branch, as early stopping has
@@ -150,8 +151,9 @@ def test_run_by_run_compiles_one_runs_program_for_every_batch():
     x = jax.random.normal(jax.random.PRNGKey(0), (5, 3))
     scale = jax.numpy.arange(5.0)
     looped = jax.jit(over_runs(fn, 1, 5))(x, scale)
-    program = RunByRun(fn).lower(x, scale).compile()
-    for out in (program(x, scale), RunByRun(fn)(x, scale)):
+    program = RunByRun(fn, threads=threads).lower(x, scale).compile()
+    assert program.threads == threads
+    for out in (program(x, scale), RunByRun(fn, threads=threads)(x, scale)):
         for a, b in zip(out, looped):
             assert a.shape == b.shape
             np.testing.assert_array_equal(a, b)

@@ -365,8 +365,8 @@ class DiscoverConfig:
     # could (h b / M, hds.discover.explain.scale_margin) and by at least this much
     min_scale_change: float = 0.0
     iterations: int = 30  # most Levenberg-Marquardt iterations per fit
-    # fits run at once on the CPU (threads; one compiled program): 0 = one per core this
-    # process may use. The numbers do not depend on it; lower it where processes share cores
+    # fits run at once on threads, as the runs of a batch are (`threads` of the run): 0 = one
+    # per core this process may use on a CPU. The numbers do not depend on it
     threads: int = 0
     # initial state of each fitted window: measured (as recorded), estimated along with the
     # effects (multiple shooting: unbiased under measurement noise, slower), or auto:
@@ -563,6 +563,10 @@ class Config:
     # looping: null (auto) vmaps them all on GPUs and across devices, one at a time on a single
     # CPU (faster there, and a run's numbers do not depend on the runs beside it); 0: all
     vmap_runs: int | None = None
+    # runs of a batch trained at once on threads, each calling the one compiled program (a
+    # run's numbers do not depend on it): 0 = one per core this process may use on a CPU
+    # (XLA runs a run's loops on one core), one on an accelerator
+    threads: int = 0
     name: str = "default"
     # what the policy trains on: nominal (env as configured); corrected (env plus the effects
     # gap discovery names on data measured on the plant: the `discover` node); real (env plus
@@ -663,6 +667,7 @@ class Config:
                 f"horizon (env.task.horizon = {horizon}); give at most {horizon}, or 0 for the "
                 "whole horizon from the start"
             )
+        _in_range("threads", self.threads, 0)
         if self.vmap_runs is not None:
             _in_range("vmap_runs", self.vmap_runs, 0)
         _in_range("eval_episodes", self.eval_episodes, 1)

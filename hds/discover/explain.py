@@ -24,9 +24,10 @@ from typing import NamedTuple
 import numpy as np
 from scipy import stats
 
-from hds.discover.fit import Engine, confidence_intervals, curvature_inverse, fit_workers
+from hds.discover.fit import Engine, confidence_intervals, curvature_inverse
 from hds.discover.model import Candidate
 from hds.effects.library import effect_type
+from hds.utils.runtime import cpu_workers
 
 log = logging.getLogger("hds")
 
@@ -884,7 +885,7 @@ class _Fitter:
     def __init__(self, engine, ident, heldout, cfg, estimate, sizes, sw, floor, carried=0.0):
         self.engine, self.ident, self.heldout, self.cfg = engine, ident, heldout, cfg
         self.estimate, self.sizes, self.sw = estimate, sizes, sw
-        self.workers = fit_workers(cfg.threads)
+        self.workers = cpu_workers(cfg.threads)
         obs, _, _, _, mask, _ = ident
         self.count = float(np.sum(np.asarray(mask))) * engine.horizon * obs.shape[-1]
         # the squared residual per entry that noise alone leaves: estimated initial states

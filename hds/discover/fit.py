@@ -31,7 +31,6 @@ would move on that part alone, the law-mismatch part of the intervals.
 from __future__ import annotations
 
 import json
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, is_dataclass
 
@@ -58,17 +57,6 @@ def row_mask(rows, n: int) -> np.ndarray:
     if rows is not None and np.ndim(rows):
         return np.asarray(rows, bool)
     return np.arange(n) < (n if rows is None else rows)
-
-
-def fit_workers(threads: int = 0) -> int:
-    """How many of a call's fits run at once (`Engine.fit`'s `workers`): `threads`, or (0) one
-    per core this process may use where jax runs on the CPU, whose XLA runs each fit's loops on
-    one core; one on an accelerator, which runs one program at a time."""
-    if threads > 0:
-        return int(threads)
-    if jax.default_backend() != "cpu":
-        return 1
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def deal_rows(active: np.ndarray, workers: int) -> list[np.ndarray]:
@@ -503,10 +491,11 @@ class Engine:
         (`estimate`, or `hold`: kept there; default: the measurements). Returns theta, loss,
         H, G, iterations, then H and G of each view (zeros with `hold`: a screen only ranks),
         and with `states` the estimated initial states z [C, W, n_obs].
-        With `workers` > 1 (`fit_workers`), the rows are dealt out to that many calls of the
-        one compiled program, run at once on threads (XLA releases the GIL while it runs):
-        each row's fit is the same computation on the same inputs, so the same numbers to
-        the last digit. A signature's first call runs alone, so that it is compiled once."""
+        With `workers` > 1 (hds.utils.runtime.cpu_workers), the rows are dealt out to that
+        many calls of the one compiled program, run at once on threads (XLA releases the GIL
+        while it runs): each row's fit is the same computation on the same inputs, so the
+        same numbers to the last digit. A signature's first call runs alone, so that it is
+        compiled once."""
         active = row_mask(rows, len(theta0))
         if z0 is None:
             z0 = np.zeros((np.shape(data[2])[0], self.model.sim.n_obs))
