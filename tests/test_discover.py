@@ -673,21 +673,28 @@ def test_an_effect_outside_the_library_stays_unexplained(spring_result):
     assert any("-29" in w or "-30" in w for w in result.warnings)  # named in the warning
 
 
+def one_effect_rows(result, filled: int):
+    """A batch of discovery's shape whose first `filled` rows each add one candidate of the
+    library to the nominal model (from its start), the rest padding: the engine, the
+    identification data, whether states are estimated, theta0, slots and delays."""
+    engine, model = result.engine, result.engine.model
+    n_c = len(model.candidates)
+    theta0 = np.tile(model.nominal, (n_c, 1))
+    slots = -np.ones((n_c, 3), np.int32)
+    for row, cand in enumerate([c for c in model.candidates if c.slots][:filled]):
+        slots[row, 0] = cand.slots[0]
+        theta0[row, cand.slots[0]] = model.start[cand.slots[0]]
+    delay = np.zeros((n_c, len(model.sim.action_names)), np.int32)
+    ident = result.data.arrays("identification")
+    return engine, ident, result.initial_state == "estimated", theta0, slots, delay
+
+
 def test_a_batched_fit_fits_only_the_rows_it_fills(spring_result):
     """A fit call that fills fewer rows than the batch (the drop step's refits) skips the
     rest: they come back as given, loss NaN, no iteration, while the rows it fills fit as in
     a fuller call. One row's held-out error is its error within a batch (the same program,
     padded). Same shapes as discovery's own calls: nothing new compiles."""
-    engine, model = spring_result.engine, spring_result.engine.model
-    ident = spring_result.data.arrays("identification")
-    estimate = spring_result.initial_state == "estimated"
-    n_c = len(model.candidates)
-    theta0 = np.tile(model.nominal, (n_c, 1))
-    slots = -np.ones((n_c, 3), np.int32)
-    for row, cand in enumerate([c for c in model.candidates if c.slots][:2]):
-        slots[row, 0] = cand.slots[0]
-        theta0[row, cand.slots[0]] = model.start[cand.slots[0]]
-    delay = np.zeros((n_c, len(model.sim.action_names)), np.int32)
+    engine, ident, estimate, theta0, slots, delay = one_effect_rows(spring_result, 2)
     two = engine.fit(theta0, slots, delay, ident, CFG.iterations, estimate, rows=2)
     one = engine.fit(theta0, slots, delay, ident, CFG.iterations, estimate, rows=1)
     np.testing.assert_allclose(one[0][0], two[0][0], rtol=1e-6)
@@ -703,17 +710,8 @@ def test_fits_dealt_to_threads_give_the_numbers_of_one_call(spring_result):
     (each row's fit is the same computation on the same inputs)."""
     from hds.discover.fit import deal_rows
 
-    engine, model = spring_result.engine, spring_result.engine.model
-    ident = spring_result.data.arrays("identification")
-    estimate = spring_result.initial_state == "estimated"
-    n_c = len(model.candidates)
-    theta0 = np.tile(model.nominal, (n_c, 1))
-    slots = -np.ones((n_c, 3), np.int32)
-    for row, cand in enumerate([c for c in model.candidates if c.slots][:3]):
-        slots[row, 0] = cand.slots[0]
-        theta0[row, cand.slots[0]] = model.start[cand.slots[0]]
-    delay = np.zeros((n_c, len(model.sim.action_names)), np.int32)
-    rows = np.zeros(n_c, bool)
+    engine, ident, estimate, theta0, slots, delay = one_effect_rows(spring_result, 3)
+    rows = np.zeros(len(theta0), bool)
     rows[[0, 1, 2]] = True
     masks = deal_rows(rows, 2)
     assert len(masks) == 2 and np.array_equal(masks[0] | masks[1], rows)
