@@ -227,6 +227,9 @@ def trainer_program_key(cfg: Config, fn) -> str | None:
     keys that change no result (hds.rundir.IGNORED): the logger's W&B group names the sweep's
     directory, new in every `make run`, so with it no later run reused a program."""
     kept = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}
+    for dotted in (k for k in rundir.IGNORED if "." in k):  # a group's key: e.g. its threads
+        group, name = dotted.split(".", 1)
+        kept[group] = dataclasses.replace(kept[group], **{name: None})
     return program_key({k: v for k, v in kept.items() if k not in rundir.IGNORED}, fn)
 
 

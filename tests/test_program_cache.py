@@ -313,6 +313,8 @@ def test_the_trainer_key_ignores_the_logger_and_nothing_that_changes_a_result(
     assert key is not None
     grouped = make_config(*TINY, "logger.group=multiruns/another/2026-11-27_22-30-00")
     assert trainer_program_key(grouped, trainer.run_chunk) == key
+    threaded = make_config(*TINY, "threads=1", "discover.threads=1")
+    assert trainer_program_key(threaded, trainer.run_chunk) == key
     other = make_config(*TINY, "algo.learning_rate=2e-3")
     assert trainer_program_key(other, trainer.run_chunk) != key
     assert trainer_program_key(cfg, trainer.init) != key
