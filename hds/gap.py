@@ -14,7 +14,7 @@ from hds.algo.rollout import policy_rollout
 from hds.data import initial_states
 from hds.real import rollout
 from hds.results import Row
-from hds.utils.runtime import cached_lowering, program_cache_dir, program_key
+from hds.utils.runtime import CompiledPrograms, program_key
 
 
 class MeanCI(NamedTuple):
@@ -75,12 +75,11 @@ class Evaluator:
             return jax.vmap(one)(q0, qd0)
 
         self._batched = jax.vmap(sim_returns)  # over the batch of runs
-        self._sim = jax.jit(self._batched)
         # the program cache's key of the evaluation (its closure: the env, the policy, the
         # initial states): a later process of the configuration deserializes the program
         # instead of tracing the rollout (hds.utils.runtime.cached_lowering)
         self._key = program_key("evaluation", sim_returns)
-        self._programs: dict = {}  # by the arguments' shapes
+        self._programs = CompiledPrograms(self._key)  # by the arguments' shapes
         self._act = jax.jit(policy.apply)
 
     def sim_returns(self, params, effects=None) -> np.ndarray:
@@ -89,20 +88,7 @@ class Evaluator:
         if effects is None:
             n_runs = jax.tree.leaves(params)[0].shape[0]
             effects = jax.tree.map(lambda x: jnp.stack([x] * n_runs), self.env.params)
-        return np.asarray(self._program(params, effects)(params, effects))
-
-    def _program(self, params, effects):
-        """The compiled evaluation for these arguments' shapes: from the program cache where
-        it is on and the evaluation has a key, else jax.jit's."""
-        directory = program_cache_dir()
-        if self._key is None or directory is None:
-            return self._sim
-        leaves, tree = jax.tree.flatten((params, effects))
-        shapes = (str(tree), tuple((np.shape(x), str(np.result_type(x))) for x in leaves))
-        if shapes not in self._programs:
-            cached = cached_lowering(self._batched, (params, effects), self._key, directory)
-            self._programs[shapes] = self._sim if cached is None else cached.compile()
-        return self._programs[shapes]
+        return np.asarray(self._programs("sim_returns", self._batched, params, effects))
 
     def real_returns(self, params, plant=None) -> np.ndarray:
         """[n_runs, episodes] on the evaluation's plant(s), or on `plant` (one, or one per run)."""

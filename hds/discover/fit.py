@@ -40,7 +40,7 @@ import numpy as np
 from scipy import stats
 
 from hds.discover.model import Model, build_model
-from hds.utils.runtime import cached_lowering, program_cache_dir, program_key
+from hds.utils.runtime import CompiledPrograms, program_key
 
 TOLERANCE = 1e-4  # an accepted step that lowers the error by less than this share: converged
 ABS_TOLERANCE = 1e-9  # ... or by less than this (mean squared normalized error): converged
@@ -84,41 +84,13 @@ def _merge(masks: list[np.ndarray], outs: list[tuple]) -> tuple:
     return merged
 
 
-class _Programs:
-    """An engine's programs, each compiled once per signature (a name for the function and
-    its static settings, the arguments' shapes) and kept in hds's program cache where that is
-    on: a later process reads the lowered program instead of tracing it
-    (hds.utils.runtime.cached_lowering; its XLA compile comes from jax's persistent cache), as
-    it does the trainer's. Tracing and lowering discovery's programs was about 8 of the 16 s
-    of a second process's first discovery (experiments/discovery_speed)."""
-
-    def __init__(self, *parts):
-        self.parts, self.compiled = parts, {}
-
-    def __call__(self, name: str, fn, *args):
-        leaves, tree = jax.tree.flatten(args)
-        signature = (name, tree, tuple((np.shape(x), np.result_type(x).str) for x in leaves))
-        program = self.compiled.get(signature)
-        if program is None:
-            program = self.compiled[signature] = self._compile(name, fn, args)
-        return program(*args)
-
-    def _compile(self, name: str, fn, args):
-        directory = program_cache_dir()
-        key = program_key(*self.parts, name) if directory else None
-        if key:
-            cached = cached_lowering(fn, args, key, directory)
-            if cached is not None:
-                return cached.compile()
-        return jax.jit(fn).lower(*args).compile()
-
-
 class Engine:
     def __init__(self, model: Model, horizon: int):
         self.model, self.horizon = model, int(horizon)
         self.views = self._views()
-        self._compiled: set = set()  # the fit's signatures called once already (`fit`)
-        self._programs = _Programs("discovery engine", model, self.horizon)
+        # a later process reads them from the program cache: tracing and lowering them was
+        # about 8 of the 16 s of a second process's first discovery (experiments/discovery_speed)
+        self._programs = CompiledPrograms(program_key("discovery engine", model, self.horizon))
 
     def predict(self, theta, delay, data):
         return self._programs("predict", self._predict, theta, delay, data)
@@ -126,16 +98,17 @@ class Engine:
     def losses(self, theta, delay, active, data):
         return self._programs("losses", self._losses_each, theta, delay, active, data)
 
-    def _fit(self, theta0, slots, delay, active, data, iterations, estimate: bool, z0, hold):
-        # `iterations` only bounds the while loop, so it is traced: fits of any budget share a
-        # program; `estimate` changes the residuals' shapes and stays static, as does `hold`
+    def _fit_program(self, args: tuple, estimate: bool, hold: bool):
+        """The compiled fit for `args` (theta0, slots, delay, active, data, iterations, z0).
+        `iterations` only bounds the while loop, so it is traced: fits of any budget share a
+        program; `estimate` changes the residuals' shapes and stays static, as does `hold`."""
+
         def fit(theta0, slots, delay, active, data, iterations, z0):
             return self._fit_each(
                 theta0, slots, delay, active, data, iterations, estimate, z0, hold
             )
 
-        name = f"fit estimate={estimate} hold={hold}"
-        return self._programs(name, fit, theta0, slots, delay, active, data, iterations, z0)
+        return self._programs.get(f"fit estimate={estimate} hold={hold}", fit, *args)
 
     def _carried(self, theta, delay, data, spread):
         return self._programs("carried", self._carried_each, theta, delay, data, spread)
@@ -494,40 +467,31 @@ class Engine:
         With `workers` > 1 (hds.utils.runtime.cpu_workers), the rows are dealt out to that
         many calls of the one compiled program, run at once on threads (XLA releases the GIL
         while it runs): each row's fit is the same computation on the same inputs, so the
-        same numbers to the last digit. A signature's first call runs alone, so that it is
-        compiled once."""
+        same numbers to the last digit."""
         active = row_mask(rows, len(theta0))
         if z0 is None:
             z0 = np.zeros((np.shape(data[2])[0], self.model.sim.n_obs))
-        args = [
+        args = (
             jnp.asarray(theta0, jnp.float32),
             jnp.asarray(slots, jnp.int32),
             jnp.asarray(delay, jnp.int32),
-            None,
+            jnp.asarray(active),
             data,
             jnp.asarray(iterations, jnp.int32),
-            bool(estimate),
             jnp.asarray(z0, jnp.float32),
-            bool(hold and not estimate),
-        ]
+        )
+        # compiled here, once, before any thread calls it
+        program = self._fit_program(args, bool(estimate), bool(hold and not estimate))
 
         def call(mask):
-            args_ = [*args[:3], jnp.asarray(mask), *args[4:]]
-            return tuple(np.asarray(x) for x in self._fit(*args_))
+            return tuple(np.asarray(x) for x in program(*args[:3], jnp.asarray(mask), *args[4:]))
 
-        signature = (
-            *(np.shape(a) for a in args[:3]),
-            tuple(np.shape(x) for x in jax.tree.leaves(data)),
-            np.shape(z0),
-            *args[6::2],
-        )
-        masks = deal_rows(active, workers if signature in self._compiled else 1)
+        masks = deal_rows(active, workers)
         if len(masks) == 1:
             theta, loss, h, g, its, z = call(masks[0])
         else:
             with ThreadPoolExecutor(len(masks), thread_name_prefix="hds-fit") as pool:
                 theta, loss, h, g, its, z = _merge(masks, list(pool.map(call, masks)))
-        self._compiled.add(signature)
         out = (theta, loss, h[:, 0], g[:, 0], its, h[:, 1:], g[:, 1:])
         return out + ((z,) if states else ())
 

@@ -128,30 +128,24 @@ class RunByRun:
 
     def __init__(self, fn, compiled=None, key: str | None = None, threads: int = 0):
         self.fn, self.key, self.threads = fn, key, threads
-        self.program = compiled if compiled is not None else jax.jit(fn)
-        self._from_cache = compiled is None and key is not None
-        self._compiled = compiled is not None  # else jit compiles on the first run's call
+        self.program = compiled  # None: compiled (from the program cache) on the first call
 
     def __call__(self, *args):
         host = jax.tree.map(np.asarray, args)  # one run's slice is a view, not an eager op
-        if self._from_cache:  # called without lower(): the first call reads the program cache
-            self._from_cache = False
+        if self.program is None:  # called without lower(): compiled once, before any thread
             self.program = self.lower(*host).compile().program
-            self._compiled = True
         runs = jax.tree.leaves(host)[0].shape[0]
 
         def run(i):  # waits for its run: calls dispatched from one thread run one at a time
             return jax.block_until_ready(self.program(*jax.tree.map(lambda x: x[i], host)))
 
-        outs = [] if self._compiled else [run(0)]  # compiled once, before any thread calls it
-        self._compiled = True
-        workers = min(cpu_workers(self.threads), runs - len(outs))
+        workers = min(cpu_workers(self.threads), runs)
         if workers > 1:  # XLA runs a run's loops on one core: the runs share the cores
             pool = concurrent.futures.ThreadPoolExecutor(workers, thread_name_prefix="hds-run")
             with pool:
-                outs += pool.map(run, range(len(outs), runs))
+                outs = list(pool.map(run, range(runs)))
         else:
-            outs += [run(i) for i in range(len(outs), runs)]
+            outs = [run(i) for i in range(runs)]
         return jax.tree.map(lambda *xs: jax.device_put(np.stack(xs)), *outs)
 
     def lower(self, *args):
@@ -163,7 +157,7 @@ class RunByRun:
             cached = cached_lowering(self.fn, first, self.key, directory)
             if cached is not None:
                 return _LoweredRuns(self.fn, cached, self.threads)
-        return _LoweredRuns(self.fn, self.program.lower(*first), self.threads)
+        return _LoweredRuns(self.fn, jax.jit(self.fn).lower(*first), self.threads)
 
 
 def _first_run(x):
@@ -553,6 +547,36 @@ def _bind_lapack() -> None:
 
     one = np.ones((1, 1), np.float32)
     jax.jit(jnp.linalg.solve).lower(one, one[0])
+
+
+class CompiledPrograms:
+    """Compiled programs of one family (a trainer's evaluation, discovery's engine), one per
+    signature: a name for the function and its static settings, and the arguments' structure,
+    shapes and dtypes. Each is read from the program cache under `key` and its name where the
+    cache is on and the family has a key (`program_key`; a later process deserializes it
+    instead of tracing), else compiled by jax.jit. `get` compiles without calling, so that
+    several threads can then call one program compiled once."""
+
+    def __init__(self, key: str | None):
+        self.key, self.compiled = key, {}
+
+    def __call__(self, name: str, fn, *args):
+        return self.get(name, fn, *args)(*args)
+
+    def get(self, name: str, fn, *args):
+        leaves, tree = jax.tree.flatten(args)
+        signature = (name, tree, tuple((np.shape(x), np.result_type(x).str) for x in leaves))
+        if signature not in self.compiled:
+            self.compiled[signature] = self._compile(name, fn, args)
+        return self.compiled[signature]
+
+    def _compile(self, name: str, fn, args):
+        directory = program_cache_dir()
+        if self.key and directory:
+            cached = cached_lowering(fn, args, f"{self.key}:{name}", directory)
+            if cached is not None:
+                return cached.compile()
+        return jax.jit(fn).lower(*args).compile()
 
 
 def _name_of(x) -> str:
