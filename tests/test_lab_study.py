@@ -137,7 +137,11 @@ def _make_study_lab(tmp_path, tasks: str, draws: str) -> list[list[str]]:
 
     bin_dir, log = tmp_path / "bin", tmp_path / "calls"
     bin_dir.mkdir()
-    (bin_dir / "python").write_text('#!/bin/sh\nprintf "%s\\037" "$@" >> "$LOG"\necho >> "$LOG"\n')
+    # The loops run two at a time: a lock (mkdir is atomic) keeps each record on its own line.
+    (bin_dir / "python").write_text(
+        '#!/bin/sh\nuntil mkdir "$LOG.lock" 2>/dev/null; do sleep 0.01; done\n'
+        'printf "%s\\037" "$@" >> "$LOG"\necho >> "$LOG"\nrmdir "$LOG.lock"\n'
+    )
     (bin_dir / "python").chmod(0o755)
     root = CONF.parents[3]
     subprocess.run(
