@@ -438,6 +438,25 @@ def section(results: list[dict], per_program: list[dict]) -> dict:
             "(7.7-8.9). The host's speed drifts by a quarter within the hour, so the 8 s "
             "target is met on some runs and missed on others: over the 15 cold analytic "
             "processes it is not met reliably.",
+            "Where the chunk's XLA compile goes (2026-11-28 23:08 UTC, this host, idle; `perf "
+            "record -F 999 -g` of a process that lowers the reference chunk, analytic, and "
+            "compiles it; CPU s from the samples' call chains): 4.2 s wall, ~5.9 CPU s on the "
+            "two cores. LLVM compiling the kernels to machine code 3.4 (its optimisation "
+            "passes 1.6, instruction selection and emission 1.7), XLA's fusion emitters "
+            "(MLIR to LLVM IR, a kernel at a time) 1.3, the main thread's HLO passes 0.43 and "
+            "thunk emission 0.40, MLIR's dialect loading 0.47. The optimised program has 437 "
+            "fusion kernels and 377 copies: the cost is per kernel (~8 ms of LLVM each), so "
+            "only fewer kernels would cut it much. Tried on the same chunk, alternating "
+            "processes: jax_default_prng_impl=rbg and unsafe_rbg (one RNG op in place of "
+            "threefry's unrolled rounds; 8,034 and 8,682 HLO instructions against 7,446) "
+            "compiled in 4.22-4.52 and 3.67-3.68 s against 3.72-3.87 s (2 rounds), so the "
+            "random bits are not where the time goes (and they would change every trained "
+            "number); LLVM -O1 (xla_backend_optimization_level=1) in 3.56-3.95 s against "
+            "4.09-4.63 s (3 rounds), its 5-epoch chunk as fast (0.085-0.110 s against "
+            "0.099-0.104 s) but its numbers not the same to the last bit, -O0 in 2.50-2.65 s "
+            "with the chunk 4 times slower (0.41-0.44 s); xla_cpu_prefer_vector_width=128 "
+            "3.90 s against 4.00 s, numbers not the same. None is taken: -O1's ~0.5 s would "
+            "leave the cold process at the target's edge, with every trained number moved.",
         ],
         "data": results,
         "programs": per_program,
