@@ -117,6 +117,20 @@ def _batch(model, state: State, width: int):
     return theta0, slots, delay
 
 
+def _rival(model, fresh: list[int], decided, best: int) -> dict | None:
+    """The round's best fresh candidate of another effect than `best`'s (a delay's other
+    lengths are the same effect): {name, target, heldout_error}, or None where none was
+    fitted. Where it comes close, the data barely tell the two apart
+    (`hds.discover.workflow.near_ties`)."""
+    others = [j for j in fresh if model.candidates[j].key != model.candidates[best].key]
+    others = [j for j in others if np.isfinite(decided[j])]
+    if not others:
+        return None
+    j = min(others, key=lambda i: decided[i])
+    cand = model.candidates[j]
+    return {"name": cand.name, "target": cand.target, "heldout_error": float(decided[j])}
+
+
 def candidate_params(model, cand: Candidate, theta, delay) -> dict[str, float]:
     if cand.shifts_actions:
         return {cand.params[0]: int(delay[cand.actuator])}
@@ -205,6 +219,7 @@ def forward_selection(
             break
         needed = max(cfg.stop_margin * state.heldout_error, cfg.min_improvement)
         best = min(fresh, key=lambda j: decided[j])
+        rival = _rival(model, fresh, decided, best)
         # judged as refitted jointly: where it trades off against an effect already in
         # (friction high and gain low), the round's fit from the current values may stop
         # in the trade-off's valley and understate what it adds
@@ -243,6 +258,7 @@ def forward_selection(
             stopped = f"the best remaining candidate, {label}, is law mismatch, not an effect"
             break
         state = grown
+        rows[best].update(chosen=True, rival=rival)
         states.append(state)
         states, gone = _drop_proxies(fit, states)
         dropped += gone

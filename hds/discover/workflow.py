@@ -671,6 +671,30 @@ def _separable_count(model, state: State, shown: set[str] = frozenset()) -> int:
     return min(clashes, default=len(state.selected))
 
 
+def near_ties(candidates: list[dict], named, margin: float) -> list[str]:
+    """Named effects that won their selection round over another effect by less than the
+    selection margin (`stop_margin`) of the held-out error: these data barely tell the two
+    apart, so the one named may stand in for the other (under steps held for several
+    control periods, a first-order lag of a step or two predicts almost what a step of delay
+    does). Each from the round's chosen row and its `rival` (`explain.forward_selection`)."""
+    keys = {f"{e.name}@{e.target}" for e in named}
+    out = []
+    for row in candidates:
+        rival, key = row.get("rival"), f"{row['name']}@{row['target']}"
+        if not (row.get("chosen") and rival and key in keys):
+            continue
+        own, other = row["heldout_error"], rival["heldout_error"]
+        if other < own * (1.0 + margin):
+            out.append(
+                f"{key} was chosen over {rival['name']}@{rival['target']} in selection round "
+                f"{row['round']} by {(other - own) / own:.1%} of the held-out error (held-out "
+                f"{own:.4g} against {other:.4g}), less than the selection margin "
+                f"{margin:.0%}: these data barely tell the two apart, so {key} may stand in "
+                "for the other; record data where they differ"
+            )
+    return out
+
+
 def warnings(result: Discovery, cfg: DiscoverConfig) -> list[str]:
     out = []
     for e in result.tentative:
@@ -710,6 +734,7 @@ def warnings(result: Discovery, cfg: DiscoverConfig) -> list[str]:
             + "; ".join(r.describe() for r in result.angle_readings)
         )
     out += compensations(result.missing_effects, result.terms)
+    out += near_ties(result.candidates, result.missing_effects, cfg.stop_margin)
     for e in result.law_mismatch:
         out.append(
             f"{e.name}@{e.target} ({e.fitted()}) is law mismatch (the plant's laws are not exactly "
