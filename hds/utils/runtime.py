@@ -152,12 +152,7 @@ class RunByRun:
         """One run's program for the batch `args` (arrays, or jax.ShapeDtypeStruct: the
         program needs their shapes and dtypes only)."""
         first = jax.tree.map(_first_run, args)
-        directory = program_cache_dir()
-        if self.key and directory:
-            cached = cached_lowering(self.fn, first, self.key, directory)
-            if cached is not None:
-                return _LoweredRuns(self.fn, cached, self.threads)
-        return _LoweredRuns(self.fn, jax.jit(self.fn).lower(*first), self.threads)
+        return _LoweredRuns(self.fn, lowered_program(self.fn, first, self.key), self.threads)
 
 
 def _first_run(x):
@@ -571,12 +566,19 @@ class CompiledPrograms:
         return self.compiled[signature]
 
     def _compile(self, name: str, fn, args):
-        directory = program_cache_dir()
-        if self.key and directory:
-            cached = cached_lowering(fn, args, f"{self.key}:{name}", directory)
-            if cached is not None:
-                return cached.compile()
-        return jax.jit(fn).lower(*args).compile()
+        return lowered_program(fn, args, self.key and f"{self.key}:{name}").compile()
+
+
+def lowered_program(fn, args: tuple, key: str | None):
+    """`fn` lowered for `args`: read from the program cache under `key` where the cache is on
+    and the program has a key (`cached_lowering`), else traced by jax.jit. Either compiles
+    with `.compile(compiler_options)`."""
+    directory = program_cache_dir()
+    if key and directory:
+        cached = cached_lowering(fn, args, key, directory)
+        if cached is not None:
+            return cached
+    return jax.jit(fn).lower(*args)
 
 
 def _name_of(x) -> str:
