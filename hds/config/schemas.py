@@ -294,6 +294,11 @@ class DynamicsConfig:
     # n: each is cut into short ones of n steps (the largest divisor of the horizon not above
     # n) started from states the simulator's rollouts visited (MBPO's branched rollouts)
     branch: int = 0
+    # residual: what the policy's gradient takes from the model's rollouts. model: the whole
+    # step's derivatives, the network's included; simulator: the network's correction moves the
+    # states they visit, the gradient is the simulator's own along them (the network is fitted
+    # to predict the plant, not its derivatives: docs/dynamics.md, "What the gradient sees")
+    gradient: str = "model"
     path: str | None = None  # a saved model to reuse instead of training one
     data: str | None = None  # a measured dataset (.npz/.csv) to fit on instead of collecting
     # network and fitting (hds.dynamics)
@@ -324,6 +329,12 @@ class DynamicsConfig:
 
     def check(self):
         _one_of("dynamics.model", self.model, ("none", "mlp", "ensemble", "residual"))
+        _one_of("dynamics.gradient", self.gradient, ("model", "simulator"))
+        if self.gradient == "simulator" and self.model not in ("none", "residual"):
+            raise ValueError(
+                f"dynamics.gradient = simulator needs a simulator under the model, but "
+                f"dynamics.model = {self.model}: use dynamics=residual, or dynamics.gradient=model"
+            )
         _in_range("dynamics.beta", self.beta, 0.0, 1.0)
         _in_range("dynamics.branch", self.branch, 0)
         _check_widths("dynamics.hidden", self.hidden, fewest=1)

@@ -18,6 +18,7 @@ qqd; its state is the observation [q, qd]); see hds.dynamics.model for the three
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import jax
@@ -123,7 +124,7 @@ def build(cfg, env, plant, key, out_dir) -> tuple[DynamicsModel | None, dict]:
     and the report says why, when a fitted model predicts the held-out episodes no better
     than the simulator alone (cfg.require_better)."""
     if cfg.path:
-        model = load(cfg.path, env)
+        model = replace(load(cfg.path, env), gradient=cfg.gradient)
         meta = read_meta(cfg.path)
         log.info("loaded the %s dynamics model from %s", model.kind, cfg.path)
         if cfg.model not in ("none", model.kind):
@@ -141,6 +142,7 @@ def build(cfg, env, plant, key, out_dir) -> tuple[DynamicsModel | None, dict]:
     k_data, k_fit = jax.random.split(key)
     data, source = measured_data(cfg, env, plant, k_data)
     model, report = fit(cfg, env, data, key=k_fit)
+    model = replace(model, gradient=cfg.gradient)
     report.update(source)
     path = save(Path(out_dir), model, cfg, report)
     report.update({"path": str(path), "loaded": False})

@@ -116,6 +116,11 @@ class DynamicsModel:
     # itself (`delayed`: the effects' own law), their buffers in its state after the observation
     delay_effects: EffectSet = EffectSet()
     delay_params: tuple = ()
+    # residual: what a policy's gradient sees (dynamics.gradient). "model": the step's own
+    # derivatives, the network's included; "simulator": the correction moves the states a
+    # rollout visits, but its derivatives are dropped, so the gradient is the simulator's own
+    # Jacobian along the corrected states (a fitted network's derivatives are not fitted)
+    gradient: str = "model"
 
     @property
     def delays(self) -> tuple[tuple[int, int], ...]:
@@ -170,8 +175,12 @@ class DynamicsModel:
         return self.norm.y_mean + self.norm.y_std * self.normalized_deltas(obs, u)
 
     def predict(self, obs, u):
-        """The next observation: base plus the members' mean delta."""
-        return self.base(obs, u) + jnp.mean(self.deltas(obs, u), axis=0)
+        """The next observation: base plus the members' mean delta (its derivatives dropped
+        where `gradient` is "simulator": the same value, the base's gradient)."""
+        delta = jnp.mean(self.deltas(obs, u), axis=0)
+        if self.gradient == "simulator":
+            delta = jax.lax.stop_gradient(delta)
+        return self.base(obs, u) + delta
 
     def predict_members(self, obs, u):
         """[K, n_obs] every member's next observation."""
