@@ -507,6 +507,42 @@ def test_residual_step_has_a_finite_jacobian(setup, fitted):
     assert np.all(np.isfinite(jac)) and np.all(np.abs(jac).max(0) > 0)
 
 
+def test_the_simulator_gradient_is_the_base_step_s_jacobian_at_the_corrected_step(
+    setup, fitted, tmp_path
+):
+    """dynamics.gradient=simulator: the same next state as the fitted residual model's, and the
+    Jacobian of its base (the simulator's step) where the model's own differs from it."""
+    cfg, env, *_, test = setup
+    model, _ = fitted("residual")
+    own = replace(model, gradient="simulator")
+    x = jnp.concatenate(
+        [jnp.asarray(test.obs[0, 10], jnp.float32), jnp.asarray(test.actions[0, 10], jnp.float32)]
+    )
+
+    def jacobian(m, f):
+        return np.asarray(jax.jit(jax.jacrev(lambda x: f(m, x[:4], x[4:])))(x))
+
+    def step(m, o, u):
+        return m.step(o, u)
+
+    def base(m, o, u):
+        return m.base(o, u)
+
+    assert np.array_equal(
+        np.asarray(jax.jit(lambda x: own.step(x[:4], x[4:]))(x)),
+        np.asarray(jax.jit(lambda x: model.step(x[:4], x[4:]))(x)),
+    )
+    np.testing.assert_allclose(jacobian(own, step), jacobian(model, base), rtol=1e-6, atol=1e-7)
+    assert not np.allclose(jacobian(model, step), jacobian(model, base), rtol=1e-3, atol=1e-5)
+    # the setting is the run's, not the fit's: build hands it to a saved model it loads
+    dcfg = replace(cfg.dynamics, model="residual", gradient="simulator")
+    path = dynamics.save(tmp_path / "dynamics", model, dcfg, {})
+    built, _ = dynamics.build(replace(dcfg, path=str(path)), env, None, None, "/nonexistent")
+    assert built.gradient == "simulator" and model.gradient == "model"
+    with pytest.raises(ValueError, match="dynamics.gradient = simulator needs a simulator"):
+        make_config("dynamics=mlp", "dynamics.gradient=simulator")
+
+
 @pytest.mark.slow  # make test-slow: keeps make test under 10 min cold
 @pytest.mark.parametrize("branch", [0, 5])
 def test_a_vmapped_beta_sweep_gives_the_numbers_of_separate_runs(setup, fitted, tmp_path, branch):
