@@ -220,7 +220,11 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
         if r > 0:
             if (rdir / "data.npz").is_file():  # recorded before the loop was stopped
                 new = [load(rdir / "data.npz")]
-                scale = read_json(rdir / "excitation.json")["scale"]
+                recording = read_json(rdir / "excitation.json")
+                scale = recording["scale"]
+                # the noise the skipped recording drew: later evaluations measure what they
+                # measured in the uninterrupted run (directories written before: not kept)
+                plant.set_noise_state(recording.get("plant_noise", plant.noise_state()))
             else:
                 env = make_env(env_cfg)
                 data_all, scale, notes = excite_until_identifiable(
@@ -228,7 +232,10 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
                 )
                 new = data_all[len(data) :]
                 save(concatenate(new), rdir / "data.npz")
-                atomic_write_json(rdir / "excitation.json", {"scale": scale, "notes": notes})
+                atomic_write_json(
+                    rdir / "excitation.json",
+                    {"scale": scale, "notes": notes, "plant_noise": plant.noise_state()},
+                )
             data = [*data, *new]
             recorded = plant_time(cfg, concatenate(new))
             spent += recorded

@@ -82,6 +82,30 @@ def test_a_draw_is_reproducible_from_its_seed_and_its_truth_file(family, tmp_pat
     assert len(dataclasses.replace(cfg.real, friction_gap=1.0).effects) == len(truth["effects"])
 
 
+def test_a_plant_restored_to_its_noise_state_measures_what_the_uninterrupted_one_does(
+    tmp_path,
+):
+    """What a loop that resumes past a recorded round does (hds.loop.run_loop): a fresh plant,
+    its noise state set from the JSON the recording left, measures the noise the plant that
+    made the recording measures next; without it, other noise."""
+    cfg = make_config("real=lab_cartpole", "real.draw=2", FAMILIES["lab_cartpole"])
+    q0, qd0 = hanging(4, [0.3, -0.2, 0.0, 0.1])
+    u = np.random.default_rng(0).uniform(-0.5, 0.5, (4, T, 1))
+    plant = make_plant(cfg.real, cfg.env)
+    rollout(plant, q0, qd0, u)  # the recording
+    path = atomic_write_json(tmp_path / "excitation.json", {"plant_noise": plant.noise_state()})
+    _, measured = rollout(plant, q0, qd0, u)  # the evaluation after it
+    resumed = make_plant(cfg.real, cfg.env)  # a new process
+    _, fresh = rollout(resumed, q0, qd0, u)
+    assert not np.array_equal(fresh, measured)
+    resumed.set_noise_state(read_json(path)["plant_noise"])
+    np.testing.assert_array_equal(rollout(resumed, q0, qd0, u)[1], measured)
+    assert (
+        plant.noise_state()
+        and make_plant(make_config("real=brax").real, cfg.env).noise_state() == {}
+    )
+
+
 @pytest.mark.parametrize("family", FAMILIES)
 def test_draws_differ_within_the_documented_bounds(family):
     draws = [lab.draw(family, k) for k in range(10)]

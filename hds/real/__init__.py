@@ -5,6 +5,9 @@ Every plant works on a batch of B episodes with NumPy arrays and exposes:
   reset(q [B, nq], qd [B, nv]) -> obs [B, n_obs]     the measured observation
   step(u [B, n_act]) -> obs [B, n_obs]
   state() -> (q, qd)                                  the true state, for rewards
+  noise_state() -> dict, set_noise_state(dict)        where its measurement noise stands
+      (JSON-ready): a run that resumes past recordings it skips restores it, so that it
+      measures the noise an uninterrupted run measures
 No gradient is ever taken through a plant.
 """
 

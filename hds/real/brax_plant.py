@@ -32,3 +32,11 @@ class BraxPlant:
 
     def state(self):
         return np.asarray(self._state.q), np.asarray(self._state.qd)
+
+    def noise_state(self) -> dict:
+        """Its measurements are noise-free: nothing to restore."""
+        return {}
+
+    def set_noise_state(self, state: dict) -> None:
+        if state:
+            raise ValueError("a brax plant has no measurement noise to restore")

@@ -143,6 +143,20 @@ class MujocoPlant:
         finally:
             self.model.dof_frictionloss[:] = self._frictionloss
 
+    def noise_state(self) -> dict:
+        """Where the measurement noise's generators stand (JSON-ready): a run that resumes
+        past this plant's use restores it (`set_noise_state`), to draw the noise an
+        uninterrupted run draws next."""
+        return {
+            str(i): state.bit_generator.state
+            for i, state in self._observe_states.items()
+            if isinstance(state, np.random.Generator)
+        }
+
+    def set_noise_state(self, state: dict) -> None:
+        for i, generator_state in state.items():
+            self._observe_states[int(i)].bit_generator.state = generator_state
+
     def state(self) -> tuple[np.ndarray, np.ndarray]:
         return (
             np.stack([d.qpos.copy() for d in self._data]),
