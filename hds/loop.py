@@ -224,7 +224,8 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
                 scale = recording["scale"]
                 # the noise the skipped recording drew: later evaluations measure what they
                 # measured in the uninterrupted run (directories written before: not kept)
-                plant.set_noise_state(recording.get("plant_noise", plant.noise_state()))
+                if "plant_noise" in recording:
+                    plant.set_noise_state(recording["plant_noise"])
             else:
                 env = make_env(env_cfg)
                 data_all, scale, notes = excite_until_identifiable(
