@@ -175,6 +175,77 @@ def test_the_simulator_s_k_step_error_on_its_own_delayed_episodes_is_nil(setup):
         assert errors[str(k)]["baseline"] > 0.01, (k, errors[str(k)])  # the data do move
 
 
+LAG = [EffectConfig("actuator_lag", "slide", {"time_constant": 0.05})]
+
+
+def test_a_residual_model_carries_its_simulator_s_lag_filter_from_step_to_step(setup):
+    """On a simulator with an actuator lag (and a delay, and friction), the residual model with
+    zero correction is still that simulator along a whole trajectory: the lag's filter is in
+    the model's state, as the delay's buffer is. Restarted at rest each step, the 50 ms filter
+    would pass on a third of each control at most."""
+    from hds.algo.rollout import trajectory
+
+    cfg, *_ = setup
+    env = make_env(cfg.env, effects=LAG + DELAY + FRICTION)
+    model = dynamics.skeleton("residual", env, [16], 1)
+    assert model.n_effect_state == 1 and model.history == 2
+    key = jax.random.PRNGKey(5)
+    actions = jax.random.uniform(key, (20, 1), minval=-1.0, maxval=1.0)
+    sim_states, _ = jax.jit(lambda a: trajectory(env, env.params, env.task, env.reset(key), a))(
+        actions
+    )
+    model_states, _ = jax.jit(lambda a: trajectory(model, None, env.task, model.reset(key), a))(
+        actions
+    )
+    np.testing.assert_allclose(model_states, sim_states, atol=2e-4, rtol=1e-4)
+
+
+def test_branched_rollouts_start_a_lagged_model_from_its_state_not_a_bare_observation(setup):
+    """A branch starts from a visited observation: the trainer makes it the model's state
+    (`start`: the lag's filter at rest), where a bare observation is refused by the step."""
+    from hds.algo.pods import make_train_from_config
+
+    cfg, *_ = setup
+    env = make_env(cfg.env, effects=LAG)
+    model = dynamics.zero_residual(env)
+    obs = jnp.zeros(model.n_obs)
+    with pytest.raises(ValueError, match="model.start"):
+        model.step(obs, jnp.zeros(1))
+    assert model.step(model.start(obs), jnp.zeros(1)).shape == (model.n_obs + 1,)
+    branched = replace(cfg, dynamics=replace(cfg.dynamics, branch=5))
+    trainer = make_train_from_config(branched, env, model)
+    key, hparams = jax.random.PRNGKey(0), trainer.default_hparams
+    jax.eval_shape(trainer.train, key, hparams)  # traced only: the shapes are what is checked
+
+
+def test_the_simulator_s_k_step_error_on_its_own_lagged_episodes_is_nil(setup):
+    """hds.dynamics.evaluate starts each window's lag filter where the recorded controls
+    before it leave it (the filter run along the episode): on episodes of the simulator
+    itself, its k-step error is its float error only, and a fitted residual model learns no
+    correction worth the name."""
+    from hds.real.brax_plant import BraxPlant
+
+    cfg, *_ = setup
+    env = make_env(cfg.env, effects=LAG)
+    plant = BraxPlant(make_env(cfg.env, effects=LAG, sharpness=None))
+    data = dynamics.collect_data(
+        replace(cfg.dynamics, episodes=4), env, plant, jax.random.PRNGKey(2)
+    )
+    model = dynamics.skeleton("residual", env, [16], 1)
+    errors = dynamics.evaluate(model, data.obs, data.actions, KS, env)
+    for k in KS:
+        assert errors[str(k)]["simulator"] < 1e-3, (k, errors[str(k)])
+        assert errors[str(k)]["model"] < 1e-3, (k, errors[str(k)])
+        assert errors[str(k)]["baseline"] > 0.01, (k, errors[str(k)])  # the data do move
+    # fitted on them, each transition's target is the plant's step less the simulator's from
+    # the filter state the recorded controls left: nothing to correct, so nothing is learned
+    _, report = dynamics.fit(
+        replace(cfg.dynamics, model="residual", epochs=5), env, data, key=jax.random.PRNGKey(3)
+    )
+    for k in ("1", "10"):
+        assert report["multistep"][k]["model"] < 1e-3, (k, report["multistep"][k])
+
+
 def test_ensemble_disagrees_more_off_its_data(setup, fitted):
     *_, test = setup
     model, report = fitted("ensemble")

@@ -228,7 +228,9 @@ def make_train(
                 sim.commanded,
                 history,
             )
-            starts = jax.vmap(model.start)(*drawn) if history else drawn
+            # the model's state there: its delays' buffers hold what was commanded before,
+            # its effect states (a lag's filter) start at rest
+            starts = jax.vmap(model.start)(*drawn) if history else jax.vmap(model.start)(drawn)
         return stages.batch(model, None, split.n_model, state, hparams, key, False, starts)
 
     def epoch(state: TrainState, hparams):

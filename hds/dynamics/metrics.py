@@ -46,13 +46,15 @@ def multistep_errors(
     step: Callable, obs, actions, ks: Sequence[int], angular: np.ndarray, names: Sequence[str]
 ) -> dict:
     """{k: {"nrmse": float, "rmse": {name: float}}} for every k in `ks` not longer than the
-    episodes (non-finite predictions give inf)."""
+    episodes (non-finite predictions give inf). The step's states may carry more than the
+    named observations (a model's effect states, after them): only the named are scored."""
     obs, actions = np.asarray(obs, np.float32), np.asarray(actions, np.float32)
     T = actions.shape[1]
     ks = sorted({int(k) for k in ks if 1 <= int(k) <= T})
     if not ks:
         return {}
-    preds = open_loop_predictions(step, obs, actions, max(ks))
+    preds = open_loop_predictions(step, obs, actions, max(ks))[..., : len(names)]
+    obs = obs[..., : len(names)]
     scale = obs.reshape(-1, obs.shape[-1]).std(0)
     scale = np.where(scale > 1e-6, scale, 1.0)
     out = {}

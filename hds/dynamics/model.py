@@ -9,12 +9,16 @@ observation is the full state), so `observe` and `qqd` just read it. One step is
   ensemble  base = obs, K members trained independently; their spread is the disagreement
   residual  base = the simulator's step from (q, qd) = obs with the env's effect parameters;
             the network predicts what the simulator gets wrong. With a zero correction the
-            model is exactly the simulator. Its action delays are the model's own: its state
-            is the observation and then their buffers (the last commanded controls, oldest
-            first), and the base and the network see the control the delay applies, so a
-            delay named by discovery carries over from step to step (fitted on the recorded
-            controls shifted as discovery shifts them: zeros before an episode). Other effects
-            with a state of their own (an actuator lag's filter) restart from rest each step.
+            model is exactly the simulator. Its state is the observation, then the base's
+            effect states (an actuator lag's filter), then its action delays' buffers (the
+            last commanded controls, oldest first): the delays are the model's own, and the
+            base and the network see the control the delay applies, so a delay named by
+            discovery carries over from step to step (fitted on the recorded controls
+            shifted as discovery shifts them: zeros before an episode), and so does a lag's
+            filter (on recorded episodes, the filter where the controls before each state
+            left it: `with_effect_states`). A rollout starts them at rest, as the simulator;
+            a branch from a visited state starts its filters at rest too (its delays get the
+            controls commanded before it).
 
 delta_k = y_mean + y_std * net_k((features(obs) ++ u - x_mean) / x_std): inputs and outputs are
 normalised with statistics of the training data. Hinge angles enter as (sin, cos) and their
@@ -32,6 +36,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 
 from hds.effects import effect_type
 from hds.effects.apply import EffectSet
@@ -132,6 +137,19 @@ class DynamicsModel:
         return len(self.angular)
 
     @property
+    def n_effect_state(self) -> int:
+        """How many numbers the base's effect states hold (a lag's filter: one); 0 without."""
+        if self.kind != "residual":
+            return 0
+        shapes = jax.eval_shape(self.sim.effects.init_state)  # no eager op: nothing compiles
+        return int(sum(np.prod(leaf.shape, dtype=int) for leaf in jax.tree.leaves(shapes)))
+
+    @property
+    def n_carried(self) -> int:
+        """The observation and the base's effect states: what `predict` maps to its next."""
+        return self.n_obs + self.n_effect_state
+
+    @property
     def n_obs(self) -> int:
         return len(self.obs_names)
 
@@ -155,15 +173,55 @@ class DynamicsModel:
         return jnp.clip(u, self.ctrl_range[:, 0], self.ctrl_range[:, 1])
 
     def inputs(self, obs, u):
-        return jnp.concatenate([features(obs, self.angular), self.clip(u)], axis=-1)
+        """The network's input: the observation's features (of `obs`, or of its first
+        n_obs entries, the rest the base's effect states) and the clipped control."""
+        return jnp.concatenate([features(obs[: self.n_obs], self.angular), self.clip(u)], axis=-1)
 
     def base(self, obs, u):
-        """What the network corrects: obs itself, or the simulator's next state (residual)."""
+        """What the network corrects: obs itself, or the simulator's next state (residual),
+        from the effect states `obs` carries after the observation (at rest if it has none)
+        and with theirs after the step."""
         if self.kind != "residual":
             return obs
-        state = self.sim.init(obs[: self.nq], obs[self.nq :], self.sim_params)
+        rest, unravel = ravel_pytree(self.sim.effects.init_state())  # a base step from rest
+        carried = obs[self.n_obs :] if obs.shape[-1] > self.n_obs else rest
+        state = self.sim.init(obs[: self.nq], obs[self.nq : self.n_obs], self.sim_params)
+        state = replace(state, effects=unravel(carried.astype(rest.dtype)))
         state = self.sim.step(self.sim_params, state, self.clip(u))
-        return jnp.concatenate([state.q, state.qd])
+        after = [ravel_pytree(state.effects)[0]] if obs.shape[-1] > self.n_obs else []
+        return jnp.concatenate([state.q, state.qd, *after])
+
+    def _effect_state_at_rest(self):
+        if self.kind != "residual":
+            return jnp.zeros(0)
+        return ravel_pytree(self.sim.effects.init_state())[0]
+
+    def _padded(self, delta, like):
+        """A correction of the observation, zeros for the effect states `like` carries."""
+        extra = like.shape[-1] - self.n_obs
+        return delta if not extra else jnp.concatenate([delta, jnp.zeros(extra, delta.dtype)])
+
+    def with_effect_states(self, obs, applied) -> np.ndarray:
+        """[E, T+1, n_carried]: recorded episodes `obs` [E, T+1, n_obs] with the base's effect
+        states at each observation: at rest at the start, then the base's law run along the
+        recorded states and the controls `applied` [E, T, n_act] (`applied_actions`). A lag's
+        filter depends on the controls alone, so there it is the simulator's exactly. `obs`
+        itself where the base has none."""
+        if not self.n_effect_state:
+            return obs
+
+        def episode(o, u):
+            rest = self._effect_state_at_rest()
+
+            def step(carried, ou):
+                nxt = self.base(jnp.concatenate([ou[0], carried]), ou[1])
+                return nxt[self.n_obs :], carried
+
+            last, before = jax.lax.scan(step, rest, (o[:-1], u))
+            return jnp.concatenate([o, jnp.concatenate([before, last[None]])], axis=-1)
+
+        obs, applied = jnp.asarray(obs, jnp.float32), jnp.asarray(applied, jnp.float32)
+        return np.asarray(jax.jit(jax.vmap(episode))(obs, applied))
 
     def normalized_deltas(self, obs, u):
         """[K, n_obs] each member's output in normalised units."""
@@ -180,11 +238,11 @@ class DynamicsModel:
         delta = jnp.mean(self.deltas(obs, u), axis=0)
         if self.gradient == "simulator":
             delta = jax.lax.stop_gradient(delta)
-        return self.base(obs, u) + delta
+        return self.base(obs, u) + self._padded(delta, obs)
 
     def predict_members(self, obs, u):
         """[K, n_obs] every member's next observation."""
-        return self.base(obs, u) + self.deltas(obs, u)
+        return self.base(obs, u)[: self.n_obs] + self.deltas(obs, u)
 
     def disagreement(self, obs, u):
         """Spread of the members: std over members of the normalised delta, mean over outputs
@@ -214,15 +272,17 @@ class DynamicsModel:
         return out
 
     def start(self, obs, previous=None):
-        """The model's state at observation `obs`, its delays' buffers at rest, or holding
-        `previous` ([history, n_act]: the controls commanded before it, oldest first)."""
-        if not self.delays:
+        """The model's state at observation `obs`: its effect states at rest, its delays'
+        buffers at rest, or holding `previous` ([history, n_act]: the controls commanded
+        before it, oldest first)."""
+        if not self.delays and not self.n_effect_state:
             return obs
         buffers = [
             jnp.zeros(steps, obs.dtype) if previous is None else previous[-steps:, index]
             for index, steps in self.delays
         ]
-        return jnp.concatenate([obs, *buffers]).astype(obs.dtype)
+        rest = self._effect_state_at_rest()
+        return jnp.concatenate([obs, rest.astype(obs.dtype), *buffers]).astype(obs.dtype)
 
     # -- the engine protocol ------------------------------------------------------------------
 
@@ -236,13 +296,20 @@ class DynamicsModel:
         return self.start(jnp.concatenate([q, qd]).astype(jnp.float32))
 
     def step(self, state, u, params=None):
+        buffered = sum(steps for _, steps in self.delays)
+        if state.shape[-1] != self.n_carried + buffered:
+            raise ValueError(
+                f"this model's state holds {self.n_carried} observed and effect values and "
+                f"{buffered} past controls, not {state.shape[-1]} values: start it from an "
+                "observation with model.start(obs) or model.reset(key)"
+            )
         if not self.delays:
             return self.predict(state, u)
-        applied, buffer = self.delayed(state[self.n_obs :], u)
-        return jnp.concatenate([self.predict(state[: self.n_obs], applied), buffer])
+        applied, buffer = self.delayed(state[self.n_carried :], u)
+        return jnp.concatenate([self.predict(state[: self.n_carried], applied), buffer])
 
     def observe(self, state, params=None):
-        return state[: self.n_obs] if self.delays else state
+        return state[: self.n_obs] if state.shape[-1] > self.n_obs else state
 
     def qqd(self, state):
         return state[: self.nq], state[self.nq : self.n_obs]

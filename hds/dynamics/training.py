@@ -87,19 +87,21 @@ def _transitions(obs, actions):
 
 
 def _targets(model: DynamicsModel, base, o, u, o2, chunk: int = 1024) -> np.ndarray:
-    """next - base(obs, u), hinge entries wrapped: what the network must predict. The base
-    (a simulator step for residual models) runs in chunks of one padded shape: one compile."""
+    """next - base(obs, u), hinge entries wrapped: what the network must predict (of the
+    observation; `o` may carry the base's effect states after it). The base (a simulator step
+    for residual models) runs in chunks of one padded shape: one compile."""
+    n = model.n_obs
     if model.kind != "residual":
-        return np.asarray(wrap_angles(jnp.asarray(o2 - o), model.angular))
-    n = len(o)
-    pad = -n % chunk
+        return np.asarray(wrap_angles(jnp.asarray(o2[:, :n] - o[:, :n]), model.angular))
+    pad = -len(o) % chunk
     o_pad = np.concatenate([o, np.repeat(o[:1], pad, 0)])
     u_pad = np.concatenate([u, np.repeat(u[:1], pad, 0)])
     parts = [
         np.asarray(base(o_pad[i : i + chunk], u_pad[i : i + chunk]))
-        for i in range(0, n + pad, chunk)
+        for i in range(0, len(o) + pad, chunk)
     ]
-    return np.asarray(wrap_angles(jnp.asarray(o2 - np.concatenate(parts)[:n]), model.angular))
+    after = np.concatenate(parts)[: len(o), :n]
+    return np.asarray(wrap_angles(jnp.asarray(o2[:, :n] - after), model.angular))
 
 
 def train_members(
@@ -209,9 +211,10 @@ def fit(
     model = skeleton(cfg.model, env, cfg.hidden, members)
     inputs, base = jax.jit(jax.vmap(model.inputs)), jax.jit(jax.vmap(model.base))
     commanded, actions = actions, model.applied_actions(actions)  # what each step applied
+    states = model.with_effect_states(obs, actions)  # a lag's filter where the controls left it
 
     def prepare(episodes):
-        o, u, o2 = _transitions(obs[episodes], actions[episodes])
+        o, u, o2 = _transitions(states[episodes], actions[episodes])
         return np.asarray(inputs(o, u)), _targets(model, base, o, u, o2)
 
     x, y = prepare(train_ep)
@@ -278,15 +281,20 @@ def evaluate(model: DynamicsModel, obs, actions, ks, env=None) -> dict:
     the gap it closes): {k: {"model": x, "baseline": x, ["simulator": x,] "model_rmse":
     {name: x}, ...}} (None where a prediction was not finite)."""
     obs, actions = as_arrays(obs, actions)
+
     # from each measured state a step applies what was applied there (a delayed control from
-    # before the window: `applied_actions`), so a delay's buffer is exact in every window
-    steps = {"model": (model.predict, model.applied_actions(actions))}
-    steps["baseline"] = (constant_velocity(model.dt, model.nq), actions)
+    # before the window: `applied_actions`), so a delay's buffer is exact in every window, and
+    # starts a lag's filter where the controls before it left it (`with_effect_states`)
+    def windows(m):
+        applied = m.applied_actions(actions)
+        return m.predict, m.with_effect_states(obs, applied), applied
+
+    steps = {"model": windows(model)}
+    steps["baseline"] = (constant_velocity(model.dt, model.nq), obs, actions)
     if env is not None:
-        simulator = zero_residual(env)
-        steps["simulator"] = (simulator.predict, simulator.applied_actions(actions))
+        steps["simulator"] = windows(zero_residual(env))
     rest = (ks, model.angular, model.obs_names)
-    errors = {name: multistep_errors(step, obs, u, *rest) for name, (step, u) in steps.items()}
+    errors = {name: multistep_errors(*step, *rest) for name, step in steps.items()}
     out = {}
     for k in errors["model"]:
         row = {name: _num(e[k]["nrmse"]) for name, e in errors.items()}
