@@ -285,20 +285,13 @@ def train_batch(
     hparams = batch_hparams(cfg, trainer, effects)
     init, run_chunk, keys, hparams = compiled_programs(cfg, trainer, hparams)
 
-    start = time.perf_counter()
-    prepare = None if init_params is None else (lambda s: s.replace(policy=init_params))
-    if isinstance(init, RunByRun):  # init compiled and run while the chunk compiles
-        state, compiled = start_and_compile(init, run_chunk, keys, hparams, prepare)
-    else:
-        state = init(keys, hparams)
-        state = prepare(state) if prepare else state
-        compiled = run_chunk.lower(state, hparams).compile()
-    timing = {"compile_s": time.perf_counter() - start}
-
     ckpt = Checkpoints(out_dir / "checkpoints" / method, keep=cfg.checkpoints_kept)
     own = ckpt.latest() is not None or restore_from is None
     source = ckpt if own else Checkpoints(restore_from)
     try:
+        state, compiled, timing = _state_and_program(
+            cfg, trainer, source, init, run_chunk, keys, hparams, init_params
+        )
         history: dict[str, list] = {}
         if source.latest() is not None:
             state, meta = source.restore(state, resuming=own)
@@ -309,6 +302,8 @@ def train_batch(
             logger.start(int(state.epoch[0]))
         start, cpu_start = time.perf_counter(), time.process_time()
         while int(state.epoch[0]) < cfg.algo.epochs:
+            if compiled is None:  # the trained checkpoint was unreadable: an earlier one
+                compiled = run_chunk.lower(state, hparams).compile()
             t0 = time.perf_counter()
             epoch0 = int(state.epoch[0])
             state, metrics = compiled(state, hparams)
@@ -336,6 +331,24 @@ def train_batch(
         out_dir / "policies" / method, trainer.policy, params, cfg.runs(), state.epoch
     )
     return Training(method, params, history, timing, trainer, env, effects)
+
+
+def _state_and_program(cfg, trainer, source, init, run_chunk, keys, hparams, init_params):
+    """(state, compiled chunk, timing) to train from: the runs' initial state (warm-started
+    with `init_params`) and the chunk compiled for it; where `source` already holds the
+    trained epochs, the state's shapes to restore into and no program (nothing to train)."""
+    start = time.perf_counter()
+    prepare = None if init_params is None else (lambda s: s.replace(policy=init_params))
+    if (source.latest() or 0) >= cfg.algo.epochs:  # trained: restored into its shapes only
+        state, compiled = jax.eval_shape(jax.vmap(trainer.init), keys, hparams), None
+    elif isinstance(init, RunByRun):  # init compiled and run while the chunk compiles
+        state, compiled = start_and_compile(init, run_chunk, keys, hparams, prepare)
+    else:
+        state = init(keys, hparams)
+        state = prepare(state) if prepare else state
+        compiled = run_chunk.lower(state, hparams).compile()
+    timing = {"compile_s": time.perf_counter() - start}
+    return state, compiled, timing
 
 
 def _report_chunk(hooks: Hooks, logger, method: str, epoch0: int, metrics: dict, seconds: float):

@@ -134,6 +134,26 @@ def uninterrupted(tmp_path_factory):
     return cfg, env, out, params, history
 
 
+def test_a_trained_run_started_again_restores_its_policies_and_compiles_nothing(
+    uninterrupted, tmp_path, monkeypatch
+):
+    """Its checkpoints hold every epoch: the state is restored into its shapes, and neither
+    init nor the chunk is compiled (hds.loop's round 0 from loop.start_from does the same)."""
+    from hds import experiment
+
+    cfg, env, out, params, history = uninterrupted
+    shutil.copytree(out / "checkpoints", tmp_path / "checkpoints")
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a trained run compiled its trainer")
+
+    monkeypatch.setattr(experiment, "start_and_compile", refuse)
+    restored, restored_history = trained(cfg, env, tmp_path, "pods")
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(restored), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert restored_history == history
+
+
 # Orbax's asyncio loop may be collected before a callback of the failed read: "Event loop is
 # closed", printed as an unraisable exception in some runs (the restore itself is checked below)
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
