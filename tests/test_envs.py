@@ -3,6 +3,7 @@ finite differences, tasks that reward what they say."""
 
 from __future__ import annotations
 
+import os
 from dataclasses import replace
 
 import jax
@@ -186,3 +187,26 @@ def test_every_effect_at_its_nominal_value_is_a_no_op(batch):
         )[1]
 
     np.testing.assert_array_equal(run(loaded), run(plain))
+
+
+def test_a_brax_backend_s_env_prints_nothing_on_its_first_import():
+    """brax imports mujoco.mjx, which prints `Failed to import warp` where warp is absent:
+    a fresh process that builds a generalized env and steps it keeps its stdout clean."""
+    import subprocess
+    import sys
+
+    script = (
+        "import jax; from hds.envs import make_env;"
+        "from hds.config.composition import compose;"
+        "env = make_env(compose(['env.backend=generalized']).env);"
+        "state = env.sim.init(env.sim.sys.init_q, jax.numpy.zeros(env.sim.sys.qd_size()));"
+        "print('built', env.sim.backend)"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**os.environ, "HDS_PROGRAM_CACHE": "off"},
+    )
+    assert run.stdout.strip() == "built generalized", run.stdout

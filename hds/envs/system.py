@@ -223,6 +223,15 @@ class Simulator:
         return self.effects.observe(params, jnp.concatenate([state.q, state.qd]))
 
 
+def _pipeline(backend: str):
+    """The backend's step functions: hds's own, or brax's pipeline (imported quietly: brax
+    prints mujoco.mjx's `Failed to import warp` on import)."""
+    if backend in _OWN_BACKENDS:
+        return importlib.import_module(f"hds.envs.{backend}")
+    with quiet_brax():
+        return importlib.import_module(f"brax.{backend}.pipeline")
+
+
 def brax_system(model: mujoco.MjModel):
     """brax's System of a compiled MuJoCo model (`mjcf.load_model`), kept in the program cache
     under the model's binary (hds.utils.runtime.cached_build: with every hds source file and the
@@ -311,9 +320,7 @@ def make_simulator(
     system.check()
     sim = Simulator(
         system=system,
-        pipeline=importlib.import_module(
-            f"hds.envs.{backend}" if backend in _OWN_BACKENDS else f"brax.{backend}.pipeline"
-        ),
+        pipeline=_pipeline(backend),
         frames=int(frames),
         timestep=float(model.opt.timestep),
         effects=effect_set,
