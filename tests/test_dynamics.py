@@ -130,18 +130,13 @@ def test_residual_with_zero_correction_is_the_simulator(setup):
 
 
 DELAY = [EffectConfig("action_delay", "slide", {"steps": 2})]
+LAG = [EffectConfig("actuator_lag", "slide", {"time_constant": 0.05})]
 
 
-def test_a_residual_model_carries_its_simulator_s_delay_from_step_to_step(setup):
-    """On a simulator with a delay (and friction), the residual model with zero correction is
-    still that simulator along a whole trajectory: the delay's buffer is in the model's state
-    (restarted at rest each step, every delayed control would be 0)."""
+def _assert_same_trajectory(env, model):
+    """The model (zero correction) follows env's simulator step for step from one state."""
     from hds.algo.rollout import trajectory
 
-    cfg, *_ = setup
-    env = make_env(cfg.env, effects=DELAY + FRICTION)
-    model = dynamics.skeleton("residual", env, [16], 1)
-    assert model.delays == ((0, 2),) and model.history == 2
     key = jax.random.PRNGKey(5)
     actions = jax.random.uniform(key, (20, 1), minval=-1.0, maxval=1.0)
     sim_states, _ = jax.jit(lambda a: trajectory(env, env.params, env.task, env.reset(key), a))(
@@ -151,31 +146,19 @@ def test_a_residual_model_carries_its_simulator_s_delay_from_step_to_step(setup)
         actions
     )
     np.testing.assert_allclose(model_states, sim_states, atol=2e-4, rtol=1e-4)
+
+
+def test_a_residual_model_carries_its_simulator_s_delay_from_step_to_step(setup):
+    """On a simulator with a delay (and friction), the residual model with zero correction is
+    still that simulator along a whole trajectory: the delay's buffer is in the model's state
+    (restarted at rest each step, every delayed control would be 0)."""
+    cfg, *_ = setup
+    env = make_env(cfg.env, effects=DELAY + FRICTION)
+    model = dynamics.skeleton("residual", env, [16], 1)
+    assert model.delays == ((0, 2),) and model.history == 2
+    _assert_same_trajectory(env, model)
     # a step after rest applies nothing yet: the cart is where friction and gravity leave it
     assert model.applied_actions(np.ones((1, 3, 1)))[0, :, 0].tolist() == [0.0, 0.0, 1.0]
-
-
-def test_the_simulator_s_k_step_error_on_its_own_delayed_episodes_is_nil(setup):
-    """hds.dynamics.evaluate starts each window's delay buffer from the controls recorded
-    before it: on episodes of the simulator itself, its k-step error is its float error only,
-    and the model's (zero correction) the same."""
-    from hds.real.brax_plant import BraxPlant
-
-    cfg, *_ = setup
-    env = make_env(cfg.env, effects=DELAY)
-    plant = BraxPlant(make_env(cfg.env, effects=DELAY, sharpness=None))
-    data = dynamics.collect_data(
-        replace(cfg.dynamics, episodes=4), env, plant, jax.random.PRNGKey(2)
-    )
-    model = dynamics.skeleton("residual", env, [16], 1)
-    errors = dynamics.evaluate(model, data.obs, data.actions, KS, env)
-    for k in KS:
-        assert errors[str(k)]["simulator"] < 1e-3, (k, errors[str(k)])
-        assert errors[str(k)]["model"] < 1e-3, (k, errors[str(k)])
-        assert errors[str(k)]["baseline"] > 0.01, (k, errors[str(k)])  # the data do move
-
-
-LAG = [EffectConfig("actuator_lag", "slide", {"time_constant": 0.05})]
 
 
 def test_a_residual_model_carries_its_simulator_s_lag_filter_from_step_to_step(setup):
@@ -183,21 +166,11 @@ def test_a_residual_model_carries_its_simulator_s_lag_filter_from_step_to_step(s
     zero correction is still that simulator along a whole trajectory: the lag's filter is in
     the model's state, as the delay's buffer is. Restarted at rest each step, the 50 ms filter
     would pass on a third of each control at most."""
-    from hds.algo.rollout import trajectory
-
     cfg, *_ = setup
     env = make_env(cfg.env, effects=LAG + DELAY + FRICTION)
     model = dynamics.skeleton("residual", env, [16], 1)
     assert model.n_effect_state == 1 and model.history == 2
-    key = jax.random.PRNGKey(5)
-    actions = jax.random.uniform(key, (20, 1), minval=-1.0, maxval=1.0)
-    sim_states, _ = jax.jit(lambda a: trajectory(env, env.params, env.task, env.reset(key), a))(
-        actions
-    )
-    model_states, _ = jax.jit(lambda a: trajectory(model, None, env.task, model.reset(key), a))(
-        actions
-    )
-    np.testing.assert_allclose(model_states, sim_states, atol=2e-4, rtol=1e-4)
+    _assert_same_trajectory(env, model)
 
 
 def test_branched_rollouts_start_a_lagged_model_from_its_state_not_a_bare_observation(setup):
@@ -218,16 +191,18 @@ def test_branched_rollouts_start_a_lagged_model_from_its_state_not_a_bare_observ
     jax.eval_shape(trainer.train, key, hparams)  # traced only: the shapes are what is checked
 
 
-def test_the_simulator_s_k_step_error_on_its_own_lagged_episodes_is_nil(setup):
-    """hds.dynamics.evaluate starts each window's lag filter where the recorded controls
-    before it leave it (the filter run along the episode): on episodes of the simulator
-    itself, its k-step error is its float error only, and a fitted residual model learns no
-    correction worth the name."""
+@pytest.mark.parametrize("effects", [DELAY, LAG], ids=["delay", "lag"])
+def test_the_simulator_s_k_step_error_on_its_own_episodes_is_nil(setup, effects):
+    """hds.dynamics.evaluate starts each window's delay buffer from the controls recorded
+    before it, and its lag filter where those controls left it (the filter run along the
+    episode): on episodes of the simulator itself, its k-step error is its float error only,
+    and the model's (zero correction) the same. Fitted on them, each target is the plant's
+    step less the simulator's from that state: nothing to correct, so nothing is learned."""
     from hds.real.brax_plant import BraxPlant
 
     cfg, *_ = setup
-    env = make_env(cfg.env, effects=LAG)
-    plant = BraxPlant(make_env(cfg.env, effects=LAG, sharpness=None))
+    env = make_env(cfg.env, effects=effects)
+    plant = BraxPlant(make_env(cfg.env, effects=effects, sharpness=None))
     data = dynamics.collect_data(
         replace(cfg.dynamics, episodes=4), env, plant, jax.random.PRNGKey(2)
     )
@@ -237,8 +212,6 @@ def test_the_simulator_s_k_step_error_on_its_own_lagged_episodes_is_nil(setup):
         assert errors[str(k)]["simulator"] < 1e-3, (k, errors[str(k)])
         assert errors[str(k)]["model"] < 1e-3, (k, errors[str(k)])
         assert errors[str(k)]["baseline"] > 0.01, (k, errors[str(k)])  # the data do move
-    # fitted on them, each transition's target is the plant's step less the simulator's from
-    # the filter state the recorded controls left: nothing to correct, so nothing is learned
     _, report = dynamics.fit(
         replace(cfg.dynamics, model="residual", epochs=5), env, data, key=jax.random.PRNGKey(3)
     )
