@@ -246,6 +246,41 @@ def test_a_free_carts_position_bias_is_structurally_unidentifiable(plants, task,
     assert all(r.identifiable for k, r in rows.items() if k != "sensor_bias@q_slider")
 
 
+def _swinging(names, n_act, seed=0, E=4, T=100):
+    """A recording whose every joint swings and whose control varies (no check fails for want
+    of motion): sinusoids of random phase, 20 ms steps."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(T + 1) * 0.02
+    phase = rng.uniform(0, 2 * np.pi, (E, 1, len(names)))
+    obs = 0.5 * np.sin(2 * np.pi * 0.7 * t[None, :, None] + phase)
+    actions = rng.uniform(-1.0, 1.0, (E, T, n_act))
+    return Dataset(obs, actions, 0.02, tuple(names), None)
+
+
+def test_a_hinge_about_the_vertical_has_a_structurally_unidentifiable_position_bias(tmp_path):
+    """A Furuta's arm turns about the vertical, and nothing above it tilts that axis: gravity
+    does no work along it and no spring holds it, so a bias of its angle sensor is a constant
+    offset no dynamics shows (it fitted to 6,590 rad on a lab draw). The pendulum's hinge is
+    horizontal, so its bias shows through gravity. Tilt the arm's axis by 10 degrees and
+    gravity depends on the arm's angle: its bias is identifiable again."""
+    from hds.config import EnvConfig
+
+    env_cfg = EnvConfig(name="furuta_balance", xml="furuta.xml", timestep=0.002)
+    names = ("q_arm", "q_pendulum", "qd_arm", "qd_pendulum")
+    data = _swinging(names, 1)
+    rows = {r.key: r for r in identifiability(data, env_cfg, effects=["sensor_bias"])}
+    arm = rows["sensor_bias@q_arm"]
+    assert not arm.identifiable and arm.structural
+    assert "no gravity about it" in arm.reason
+    assert rows["sensor_bias@q_pendulum"].identifiable
+    xml = (ROOT / "hds" / "envs" / "assets" / "furuta.xml").read_text()
+    tilted = tmp_path / "furuta_tilted.xml"
+    tilted.write_text(xml.replace('axis="0 0 1"', 'axis="0 0.17365 0.98481"'))
+    env_cfg = EnvConfig(name="furuta_balance", xml=str(tilted), timestep=0.002)
+    rows = {r.key: r for r in identifiability(data, env_cfg, effects=["sensor_bias"])}
+    assert rows["sensor_bias@q_arm"].identifiable
+
+
 def assert_intervals_hold(result, hidden):
     by_key = {(e.name, e.target): e for e in result.missing_effects}
     for h in hidden:

@@ -13,9 +13,9 @@ The checks are physical: an effect shows in the data only through motion it chan
 that never moves (held by friction larger than any force applied) fits every friction law
 alike; an actuator whose joint never moves, or whose control never varies, shows neither
 its gain nor its lag; a sensor bias on a position nothing in the dynamics depends on (a
-free cart on a rail) is indistinguishable from where the cart started. `discover` fits only
-the candidates that pass, and reports the others with the excitation that would identify
-them.
+free cart on a rail, a Furuta arm turning about the vertical) is indistinguishable from where
+it started. `discover` fits only the candidates that pass, and reports the others with the
+excitation that would identify them.
 """
 
 from __future__ import annotations
@@ -266,15 +266,14 @@ def _observation(facts: _Facts, name: str, target: str):
     if joint not in facts.joints:
         return "", {}
     j = facts.model.joint(joint).id
-    if kind == "q" and facts.model.jnt_type[j] == mujoco.mjtJoint.mjJNT_SLIDE:
-        depends = float(facts.model.jnt_stiffness[j]) > 0 or _axis_gravity(facts.model, j)
-        if not depends and not _reaches_limit(facts, j, target):
-            return (
-                f"nothing in the dynamics depends on where {joint} is (no spring, no gravity "
-                "along it, its limits never reached): a bias of its position sensor is "
-                "indistinguishable from where it started",
-                {"why": f"drive {joint} into its limits, or add a reference measurement"},
-            )
+    if kind == "q" and _free_of_position(facts.model, j) and not _reaches_limit(facts, j, target):
+        return (
+            f"nothing in the dynamics depends on where {joint} is (no spring, no gravity "
+            f"{'along' if _is_slide(facts.model, j) else 'about'} it, its limits never "
+            "reached): a bias of its position sensor is indistinguishable from where it "
+            "started",
+            {"why": f"drive {joint} into its limits, or add a reference measurement"},
+        )
     why = facts.still(joint)
     if why:
         return (
@@ -285,10 +284,59 @@ def _observation(facts: _Facts, name: str, target: str):
     return "", {}
 
 
-def _axis_gravity(model: mujoco.MjModel, j: int) -> bool:
-    axis = np.asarray(model.jnt_axis[j], dtype=np.float64)
-    gravity = np.asarray(model.opt.gravity, dtype=np.float64)
-    return bool(abs(axis @ gravity) > 1e-6 * max(np.linalg.norm(gravity), 1e-12))
+def _is_slide(model: mujoco.MjModel, j: int) -> bool:
+    return model.jnt_type[j] == mujoco.mjtJoint.mjJNT_SLIDE
+
+
+def _free_of_position(model: mujoco.MjModel, j: int) -> bool:
+    """Whether nothing in the dynamics depends on joint j's position (its limits aside): j is
+    the only joint between its body and the world, no spring holds it, and its motion is a
+    symmetry of gravity: a slide across gravity (a cart on a level rail), a hinge about the
+    vertical (a Furuta's arm). Below a moving joint, its position would move its body's pose
+    relative to that joint, and so the inertia the joint above sees."""
+    body = int(model.jnt_bodyid[j])
+    if float(model.jnt_stiffness[j]) > 0 or model.body_jntnum[body] != 1:
+        return False
+    if _has_moving_ancestor(model, body):
+        return False
+    axis = _world_axis(model, body, np.asarray(model.jnt_axis[j], dtype=np.float64))
+    if _is_slide(model, j):
+        return not _along(axis, model.opt.gravity)
+    return model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE and _parallel(axis, model.opt.gravity)
+
+
+def _world_axis(model: mujoco.MjModel, body: int, axis: np.ndarray) -> np.ndarray:
+    """A joint's axis in the world frame at the model's reference pose."""
+    data = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+    return data.xmat[body].reshape(3, 3) @ axis
+
+
+def _has_moving_ancestor(model: mujoco.MjModel, body: int) -> bool:
+    parent = int(model.body_parentid[body])
+    while parent > 0:
+        if model.body_jntnum[parent] > 0:
+            return True
+        parent = int(model.body_parentid[parent])
+    return False
+
+
+def _along(axis: np.ndarray, gravity) -> bool:
+    """Whether gravity has a component along the axis."""
+    gravity = np.asarray(gravity, dtype=np.float64)
+    return bool(
+        abs(axis @ gravity) > _TINY * max(np.linalg.norm(gravity) * np.linalg.norm(axis), 1e-12)
+    )
+
+
+def _parallel(axis: np.ndarray, gravity) -> bool:
+    """Whether gravity has no component across the axis (or there is no gravity)."""
+    gravity = np.asarray(gravity, dtype=np.float64)
+    across = np.linalg.norm(np.cross(axis, gravity))
+    return bool(across <= _TINY * max(np.linalg.norm(gravity) * np.linalg.norm(axis), 1e-12))
+
+
+_TINY = 1e-6  # relative: MJCF axes are normalised, gravity is 9.81
 
 
 def _reaches_limit(facts: _Facts, j: int, target: str) -> bool:
