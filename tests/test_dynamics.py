@@ -191,13 +191,16 @@ def test_branched_rollouts_start_a_lagged_model_from_its_state_not_a_bare_observ
     jax.eval_shape(trainer.train, key, hparams)  # traced only: the shapes are what is checked
 
 
-@pytest.mark.parametrize("effects", [DELAY, LAG], ids=["delay", "lag"])
-def test_the_simulator_s_k_step_error_on_its_own_episodes_is_nil(setup, effects):
+@pytest.mark.parametrize("effects", [DELAY, LAG + DELAY], ids=["delay", "lag"])
+def test_the_simulator_s_k_step_error_on_its_own_episodes_is_nil(setup, effects, caplog):
     """hds.dynamics.evaluate starts each window's delay buffer from the controls recorded
     before it, and its lag filter where those controls left it (the filter run along the
     episode): on episodes of the simulator itself, its k-step error is its float error only,
     and the model's (zero correction) the same. Fitted on them, each target is the plant's
-    step less the simulator's from that state: nothing to correct, so nothing is learned."""
+    step less the simulator's from that state: nothing to correct, so nothing is learned.
+    The filter's program is compiled once for the fit and both evaluations (the model's and
+    the simulator's, on fewer episodes): it depends on the env's simulator, less its delays,
+    alone."""
     from hds.real.brax_plant import BraxPlant
 
     cfg, *_ = setup
@@ -207,16 +210,19 @@ def test_the_simulator_s_k_step_error_on_its_own_episodes_is_nil(setup, effects)
         replace(cfg.dynamics, episodes=4), env, plant, jax.random.PRNGKey(2)
     )
     model = dynamics.skeleton("residual", env, [16], 1)
-    errors = dynamics.evaluate(model, data.obs, data.actions, KS, env)
+    with jax.log_compiles(), caplog.at_level("WARNING", logger="jax"):
+        errors = dynamics.evaluate(model, data.obs, data.actions, KS, env)
+        _, report = dynamics.fit(
+            replace(cfg.dynamics, model="residual", epochs=5), env, data, key=jax.random.PRNGKey(3)
+        )
     for k in KS:
         assert errors[str(k)]["simulator"] < 1e-3, (k, errors[str(k)])
         assert errors[str(k)]["model"] < 1e-3, (k, errors[str(k)])
         assert errors[str(k)]["baseline"] > 0.01, (k, errors[str(k)])  # the data do move
-    _, report = dynamics.fit(
-        replace(cfg.dynamics, model="residual", epochs=5), env, data, key=jax.random.PRNGKey(3)
-    )
     for k in ("1", "10"):
         assert report["multistep"][k]["model"] < 1e-3, (k, report["multistep"][k])
+    compiled = [r for r in caplog.messages if r.startswith("Compiling jit(_effect_states_along)")]
+    assert len(compiled) == model.n_effect_state
 
 
 def test_ensemble_disagrees_more_off_its_data(setup, fitted):

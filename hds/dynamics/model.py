@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from functools import partial
 from typing import Any
 
 import flax.linen as nn
@@ -183,13 +184,11 @@ class DynamicsModel:
         and with theirs after the step."""
         if self.kind != "residual":
             return obs
-        rest, unravel = ravel_pytree(self.sim.effects.init_state())  # a base step from rest
-        carried = obs[self.n_obs :] if obs.shape[-1] > self.n_obs else rest
-        state = self.sim.init(obs[: self.nq], obs[self.nq : self.n_obs], self.sim_params)
-        state = replace(state, effects=unravel(carried.astype(rest.dtype)))
-        state = self.sim.step(self.sim_params, state, self.clip(u))
-        after = [ravel_pytree(state.effects)[0]] if obs.shape[-1] > self.n_obs else []
-        return jnp.concatenate([state.q, state.qd, *after])
+        carried = obs[self.n_obs :] if obs.shape[-1] > self.n_obs else None
+        nxt, after = _simulator_step(
+            self.sim, self.nq, self.sim_params, self.ctrl_range, obs[: self.n_obs], carried, u
+        )
+        return nxt if carried is None else jnp.concatenate([nxt, after])
 
     def _effect_state_at_rest(self):
         if self.kind != "residual":
@@ -206,22 +205,17 @@ class DynamicsModel:
         states at each observation: at rest at the start, then the base's law run along the
         recorded states and the controls `applied` [E, T, n_act] (`applied_actions`). A lag's
         filter depends on the controls alone, so there it is the simulator's exactly. `obs`
-        itself where the base has none."""
+        itself where the base has none. One program per base simulator and episode length,
+        whatever the model's network or the number of episodes (`_effect_states_along`)."""
         if not self.n_effect_state:
             return obs
-
-        def episode(o, u):
-            rest = self._effect_state_at_rest()
-
-            def step(carried, ou):
-                nxt = self.base(jnp.concatenate([ou[0], carried]), ou[1])
-                return nxt[self.n_obs :], carried
-
-            last, before = jax.lax.scan(step, rest, (o[:-1], u))
-            return jnp.concatenate([o, jnp.concatenate([before, last[None]])], axis=-1)
-
-        obs, applied = jnp.asarray(obs, jnp.float32), jnp.asarray(applied, jnp.float32)
-        return np.asarray(jax.jit(jax.vmap(episode))(obs, applied))
+        obs, applied = np.asarray(obs, np.float32), np.asarray(applied, np.float32)
+        ctrl_range = np.asarray(self.ctrl_range, np.float32)
+        along = [
+            _effect_states_along(self.sim, self.nq, self.sim_params, ctrl_range, o, u)
+            for o, u in zip(obs, applied, strict=True)
+        ]
+        return np.concatenate([obs, np.stack(along)], axis=-1)
 
     def normalized_deltas(self, obs, u):
         """[K, n_obs] each member's output in normalised units."""
@@ -361,11 +355,47 @@ def skeleton(
     )
 
 
+def _simulator_step(sim, nq: int, params, ctrl_range, obs, carried, u):
+    """(the next [q, qd], the effect states after it) of `sim` from the observation `obs`
+    with its effect states `carried` (raveled; None: at rest) under the control `u`, clipped
+    to `ctrl_range`."""
+    rest, unravel = ravel_pytree(sim.effects.init_state())
+    carried = rest if carried is None else carried
+    state = sim.init(obs[:nq], obs[nq:], params)
+    state = replace(state, effects=unravel(carried.astype(rest.dtype)))
+    state = sim.step(params, state, jnp.clip(u, ctrl_range[:, 0], ctrl_range[:, 1]))
+    return jnp.concatenate([state.q, state.qd]), ravel_pytree(state.effects)[0]
+
+
+@partial(jax.jit, static_argnums=(0, 1))
+def _effect_states_along(sim, nq: int, params, ctrl_range, obs, applied):
+    """[T+1, n_effect_state] `sim`'s effect states along one recorded episode (obs [T+1,
+    n_obs], applied [T, n_act]), from rest. Jitted on the simulator (hashable by identity,
+    one per env: `_base`) and the shapes, its parameters traced."""
+    rest = ravel_pytree(sim.effects.init_state())[0]
+
+    def step(carried, ou):
+        return _simulator_step(sim, nq, params, ctrl_range, ou[0], carried, ou[1])[1], carried
+
+    last, before = jax.lax.scan(step, rest, (obs[:-1], applied))
+    return jnp.concatenate([before, last[None]])
+
+
+_BASES: dict = {}
+
+
 def _base(env):
     """(simulator, its effect parameters, action delays, theirs) of a residual model on
     `env`: env's simulator less its action delays (effects that shift actions, of one step or
     more), which the model applies itself, keeping their buffers in its state (a base step
-    starts from rest)."""
+    starts from rest). One per env, so the models fitted on it share what is compiled for
+    its simulator (`_effect_states_along`)."""
+    if id(env) not in _BASES or _BASES[id(env)][0] is not env:
+        _BASES[id(env)] = (env, _split_delays(env))
+    return _BASES[id(env)][1]
+
+
+def _split_delays(env):
     sim, params = env.sim, tuple(env.params)
     sites = sim.effects.sites
     shifts = [effect_type(s.name).shifts_actions for s in sites]
