@@ -243,3 +243,40 @@ def test_the_study_counts_a_hybrid_win_only_where_the_loop_left_room():
         ("yes", "no"),
         ("no", "yes"),
     ]
+
+
+def test_the_signal_comparison_reads_a_finished_run_without_running_it(tmp_path, monkeypatch):
+    """experiments/lab_study/one_shot_signal.py: a (draw, signal) whose run directory holds a
+    summary is read, not run again; its row holds the draw's delay from the truth, what was
+    named against it and the plant seconds of every record (episodes x horizon x step)."""
+    import importlib.util
+    import json
+    import subprocess
+
+    from omegaconf import OmegaConf
+
+    from hds.real import lab
+
+    path = CONF.parents[1] / "one_shot_signal.py"
+    spec = importlib.util.spec_from_file_location("one_shot_signal", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    monkeypatch.setattr(subprocess, "run", lambda *a, **k: pytest.fail("ran a finished run"))
+    run_dir = tmp_path / "furuta_balance_100_prbs"
+    run_dir.mkdir()
+    delay = {"name": "action_delay", "target": "motor", "params": {"steps": 1}}
+    summary = {
+        "discovery": {"effects": [delay], "episodes": 64},
+        "rows": [{"real_return": -1.31, "sim_return": -1.23}],
+    }
+    (run_dir / "summary.json").write_text(json.dumps(summary))
+    env = {"timestep": 0.002, "frames_per_step": 10}
+    OmegaConf.save(
+        OmegaConf.create({"env": env, "dynamics": {"horizon": 100}}), run_dir / "config.yaml"
+    )
+    found = module.run("furuta_balance", 100, "prbs", tmp_path)
+    line = module.row("furuta_balance", 100, "prbs", found).strip("| ").split(" | ")
+    truth = [e for e in lab.draw("lab_furuta", 100)["effects"] if e["name"] == "action_delay"]
+    assert line[:3] == ["100", "prbs", str(truth[0]["params"]["steps"] if truth else 0)]
+    assert line[3].startswith("action_delay@motor 1")
+    assert line[4:] == ["-1.31 (-1.23)", "128"]  # 64 episodes x 100 steps x 20 ms
