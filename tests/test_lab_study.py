@@ -213,10 +213,15 @@ def test_make_study_lab_s_own_draws_are_0_to_4_or_0_to_2_for_a_swing_up(tmp_path
 
 def _study_report():
     """experiments/lab_study/report.py as a module (the study's script, not a package)."""
+    return _study_script("report")
+
+
+def _study_script(name: str):
+    """experiments/lab_study/<name>.py as a module."""
     import importlib.util
 
-    path = CONF.parents[1] / "report.py"
-    spec = importlib.util.spec_from_file_location("lab_study_report", path)
+    path = CONF.parents[1] / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"lab_study_{name}", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -249,7 +254,6 @@ def test_the_signal_comparison_reads_a_finished_run_without_running_it(tmp_path,
     """experiments/lab_study/one_shot_signal.py: a (draw, signal) whose run directory holds a
     summary is read, not run again; its row holds the draw's delay from the truth, what was
     named against it and the plant seconds of every record (episodes x horizon x step)."""
-    import importlib.util
     import json
     import subprocess
 
@@ -257,10 +261,7 @@ def test_the_signal_comparison_reads_a_finished_run_without_running_it(tmp_path,
 
     from hds.real import lab
 
-    path = CONF.parents[1] / "one_shot_signal.py"
-    spec = importlib.util.spec_from_file_location("one_shot_signal", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = _study_script("one_shot_signal")
     monkeypatch.setattr(subprocess, "run", lambda *a, **k: pytest.fail("ran a finished run"))
     run_dir = tmp_path / "furuta_balance_100_prbs"
     run_dir.mkdir()

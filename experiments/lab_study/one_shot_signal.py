@@ -22,7 +22,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from omegaconf import OmegaConf  # noqa: E402
-from report import named_vs_truth  # noqa: E402
+from report import family_of, named_vs_truth  # noqa: E402
 
 from hds.real import lab  # noqa: E402
 
@@ -31,7 +31,7 @@ def run(task: str, draw: int, signal: str, out: Path) -> Path:
     """The run's directory, running it first where it has no summary.json."""
     run_dir = out / f"{task}_{draw}_{signal}"
     if not (run_dir / "summary.json").exists():
-        family = "_furuta" if task.startswith("furuta") else ""
+        family = "_furuta" if family_of(task) == "lab_furuta" else ""
         command = [
             sys.executable, "-m", "hds.run", "--config-dir", str(HERE / "conf"),
             f"env={task}", f"+experiment=[lab_study{family},lab_task_{task}]",
@@ -46,8 +46,7 @@ def run(task: str, draw: int, signal: str, out: Path) -> Path:
 def row(task: str, draw: int, signal: str, run_dir: Path) -> str:
     """The table's row of one run: the delay's truth, what discovery named against the
     truth, the real (and simulated) return, the plant seconds of every record."""
-    family = "lab_furuta" if task.startswith("furuta") else "lab_cartpole"
-    truth = lab.draw(family, draw)
+    truth = lab.draw(family_of(task), draw)
     delay = [e["params"]["steps"] for e in truth["effects"] if e["name"] == "action_delay"]
     summary = json.loads((run_dir / "summary.json").read_text())
     cfg = OmegaConf.load(run_dir / "config.yaml")

@@ -58,6 +58,11 @@ def _truth_values():
 truth_values = _truth_values()
 
 
+def family_of(task: str) -> str:
+    """The lab family (hds.real.lab) of a study task: furuta_* or cart-pole."""
+    return "lab_furuta" if task.startswith("furuta") else "lab_cartpole"
+
+
 def draw_of(plant: str) -> int | None:
     match = re.search(r"#(\d+)$", plant or "")
     return int(match.group(1)) if match else None
@@ -344,7 +349,7 @@ def main(study_dir: str = "outputs/study/lab", *one_round: str) -> None:
     study_dir = Path(study_dir)
     parts, everything = [], {}
     for task_dir in sorted(p for p in study_dir.iterdir() if p.is_dir()):
-        family = "lab_furuta" if task_dir.name.startswith("furuta") else "lab_cartpole"
+        family = family_of(task_dir.name)
         data = gather(task_dir)
         for other in one_round:
             for draw, methods in gather(Path(other) / task_dir.name).items():

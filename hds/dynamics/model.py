@@ -190,11 +190,6 @@ class DynamicsModel:
         )
         return nxt if carried is None else jnp.concatenate([nxt, after])
 
-    def _effect_state_at_rest(self):
-        if self.kind != "residual":
-            return jnp.zeros(0)
-        return ravel_pytree(self.sim.effects.init_state())[0]
-
     def _padded(self, delta, like):
         """A correction of the observation, zeros for the effect states `like` carries."""
         extra = like.shape[-1] - self.n_obs
@@ -275,7 +270,7 @@ class DynamicsModel:
             jnp.zeros(steps, obs.dtype) if previous is None else previous[-steps:, index]
             for index, steps in self.delays
         ]
-        rest = self._effect_state_at_rest()
+        rest = _at_rest(self.sim)[0] if self.kind == "residual" else jnp.zeros(0)
         return jnp.concatenate([obs, rest.astype(obs.dtype), *buffers]).astype(obs.dtype)
 
     # -- the engine protocol ------------------------------------------------------------------
@@ -355,11 +350,16 @@ def skeleton(
     )
 
 
+def _at_rest(sim):
+    """(`sim`'s effect states at rest, raveled; the function that unravels such a vector)."""
+    return ravel_pytree(sim.effects.init_state())
+
+
 def _simulator_step(sim, nq: int, params, ctrl_range, obs, carried, u):
     """(the next [q, qd], the effect states after it) of `sim` from the observation `obs`
     with its effect states `carried` (raveled; None: at rest) under the control `u`, clipped
     to `ctrl_range`."""
-    rest, unravel = ravel_pytree(sim.effects.init_state())
+    rest, unravel = _at_rest(sim)
     carried = rest if carried is None else carried
     state = sim.init(obs[:nq], obs[nq:], params)
     state = replace(state, effects=unravel(carried.astype(rest.dtype)))
@@ -372,7 +372,7 @@ def _effect_states_along(sim, nq: int, params, ctrl_range, obs, applied):
     """[T+1, n_effect_state] `sim`'s effect states along one recorded episode (obs [T+1,
     n_obs], applied [T, n_act]), from rest. Jitted on the simulator (hashable by identity,
     one per env: `_base`) and the shapes, its parameters traced."""
-    rest = ravel_pytree(sim.effects.init_state())[0]
+    rest = _at_rest(sim)[0]
 
     def step(carried, ou):
         return _simulator_step(sim, nq, params, ctrl_range, ou[0], carried, ou[1])[1], carried
@@ -390,9 +390,16 @@ def _base(env):
     more), which the model applies itself, keeping their buffers in its state (a base step
     starts from rest). One per env, so the models fitted on it share what is compiled for
     its simulator (`_effect_states_along`)."""
-    if id(env) not in _BASES or _BASES[id(env)][0] is not env:
-        _BASES[id(env)] = (env, _split_delays(env))
-    return _BASES[id(env)][1]
+    return _per_env(_BASES, env, (), lambda: _split_delays(env))
+
+
+def _per_env(cache: dict, env, key: tuple, make):
+    """`make()`, kept in `cache` per env object (and `key`): the env is held beside it, so an
+    id reused by a later env is not mistaken for it."""
+    full = (id(env), *key)
+    if full not in cache or cache[full][0] is not env:
+        cache[full] = (env, make())
+    return cache[full][1]
 
 
 def _split_delays(env):
@@ -414,11 +421,12 @@ _ZERO: dict = {}
 def zero_residual(env, hidden: Sequence[int] = (8,)) -> DynamicsModel:
     """A residual model whose correction is exactly zero: the simulator itself (one object per
     env and width, so what is compiled for it is reused)."""
-    key = (id(env), tuple(hidden))
-    if key not in _ZERO or _ZERO[key][0] is not env:
+
+    def make():
         model = skeleton("residual", env, hidden, 1)
-        _ZERO[key] = (env, replace(model, params=jax.tree.map(jnp.zeros_like, model.params)))
-    return _ZERO[key][1]
+        return replace(model, params=jax.tree.map(jnp.zeros_like, model.params))
+
+    return _per_env(_ZERO, env, (tuple(hidden),), make)
 
 
 @dataclass(frozen=True)
