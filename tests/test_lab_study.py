@@ -64,6 +64,35 @@ def test_every_task_of_the_study_builds_its_system_on_the_study_s_backend(task):
     make_env(cfg.env)
 
 
+@pytest.mark.parametrize("task", TASKS)
+def test_the_study_offers_discovery_every_library_effect_a_draw_hides(task):
+    """A lab draw changes every body's mass, centre of mass and inertia and gives every
+    joint's dry friction a static peak. Discovery is offered each effect of its library that
+    the draws hide and the law that carries a static peak (breakaway_friction, a refinement of
+    Coulomb's), in the one-shot's and the loop's configs alike: without the inertial ones a
+    mass scale stands in for them, and the misfit it leaves hides a step of delay."""
+    from hds.config import compose
+    from hds.effects.library import candidate_effects
+
+    family = _family(task)
+    hidden = {
+        e["name"]
+        for k in range(10)
+        for e in lab.draw(f"lab{family or '_cartpole'}", k)["effects"]
+        if e["name"] in candidate_effects()
+    }
+    assert {"mass_scale", "com_scale", "inertia_scale", "action_delay"} <= hidden
+    for config, method in (
+        (f"lab_study{family}", ["method=pods_corrected"]),
+        (f"lab_study_loop{family}", []),
+    ):
+        cfg = compose(
+            [f"env={task}", f"+experiment=[{config},lab_task_{task}]", *method],
+            config_dirs=[CONF.parent],
+        )
+        assert hidden | {"breakaway_friction"} <= set(cfg.discover.effects), config
+
+
 def _swept_methods(config: str) -> list[str]:
     """The methods a study sweep config runs, each a job (its own or its parent's list)."""
     while True:
