@@ -256,6 +256,27 @@ def _study_script(name: str):
     return module
 
 
+@pytest.mark.parametrize("family", sorted(lab.FAMILIES))
+def test_the_report_judges_every_library_effect_a_draw_hides_against_its_truth(family):
+    """What discovery may name of a draw's hidden library effects (a centre of mass and an
+    inertia among them) is read against the draw's own value, never as "not in the plant"; an
+    effect the draw does not hide (a lag) has no truth."""
+    from hds.effects.library import candidate_effects
+
+    truth_values = _study_report().truth_values
+    truth = lab.draw(family, 1)
+    hidden = [e for e in truth["effects"] if e["name"] in candidate_effects()]
+    assert {"com_scale", "inertia_scale"} <= {e["name"] for e in hidden}
+    for e in hidden:
+        if e["name"] == "action_delay" and not e["params"]["steps"]:
+            continue  # no delay: no effect to judge against
+        values = truth_values(truth, e["name"], e["target"])
+        assert values is not None, e
+        assert all(values[p] == e["params"][p] for p in values), e
+    target = "motor" if family == "lab_furuta" else "slide"
+    assert truth_values(truth, "actuator_lag", target) is None
+
+
 def test_the_study_counts_a_hybrid_win_only_where_the_loop_left_room():
     """A draw has room where the oracle beats the loop beyond both intervals; the hybrid's
     win counts there. A loop at the oracle's level leaves none, whatever the hybrid does."""

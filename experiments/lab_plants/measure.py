@@ -65,6 +65,8 @@ TRUTH_OF = {
     },
     "viscous_damping": {"coefficient": ("viscous_damping", "coefficient")},
     "mass_scale": {"scale": ("mass_scale", "scale")},
+    "com_scale": {"scale": ("com_scale", "scale")},
+    "inertia_scale": {"scale": ("inertia_scale", "scale")},
     "actuator_gain": {"gain": ("actuator_gain", "gain")},
     "actuator_deadzone": {"width": ("actuator_deadzone", "width")},
     "action_delay": {"steps": ("action_delay", "steps")},
@@ -72,7 +74,8 @@ TRUTH_OF = {
 FRICTION = 0.25  # the issue's tolerance for frictions (and dead bands); 10% masses and gains
 TOLERANCE = {"coulomb_friction": FRICTION, "breakaway_friction": FRICTION}
 TOLERANCE |= {"viscous_damping": FRICTION, "actuator_deadzone": FRICTION}
-TOLERANCE |= {"mass_scale": 0.10, "actuator_gain": 0.10}
+SCALES = ("mass_scale", "com_scale", "inertia_scale", "actuator_gain")  # no effect at 1
+TOLERANCE |= {name: 0.10 for name in SCALES}
 JUDGED = {"breakaway_friction": ("force", "static")}  # not the Stribeck velocity: no tolerance
 NO_OP = {"action_delay": 0}  # a drawn value that is no effect
 
@@ -107,7 +110,7 @@ def judge(e: dict) -> dict:
     (within the issue's tolerance of the truth)."""
     values = quantities(e)
     judged = JUDGED.get(e["name"], tuple(values)[:1])
-    nominal = {"mass_scale": 1.0, "actuator_gain": 1.0}.get(e["name"], 0.0)
+    nominal = 1.0 if e["name"] in SCALES else 0.0
     truth = e["truth"]
     if truth is None:
         x, lo, hi = values[judged[0]]
