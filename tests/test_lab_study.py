@@ -277,6 +277,36 @@ def test_the_report_judges_every_library_effect_a_draw_hides_against_its_truth(f
     assert truth_values(truth, "actuator_lag", target) is None
 
 
+def test_the_report_names_each_quantity_of_a_breakaway_friction_against_its_truth():
+    """A breakaway friction is judged as its sliding and static levels (force + peak, its
+    interval the ends' sums) against the draw's Stribeck friction, each quantity named; a
+    one-parameter effect reads as before."""
+    report = _study_report()
+    truth = lab.draw("lab_cartpole", 0)
+    (stribeck,) = [
+        e["params"]
+        for e in truth["effects"]
+        if e["name"] == "stribeck_friction" and e["target"] == "slider"
+    ]
+    named = [
+        {
+            "name": "breakaway_friction",
+            "target": "slider",
+            "params": {"force": 12.0, "peak": 4.0, "velocity": 0.05},
+            "ci95": {"force": [8.0, 16.0], "peak": [0.0, 9.0], "velocity": [0.01, 0.2]},
+        },
+        {"name": "actuator_lag", "target": "slide", "params": {"time_constant": 0.06}},
+    ]
+    text = report.named_vs_truth(named, truth)
+    friction, lag = text.split("; ")
+    assert friction == (
+        f"breakaway_friction@slider force 12 [8, 16] vs {stribeck['force']:.3g}, "
+        f"static 16 [8, 25] vs {stribeck['static']:.3g}, "
+        f"velocity 0.05 [0.01, 0.2] vs {stribeck['velocity']:.3g}"
+    )
+    assert lag == "actuator_lag@slide 0.06 [nan, nan] vs not in the plant"
+
+
 def test_the_study_counts_a_hybrid_win_only_where_the_loop_left_room():
     """A draw has room where the oracle beats the loop beyond both intervals; the hybrid's
     win counts there. A loop at the oracle's level leaves none, whatever the hybrid does."""

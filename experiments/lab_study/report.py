@@ -44,18 +44,21 @@ ABOUT = {
 WITHIN = 1.05  # the issue's target: within 1.05 of the oracle's cost
 
 
-def _truth_values():
-    """experiments/lab_plants/measure.py's truth_values: what a draw's truth holds for a
-    library effect discovery may name, per parameter (one mapping for both experiments)."""
+def _measure():
+    """experiments/lab_plants/measure.py as a module: its truth_values (what a draw's truth
+    holds for a library effect discovery may name, per parameter) and quantities (a named
+    effect's judged quantities: a breakaway friction's static level is force + peak), one
+    mapping for both experiments."""
     spec = importlib.util.spec_from_file_location(
         "lab_measure", HERE.parent / "lab_plants" / "measure.py"
     )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    return module.truth_values
+    return module
 
 
-truth_values = _truth_values()
+_MEASURE = _measure()
+truth_values = _MEASURE.truth_values
 
 
 def family_of(task: str) -> str:
@@ -86,16 +89,20 @@ def config_of(run_dir: Path):
 
 
 def named_vs_truth(effects: list[dict], truth: dict) -> str:
+    """Each named effect's fit [95% interval] against the draw's truth; an effect of several
+    quantities names each (a breakaway friction's sliding and static levels and velocity)."""
     parts = []
     for e in effects:
         values = truth_values(truth, e["name"], e["target"])
-        for param, x in e["params"].items():
-            lo, hi = e.get("ci95", {}).get(param, (float("nan"), float("nan")))
-            if values is None:
-                true = "not in the plant"
-            else:
-                true = f"{values[param]:.3g}" if param in values else "-"
-            parts.append(f"{e['name']}@{e['target']} {x:.3g} [{lo:.3g}, {hi:.3g}] vs {true}")
+        nan = (float("nan"), float("nan"))
+        cis = {p: e.get("ci95", {}).get(p, nan) for p in e["params"]}
+        fits = _MEASURE.quantities({**e, "ci95": cis})
+        items = []
+        for q, (x, lo, hi) in fits.items():
+            true = "not in the plant" if values is None else f"{values.get(q, float('nan')):.3g}"
+            label = f"{q} " if len(fits) > 1 else ""
+            items.append(f"{label}{x:.3g} [{lo:.3g}, {hi:.3g}] vs {true}")
+        parts.append(f"{e['name']}@{e['target']} " + ", ".join(items))
     return "; ".join(parts) or "nothing"
 
 
