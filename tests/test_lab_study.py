@@ -70,18 +70,19 @@ def test_the_study_offers_discovery_every_library_effect_a_draw_hides(task):
     joint's dry friction a static peak. Discovery is offered each effect of its library that
     the draws hide and the law that carries a static peak (breakaway_friction, a refinement of
     Coulomb's), in the one-shot's and the loop's configs alike: without the inertial ones a
-    mass scale stands in for them, and the misfit it leaves hides a step of delay."""
+    mass scale stands in for them, and the misfit it leaves hides a step of delay. The config
+    states its list whole, so it is checked to hold every default candidate too."""
     from hds.config import compose
-    from hds.effects.library import candidate_effects
+    from hds.effects.library import default_candidates
 
     family = _family(task)
     hidden = {
         e["name"]
         for k in range(10)
-        for e in lab.draw(f"lab{family or '_cartpole'}", k)["effects"]
-        if e["name"] in candidate_effects()
+        for e in _hidden_library_effects(_study_report().family_of(task), k)
     }
     assert {"mass_scale", "com_scale", "inertia_scale", "action_delay"} <= hidden
+    offered = hidden | {"breakaway_friction"} | set(default_candidates())
     for config, method in (
         (f"lab_study{family}", ["method=pods_corrected"]),
         (f"lab_study_loop{family}", []),
@@ -90,7 +91,14 @@ def test_the_study_offers_discovery_every_library_effect_a_draw_hides(task):
             [f"env={task}", f"+experiment=[{config},lab_task_{task}]", *method],
             config_dirs=[CONF.parent],
         )
-        assert hidden | {"breakaway_friction"} <= set(cfg.discover.effects), config
+        assert offered <= set(cfg.discover.effects), config
+
+
+def _hidden_library_effects(family: str, k: int) -> list[dict]:
+    """The effects draw k of a lab family hides that discovery's library has as candidates."""
+    from hds.effects.library import candidate_effects
+
+    return [e for e in lab.draw(family, k)["effects"] if e["name"] in candidate_effects()]
 
 
 def _swept_methods(config: str) -> list[str]:
@@ -261,11 +269,9 @@ def test_the_report_judges_every_library_effect_a_draw_hides_against_its_truth(f
     """What discovery may name of a draw's hidden library effects (a centre of mass and an
     inertia among them) is read against the draw's own value, never as "not in the plant"; an
     effect the draw does not hide (a lag) has no truth."""
-    from hds.effects.library import candidate_effects
-
     truth_values = _study_report().truth_values
     truth = lab.draw(family, 1)
-    hidden = [e for e in truth["effects"] if e["name"] in candidate_effects()]
+    hidden = _hidden_library_effects(family, 1)
     assert {"com_scale", "inertia_scale"} <= {e["name"] for e in hidden}
     for e in hidden:
         if e["name"] == "action_delay" and not e["params"]["steps"]:
