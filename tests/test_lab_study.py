@@ -310,7 +310,7 @@ def test_the_report_names_each_quantity_of_a_breakaway_friction_against_its_trut
         f"static 16 [8, 25] vs {stribeck['static']:.3g}, "
         f"velocity 0.05 [0.01, 0.2] vs {stribeck['velocity']:.3g}"
     )
-    assert lag == "actuator_lag@slide 0.06 [nan, nan] vs not in the plant"
+    assert lag == "actuator_lag@slide 0.06 [-, -] vs not in the plant"
 
 
 def test_the_study_counts_a_hybrid_win_only_where_the_loop_left_room():

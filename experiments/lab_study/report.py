@@ -16,6 +16,7 @@ exact), and over draws the interval is over every (draw, seed).
 from __future__ import annotations
 
 import importlib.util
+import math
 import re
 import sys
 from pathlib import Path
@@ -88,6 +89,11 @@ def config_of(run_dir: Path):
     return None
 
 
+def _g(x: float) -> str:
+    """A value to 3 significant digits; "-" where there is none (no interval, no truth)."""
+    return "-" if math.isnan(x) else f"{x:.3g}"
+
+
 def named_vs_truth(effects: list[dict], truth: dict) -> str:
     """Each named effect's fit [95% interval] against the draw's truth; an effect of several
     quantities names each (a breakaway friction's sliding and static levels and velocity)."""
@@ -99,9 +105,9 @@ def named_vs_truth(effects: list[dict], truth: dict) -> str:
         fits = _MEASURE.quantities({**e, "ci95": cis})
         items = []
         for q, (x, lo, hi) in fits.items():
-            true = "not in the plant" if values is None else f"{values.get(q, float('nan')):.3g}"
+            true = "not in the plant" if values is None else _g(values.get(q, float("nan")))
             label = f"{q} " if len(fits) > 1 else ""
-            items.append(f"{label}{x:.3g} [{lo:.3g}, {hi:.3g}] vs {true}")
+            items.append(f"{label}{_g(x)} [{_g(lo)}, {_g(hi)}] vs {true}")
         parts.append(f"{e['name']}@{e['target']} " + ", ".join(items))
     return "; ".join(parts) or "nothing"
 

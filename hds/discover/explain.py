@@ -131,6 +131,18 @@ def _rival(model, fresh: list[int], decided, best: int) -> dict | None:
     return {"name": cand.name, "target": cand.target, "heldout_error": float(decided[j])}
 
 
+def _round_line(round_index: int, model, rows: list[dict], fresh: list[int], decided) -> str:
+    """A selection round's progress: the best candidate it may add, by the error it is judged
+    on (a screen's row, a refinement or a selected effect's refit is never added)."""
+    head = f"selection round {round_index}: {len(rows)} candidates fitted"
+    finite = [j for j in fresh if np.isfinite(decided[j])]
+    if not finite:
+        return f"{head}, none left to add"
+    j = min(finite, key=lambda i: decided[i])
+    cand = model.candidates[j]
+    return f"{head}, the best to add {cand.name}@{cand.target} (held-out error {decided[j]:.3g})"
+
+
 def candidate_params(model, cand: Candidate, theta, delay) -> dict[str, float]:
     if cand.shifts_actions:
         return {cand.params[0]: int(delay[cand.actuator])}
@@ -188,13 +200,14 @@ def forward_selection(
                 }
             )
         rounds.append(rows)
+        # the candidates selection may add (a refit of the selected effects keeps their keys)
+        fresh = [
+            i
+            for i, c in enumerate(model.candidates)
+            if c.key not in state.keys and c.key not in banned and not _refinement(c)
+        ]
         if progress:
-            best_row = min(rows, key=lambda row: row["heldout_error"])
-            progress(
-                f"selection round {round_index}: {len(rows)} candidates fitted, the best "
-                f"{best_row['name']}@{best_row['target']} (held-out error "
-                f"{best_row['heldout_error']:.3g})"
-            )
+            progress(_round_line(round_index, model, rows, fresh, decided))
         # the selected effects refitted together (a candidate already selected adds nothing
         # new: its row is a longer refit of the current model, or another delay length)
         refits = [i for i, c in enumerate(model.candidates) if c.key in state.keys]
@@ -203,11 +216,6 @@ def forward_selection(
             if held[i] < state.heldout_error:
                 state = fit.state(state.selected, batch, i)
                 states[-1] = state
-        fresh = [
-            i
-            for i, c in enumerate(model.candidates)
-            if c.key not in state.keys and c.key not in banned and not _refinement(c)
-        ]
         if not fresh:
             stopped = "every candidate the data can identify is selected"
             break
