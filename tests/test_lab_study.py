@@ -367,3 +367,32 @@ def test_the_signal_comparison_reads_a_finished_run_without_running_it(tmp_path,
     assert line[:3] == ["100", "prbs", str(truth[0]["params"]["steps"] if truth else 0)]
     assert line[3].startswith("action_delay@motor 1")
     assert line[4:] == ["-1.31 (-1.23)", "128"]  # 64 episodes x 100 steps x 20 ms
+
+
+def _scale(name: str, target: str, value: float) -> dict:
+    key = "gain" if name == "actuator_gain" else "scale"
+    return {"name": name, "target": target, "params": {key: value}}
+
+
+def test_the_rigid_body_measure_counts_what_a_model_predicts_not_its_scales_one_by_one():
+    """A pendulum 10% heavier (its mass and inertia together) moves as one with a motor 1/1.1
+    as strong: a model naming that gain leaves none of the rigid-body error, where judging
+    the scales one by one calls the gain spurious and the mass missed. A gain of 1.1 instead
+    is worse than naming nothing; friction, named or not, does not enter."""
+    report = _study_report()
+    rigid = report._RIGID
+    truth = [_scale("mass_scale", "pole", 1.1), _scale("coulomb_friction", "hinge", 0.5)]
+    assert rigid.error_left("pendulum.xml", truth, [_scale("actuator_gain", "torque", 1 / 1.1)])[
+        "hinge"
+    ] == pytest.approx(0.0, abs=1e-6)
+    assert rigid.error_left("pendulum.xml", truth, [])["hinge"] == pytest.approx(1.0)
+    assert (
+        rigid.error_left("pendulum.xml", truth, [_scale("actuator_gain", "torque", 1.1)])["hinge"]
+        > 1.5
+    )
+    # the report's column: per joint, on a lab draw's truth
+    draw = lab.draw("lab_furuta", 4)
+    line = report.rigid_left(draw, [_scale("inertia_scale", "arm", 2.8)])
+    arm, pendulum = (float(part.split()[1]) for part in line.split(", "))
+    assert line.startswith("arm ") and ", pendulum " in line
+    assert 0.0 < arm < 0.5 and 0.0 < pendulum < 1.0

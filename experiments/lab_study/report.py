@@ -1,8 +1,9 @@
 """The lab study's tables (issue 38.4; `make study-lab`'s last step): per task and draw, each
 method's real cost over the oracle's, with a 95% interval over seeds, the plant time its data
-cost, what discovery named against the draw's truth and the held-out error it left
-unexplained; then per method over the draws: the mean ratio, the share of draws within 1.05
-of the oracle, and the plant time each needed to get there.
+cost, what discovery named against the draw's truth, the held-out error it left
+unexplained and the share of the draw's rigid-body and motor error its model leaves
+(experiments/lab_plants/rigid.py); then per method over the draws: the mean ratio, the
+share of draws within 1.05 of the oracle, and the plant time each needed to get there.
 
     PYTHONPATH=$PWD .venv/bin/python experiments/lab_study/report.py [outputs/study/lab]
 
@@ -45,20 +46,20 @@ ABOUT = {
 WITHIN = 1.05  # the issue's target: within 1.05 of the oracle's cost
 
 
-def _measure():
-    """experiments/lab_plants/measure.py as a module: its truth_values (what a draw's truth
-    holds for a library effect discovery may name, per parameter) and quantities (a named
-    effect's judged quantities: a breakaway friction's static level is force + peak), one
-    mapping for both experiments."""
+def _module(name: str):
+    """experiments/lab_plants/<name>.py as a module: measure (truth_values, what a draw's truth
+    holds for a library effect discovery may name, per parameter; quantities, a named effect's
+    judged quantities: a breakaway friction's static level is force + peak) and rigid (the
+    rigid-body and motor error a named model leaves), one definition for both experiments."""
     spec = importlib.util.spec_from_file_location(
-        "lab_measure", HERE.parent / "lab_plants" / "measure.py"
+        f"lab_{name}", HERE.parent / "lab_plants" / f"{name}.py"
     )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
 
 
-_MEASURE = _measure()
+_MEASURE, _RIGID = _module("measure"), _module("rigid")
 truth_values = _MEASURE.truth_values
 
 
@@ -110,6 +111,14 @@ def named_vs_truth(effects: list[dict], truth: dict) -> str:
             items.append(f"{label}{_g(x)} [{_g(lo)}, {_g(hi)}] vs {true}")
         parts.append(f"{e['name']}@{e['target']} " + ", ".join(items))
     return "; ".join(parts) or "nothing"
+
+
+def rigid_left(truth: dict, named: list[dict]) -> str:
+    """Per joint, the share of the nominal's rigid-body and motor error (the acceleration it
+    predicts) the named effects leave (experiments/lab_plants/rigid.py): 0 the truth's, 1 the
+    nominal's."""
+    left = _RIGID.error_left(truth["xml"], truth["effects"], named)
+    return ", ".join(f"{joint} {x:.2f}" for joint, x in left.items())
 
 
 def unexplained(discovery_dir: Path) -> float | None:
@@ -233,9 +242,9 @@ def tables(task: str, family: str, data: dict) -> tuple[str, dict]:
     lines = [f"### {task}", ""]
     header = (
         "| draw | method | cost / oracle's [95% over seeds] | solved on its simulator | "
-        "plant s | named vs truth | unexplained |"
+        "plant s | named vs truth | unexplained | rigid body left |"
     )
-    lines += [header, "| --- | --- | --- | --- | --- | --- | --- |"]
+    lines += [header, "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     ratios: dict[str, list[float]] = {m: [] for m in METHODS}
     within: dict[str, list[bool]] = {m: [] for m in METHODS}
     reach: dict[str, list] = {m: [] for m in METHODS}
@@ -260,7 +269,8 @@ def tables(task: str, family: str, data: dict) -> tuple[str, dict]:
             lines.append(
                 f"| {draw} | {m} | {ci[0]:.3f} [{ci[1]:.3f}, {ci[2]:.3f}] | {solved} | "
                 f"{e.get('plant_s', 0.0):.0f} | {named} | "
-                f"{'' if share is None else f'{share:.1%}'} |"
+                f"{'' if share is None else f'{share:.1%}'} | "
+                f"{rigid_left(truth, e['named']) if 'named' in e else ''} |"
             )
     lines += [
         "",
