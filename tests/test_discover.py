@@ -1429,12 +1429,11 @@ def test_a_selection_rounds_progress_names_the_best_candidate_it_may_add():
 
     names = ["rail_friction", "mass_scale", "actuator_lag", "breakaway_friction"]
     model = SimpleNamespace(candidates=[SimpleNamespace(name=n, target="slider") for n in names])
-    rows = [{"heldout_error": e} for e in (0.01, 0.02, 0.03, 0.04)]
     # 0 is selected (its refit), 3 a refinement: neither is fresh; 1 was only screened
     decided = np.array([0.01, np.inf, 0.03, 0.005])
-    line = _round_line(2, model, rows, [1, 2], decided)
+    line = _round_line(2, model, [1, 2], decided)
     assert line == (
         "selection round 2: 4 candidates fitted, the best to add actuator_lag@slider "
         "(held-out error 0.03)"
     )
-    assert _round_line(3, model, rows, [1], decided).endswith("none left to add")
+    assert _round_line(3, model, [1], decided).endswith("none left to add")

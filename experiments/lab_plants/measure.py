@@ -43,6 +43,9 @@ from hds.real import lab, make_plant
 from hds.utils.io import atomic_write_json, read_json
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from rigid import RIGID  # noqa: E402
+
 # discovery's candidates: its defaults and the dry friction with a Stribeck peak, which it
 # tries only as a refinement of a named Coulomb friction (hds.discover.explain._refine)
 EFFECTS = [*default_candidates(), "breakaway_friction"]
@@ -74,7 +77,7 @@ TRUTH_OF = {
 FRICTION = 0.25  # the tolerance for frictions (and dead bands); 10% masses and gains
 TOLERANCE = {"coulomb_friction": FRICTION, "breakaway_friction": FRICTION}
 TOLERANCE |= {"viscous_damping": FRICTION, "actuator_deadzone": FRICTION}
-SCALES = ("mass_scale", "com_scale", "inertia_scale", "actuator_gain")  # no effect at 1
+SCALES = RIGID  # the rigid body's and the motor's scales: no effect at 1
 TOLERANCE |= {name: 0.10 for name in SCALES}
 JUDGED = {"breakaway_friction": ("force", "static")}  # not the Stribeck velocity: no tolerance
 NO_OP = {"action_delay": 0}  # a drawn value that is no effect

@@ -36,11 +36,7 @@ SAMPLES = 1024
 
 def rigid_effects(effects: list[dict]) -> list[dict]:
     """The rigid-body and motor effects of a list (a truth's or discovery's named ones)."""
-    return [
-        {"name": e["name"], "target": e["target"], "params": dict(e["params"])}
-        for e in effects
-        if e["name"] in RIGID
-    ]
+    return [e for e in effects if e["name"] in RIGID]
 
 
 def _model(xml: str, effects: list[dict]) -> mujoco.MjModel:

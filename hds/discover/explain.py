@@ -131,10 +131,10 @@ def _rival(model, fresh: list[int], decided, best: int) -> dict | None:
     return {"name": cand.name, "target": cand.target, "heldout_error": float(decided[j])}
 
 
-def _round_line(round_index: int, model, rows: list[dict], fresh: list[int], decided) -> str:
+def _round_line(round_index: int, model, fresh: list[int], decided) -> str:
     """A selection round's progress: the best candidate it may add, by the error it is judged
     on (a screen's row, a refinement or a selected effect's refit is never added)."""
-    head = f"selection round {round_index}: {len(rows)} candidates fitted"
+    head = f"selection round {round_index}: {len(model.candidates)} candidates fitted"
     finite = [j for j in fresh if np.isfinite(decided[j])]
     if not finite:
         return f"{head}, none left to add"
@@ -207,7 +207,7 @@ def forward_selection(
             if c.key not in state.keys and c.key not in banned and not _refinement(c)
         ]
         if progress:
-            progress(_round_line(round_index, model, rows, fresh, decided))
+            progress(_round_line(round_index, model, fresh, decided))
         # the selected effects refitted together (a candidate already selected adds nothing
         # new: its row is a longer refit of the current model, or another delay length)
         refits = [i for i, c in enumerate(model.candidates) if c.key in state.keys]
