@@ -63,7 +63,8 @@ def record(cfg: Config, env, plant, params, key, scale: float, env_cfg=None) -> 
 
     horizon = env.task.horizon
     first = jax.tree.map(lambda x: x[0], params)
-    act = jax.jit(make_policy(cfg.algo.hidden, env.sim).apply)
+    policy = make_policy(cfg.algo.hidden, env.sim, cfg.algo.last_command)
+    act = jax.jit(policy.apply)
     excitation = dataclasses.replace(
         cfg.dynamics,
         episodes=cfg.loop.excitation_episodes,
@@ -93,6 +94,7 @@ def record(cfg: Config, env, plant, params, key, scale: float, env_cfg=None) -> 
         cfg.loop.excitation_episodes,
         horizon,
         controls,
+        policy.last_command,
     )
 
 

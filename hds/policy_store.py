@@ -55,6 +55,7 @@ def save(directory: Path, module: Policy, params: dict, runs: list[dict], epochs
         "network": {
             "hidden": [int(w) for w in module.hidden],
             "hinge_angles": [bool(a) for a in module.angular],
+            "last_command": bool(module.last_command),  # the input ends with the last control
             "control_range": np.stack([module.low, module.high], 1).astype(float).tolist(),
             "activation": "tanh",
             "output": "mid + half * tanh(last layer): mid, half of each control range",
@@ -78,8 +79,13 @@ def load(directory: Path) -> tuple[Policy, dict, list[int]]:
         )
     with np.load(directory / "policy.npz") as npz:
         arrays = dict(npz)
+    network = spec["network"]
     module = Policy(
-        tuple(spec["network"]["hidden"]), arrays["angular"], arrays["low"], arrays["high"]
+        tuple(network["hidden"]),
+        arrays["angular"],
+        arrays["low"],
+        arrays["high"],
+        bool(network.get("last_command", False)),  # absent where written before the option
     )
     params = {
         "params": {

@@ -233,3 +233,45 @@ def test_the_improvement_horizon_grows_from_its_start_to_the_whole_horizon():
         assert np.all(np.asarray(m)[: int(m.sum())] == 1)
     assert counted_steps(jnp.int32(5), 0, 20.0, 100) is None  # off: no mask at all
     assert counted_steps(jnp.int32(5), 100, 20.0, 100) is None  # a start of the whole horizon
+
+
+def test_a_policy_that_sees_its_last_command_gets_the_control_it_sent():
+    """algo.last_command: the policy's input is [o_t, u_{t-1}], zeros before the first control,
+    and the command it sees is the one applied (saturated); `policy_inputs` rebuilds those
+    inputs from the rollout, so perturbations u - act(inputs) replay it exactly; a gradient
+    window cuts the remembered command from the gradient with the state."""
+    from hds.algo.rollout import perturbed_rollout, policy_inputs
+
+    act = lambda i: jnp.array([i[2] + 0.5 - 0.1 * i[0]])  # noqa: E731  it builds on its last
+    state = jnp.array([0.3, 0.0])
+    low, high = jnp.full(1, -10.0), jnp.full(1, 1.2)
+
+    def run(deltas, window=0, high=high):
+        return perturbed_rollout(ENGINE, None, TASK, act, state, deltas, low, high, window, True)
+
+    obs, u, _ = run(jnp.zeros((T, 1)))
+    inputs = policy_inputs(obs, u, True)
+    assert inputs.shape == (T, 3) and float(inputs[0, 2]) == 0.0
+    np.testing.assert_array_equal(inputs[1:, 2], u[:-1, 0])
+    np.testing.assert_allclose(u, jnp.clip(jax.vmap(act)(inputs), low, high), rtol=1e-6)
+    assert u[-1, 0] == high[0] and u[0, 0] < high[0]  # it rose to the bound and saw it
+    assert policy_inputs(obs, u, False) is obs
+
+    deltas = jax.random.normal(jax.random.PRNGKey(8), (T, 1))
+    obs, u, r = run(deltas)
+    replay = run(u - jax.vmap(act)(policy_inputs(obs, u, True)))
+    np.testing.assert_allclose(replay[0], obs, atol=1e-6)
+    np.testing.assert_allclose(replay[2], r, rtol=1e-6)
+
+    wide = jnp.full(1, 10.0)  # no saturation: every step has a gradient
+    ret = lambda d, window: run(d, window, wide)[2].sum()  # noqa: E731
+    obs, u, _ = run(deltas, 0, wide)
+    inputs = policy_inputs(obs, u, True)
+
+    def own_reward(i, d):  # one step's reward from its own input, as a window of 1 leaves it
+        v = act(i) + d
+        return TASK.reward(*ENGINE.qqd(ENGINE.step(i[:2], v, None)), v)
+
+    own = jax.vmap(jax.grad(own_reward, 1))(inputs, deltas)
+    np.testing.assert_allclose(jax.grad(ret)(deltas, 1), own, rtol=1e-5, atol=1e-7)
+    assert not np.allclose(jax.grad(ret)(deltas, 0), own)

@@ -436,3 +436,48 @@ def test_keep_best_returns_the_best_policy_once_the_ramp_has_ended():
     for a, b in zip(jax.tree.leaves(kept), jax.tree.leaves(states[best].policy), strict=True):
         np.testing.assert_array_equal(a, b)
     assert not np.array_equal(jax.tree.leaves(kept)[0], jax.tree.leaves(last)[0])
+
+
+def test_a_policy_that_sees_its_last_command_trains_and_runs_alike_on_a_plant(tmp_path):
+    """algo.last_command: the network takes [obs, last control] (n_act inputs more), closed-
+    loop PODS trains it, and it runs as it trained wherever it runs: the evaluator's simulator
+    rollouts, a plant's host loop (hds.real.rollout) and the saved, reloaded policy
+    (hds.evaluate_policy) give the same returns on the simulator's own dynamics; its inputs are
+    named and `observe` appends MuJoCo's ctrl."""
+    import mujoco
+
+    from hds import policy_store
+    from hds.policy import Policy, evaluate_policy
+    from hds.real.brax_plant import BraxPlant
+
+    cfg = make_config(*TINY, "algo.improve_in=closed_loop", "algo.last_command=true")
+    env = make_env(cfg.env)
+    trainer = make_train_from_config(cfg, env)
+    assert trainer.policy.last_command
+    state, metrics = train_in_chunks(cfg, trainer)
+    assert np.all(np.asarray(metrics["improved_return"]) >= np.asarray(metrics["return"]) - 1e-3)
+    key = jax.random.PRNGKey(0)
+    plain = make_policy(cfg.algo.hidden, env.sim).init(key, jnp.zeros(env.sim.n_obs))
+    first = lambda p: p["params"]["Dense_0"]["kernel"].shape[-2]  # noqa: E731
+    assert first(state.policy) == first(plain) + env.sim.n_act
+
+    plant = BraxPlant(env)
+    evaluator = Evaluator(env, trainer.policy, plant, episodes=8, seed=cfg.eval_seed)
+    before = jax.vmap(trainer.init, in_axes=(0, None))(
+        jnp.stack([key]), trainer.default_hparams
+    ).policy
+    sim, real = evaluator.sim_returns(state.policy), evaluator.real_returns(state.policy)
+    np.testing.assert_allclose(real, sim, rtol=1e-3)
+    assert sim.mean() > evaluator.sim_returns(before).mean()
+
+    policy_store.save(tmp_path, trainer.policy, state.policy, cfg.runs(), state.epoch)
+    module, params, epochs = policy_store.load(tmp_path)
+    params = jax.tree.map(lambda x: x[0], params)
+    policy = Policy(module, params, cfg.env, "pods", cfg.runs()[0], epochs[0], cfg)
+    assert policy.last_command and policy.obs_names[-1] == "last:slide"
+    again = evaluate_policy(policy, episodes=8, seed=cfg.eval_seed, plant=plant).returns
+    np.testing.assert_allclose(again, real[0], rtol=1e-5)
+    data = mujoco.MjData(policy.mj_model())
+    data.ctrl[:] = 0.7
+    assert policy.observe(data).shape == (len(policy.obs_names),)
+    assert policy.observe(data)[-1] == np.float32(0.7)
