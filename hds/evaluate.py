@@ -80,13 +80,7 @@ def through_model(policy, model_dir: Path, real_eval) -> dict:
     model = dynamics.load(model_dir, env)
     obs, actions = real_eval.episodes.obs, real_eval.episodes.actions
     returns = dynamics.closed_loop_returns(
-        model,
-        env.task,
-        policy,
-        obs[:, 0],
-        actions.shape[1],
-        env.sim.ctrl_range,
-        policy.last_command,
+        model, env.task, policy, obs[:, 0], actions.shape[1], env.sim.ctrl_range
     )
     errors = dynamics.evaluate(model, obs, actions, policy.config.dynamics.eval_steps, env)
     (mean, lo, hi), (real_mean, *_) = mean_ci(returns), real_eval.mean_ci()

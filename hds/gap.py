@@ -69,7 +69,6 @@ class Evaluator:
                     task.horizon,
                     low,
                     high,
-                    policy.last_command,
                 )
                 return r.sum()
 
@@ -111,7 +110,7 @@ class Evaluator:
         `plant` from the evaluation's initial states."""
         task = self.env.task
         act = lambda obs: np.asarray(self._act(params, jnp.asarray(obs, jnp.float32)))  # noqa: E731
-        return rollout(plant, task, self.q0, self.qd0, act, task.horizon, self.policy.last_command)
+        return rollout(plant, task, self.q0, self.qd0, act, task.horizon)
 
 
 def gap_rows(

@@ -63,8 +63,7 @@ def record(cfg: Config, env, plant, params, key, scale: float, env_cfg=None) -> 
 
     horizon = env.task.horizon
     first = jax.tree.map(lambda x: x[0], params)
-    policy = make_policy(cfg.algo.hidden, env.sim, cfg.algo.last_command)
-    act = jax.jit(policy.apply)
+    act = jax.jit(make_policy(cfg.algo.hidden, env.sim).apply)
     excitation = dataclasses.replace(
         cfg.dynamics,
         episodes=cfg.loop.excitation_episodes,
@@ -94,7 +93,6 @@ def record(cfg: Config, env, plant, params, key, scale: float, env_cfg=None) -> 
         cfg.loop.excitation_episodes,
         horizon,
         controls,
-        policy.last_command,
     )
 
 

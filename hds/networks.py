@@ -1,5 +1,4 @@
-"""Networks: the policy (observation, and optionally its last command -> control within the
-actuator's range)."""
+"""Networks: the policy (observation -> control within the actuator's range)."""
 
 from __future__ import annotations
 
@@ -24,19 +23,12 @@ class Policy:
     """MLP whose tanh output is scaled onto [low, high] of each actuator: `init` and `apply`
     are those of its flax module (`module`), which is made on first use. A process whose
     programs come from the program cache never calls them, so it never imports flax.linen
-    (~0.15 s of a second process). Its content, for the program cache's key, is its fields.
-    With `last_command`, its input is [observation, the control it sent at the last step]
-    (hds.algo.rollout.policy_inputs): a controller remembers what it sent, which an actuator's
-    delay otherwise hides from it."""
+    (~0.15 s of a second process). Its content, for the program cache's key, is its fields."""
 
     hidden: Sequence[int]
     angular: np.ndarray
     low: np.ndarray
     high: np.ndarray
-    last_command: bool = False
-
-    def n_inputs(self, n_obs: int) -> int:
-        return n_obs + (len(self.low) if self.last_command else 0)
 
     @functools.cached_property  # beside the fields: the content does not change
     def module(self):
@@ -76,11 +68,11 @@ def _mlp_class():
     return MLP
 
 
-def make_policy(hidden: Sequence[int], sim, last_command: bool = False) -> Policy:
+def make_policy(hidden: Sequence[int], sim) -> Policy:
     low, high = sim.ctrl_range[:, 0], sim.ctrl_range[:, 1]
     if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high))):
         raise ValueError(
             "every actuator needs a finite ctrlrange for the policy's output; set "
             "ctrllimited and ctrlrange on each actuator of the MJCF"
         )
-    return Policy(tuple(hidden), np.asarray(sim.angular), low, high, bool(last_command))
+    return Policy(tuple(hidden), np.asarray(sim.angular), low, high)

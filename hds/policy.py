@@ -43,9 +43,7 @@ KB = ("kernel", "bias")  # each layer's arrays, as policy.npz names them: Dense_
 class Policy:
     """One run's trained policy: `u = policy(obs)` maps observations [..., n_obs] (named
     `obs_names`) to controls [..., n_act] within `ctrl_range`. NumPy in, NumPy out (jitted);
-    a JAX array in, a JAX array out (traceable, differentiable). A policy trained with
-    `algo.last_command` also takes the control sent at the last step (zeros at an episode's
-    start), last in its input: `obs_names` names it, `observe` appends MuJoCo's ctrl."""
+    a JAX array in, a JAX array out (traceable, differentiable)."""
 
     module: object  # hds.networks.Policy (its flax module made on first use)
     params: dict  # its parameters (one run)
@@ -87,18 +85,8 @@ class Policy:
         return BraxPlant(kind.restore(self.config, self.run_dir).env)
 
     @property
-    def last_command(self) -> bool:
-        """Whether the policy's input ends with the control it sent at the last step."""
-        return bool(self.module.last_command)
-
-    @property
     def obs_names(self) -> tuple[str, ...]:
-        """The names of the policy's inputs: the observations, then `last:<actuator>` for each
-        control it sent at the last step where it sees them (`last_command`)."""
-        names = self.simulator.sim.obs_names
-        if self.last_command:
-            names = (*names, *(f"last:{a}" for a in self.action_names))
-        return names
+        return self.simulator.sim.obs_names
 
     @property
     def action_names(self) -> tuple[str, ...]:
@@ -122,10 +110,8 @@ class Policy:
         return load_spec(self.env.xml, self.env.timestep).compile()
 
     def observe(self, data: mujoco.MjData) -> np.ndarray:
-        """The policy's input at a MuJoCo state: [qpos, qvel] (hinge and slide joints), and
-        `data.ctrl` (the control last written) where it sees its last command."""
-        last = [data.ctrl] if self.last_command else []
-        return np.concatenate([data.qpos, data.qvel, *last]).astype(np.float32)
+        """The policy's observation of a MuJoCo state: [qpos, qvel] (hinge and slide joints)."""
+        return np.concatenate([data.qpos, data.qvel]).astype(np.float32)
 
 
 def _pick_run(cfg: Config, seed: int | None, setting: dict) -> int:
@@ -184,7 +170,7 @@ def load_policy(run_dir: str | Path, method: str | None = None, seed: int | None
         module, params, epochs = policy_store.load(run_dir / "policies" / method)
     else:  # an older run directory: its last checkpoint, read as stored
         params, epochs = policy_store.from_checkpoint(run_dir / "checkpoints" / method)
-        module = make_policy(cfg.algo.hidden, make_env(cfg.env).sim, cfg.algo.last_command)
+        module = make_policy(cfg.algo.hidden, make_env(cfg.env).sim)
     epoch = int(epochs[index])
     if epoch < cfg.algo.epochs:
         log.warning(
@@ -244,8 +230,7 @@ def evaluate_policy(
     q0, qd0 = initial_states(
         env.task, cfg.eval_seed if seed is None else seed, episodes or cfg.eval_episodes
     )
-    episodes = rollout(plant, env.task, q0, qd0, policy, env.task.horizon, policy.last_command)
-    return Evaluation(episodes, description)
+    return Evaluation(rollout(plant, env.task, q0, qd0, policy, env.task.horizon), description)
 
 
 def _describe(real: RealConfig) -> dict:
@@ -298,9 +283,6 @@ def export_policy(policy: Policy, out_dir: str | Path, format: str = "json") -> 
         # hinge angle enters as (sin, cos): [q of non-hinges, sin(hinges), cos(hinges), qd]
         "normalisation": "none",
         "hinge_angles": [bool(a) for a in policy.module.angular],
-        # where true, the input ends with the controls sent at the last step (zeros at an
-        # episode's start): "observations" names them last:<actuator>
-        "last_command": policy.last_command,
         "layers": [
             {"kernel": f"{n}_kernel", "bias": f"{n}_bias", "activation": "tanh"} for n in names
         ],

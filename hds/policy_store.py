@@ -55,7 +55,6 @@ def save(directory: Path, module: Policy, params: dict, runs: list[dict], epochs
         "network": {
             "hidden": [int(w) for w in module.hidden],
             "hinge_angles": [bool(a) for a in module.angular],
-            "last_command": bool(module.last_command),  # the input ends with the last control
             "control_range": np.stack([module.low, module.high], 1).astype(float).tolist(),
             "activation": "tanh",
             "output": "mid + half * tanh(last layer): mid, half of each control range",
@@ -79,13 +78,8 @@ def load(directory: Path) -> tuple[Policy, dict, list[int]]:
         )
     with np.load(directory / "policy.npz") as npz:
         arrays = dict(npz)
-    network = spec["network"]
     module = Policy(
-        tuple(network["hidden"]),
-        arrays["angular"],
-        arrays["low"],
-        arrays["high"],
-        bool(network.get("last_command", False)),  # absent where written before the option
+        tuple(spec["network"]["hidden"]), arrays["angular"], arrays["low"], arrays["high"]
     )
     params = {
         "params": {

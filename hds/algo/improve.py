@@ -88,7 +88,6 @@ def improve(
     high,
     act=None,
     counted=None,
-    last_command=False,
 ):
     """One action-improvement step for one sequence; `cfg` holds algo and anneal settings.
 
@@ -96,13 +95,12 @@ def improve(
     u_t = clip(act(o_t) + actions_t), and the return is differentiated through the policy's
     feedback (first order only); otherwise they are the open-loop controls (PODS). `counted`
     ([T] weights, may be traced; hds.algo.continuation.counted_steps): weigh each step's
-    reward; None: all. `last_command`: the policy sees [o_t, u_{t-1}]
-    (hds.algo.rollout.perturbed_rollout)."""
+    reward; None: all."""
     if act is None:
         rewards = lambda a: trajectory(engine, params, task, state, a)[1]  # noqa: E731
     else:
         rewards = lambda d: perturbed_rollout(  # noqa: E731  (a window leaves values as they are)
-            engine, params, task, act, state, d, low, high, cfg.grad_window, last_command
+            engine, params, task, act, state, d, low, high, cfg.grad_window
         )[2]
         low, high = low - high, high - low  # a perturbation may span the whole range
     if counted is None:

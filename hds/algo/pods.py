@@ -38,7 +38,7 @@ from hds.algo.continuation import Continuation, Progress, ramp_effects
 from hds.algo.improve import ImproveSettings, improve
 from hds.algo.randomize import Randomization
 from hds.algo.regress import regress
-from hds.algo.rollout import perturbed_rollout, policy_inputs, policy_rollout
+from hds.algo.rollout import perturbed_rollout, policy_rollout
 from hds.networks import make_policy
 from hds.utils.pytree import pytree_dataclass
 
@@ -204,7 +204,7 @@ def make_train(
 
     def init(key, hparams) -> TrainState:
         key, init_key = jax.random.split(key)
-        params = policy.init(init_key, jnp.zeros(policy.n_inputs(env.sim.n_obs)))
+        params = policy.init(init_key, jnp.zeros(env.sim.n_obs))
         opt_state, progress = regression.optimizer.init(params), continuation.init(params)
         return TrainState(params, opt_state, jnp.array(0, jnp.int32), key, progress)
 
@@ -356,9 +356,8 @@ class Split:
     def regression_rows(self, outs: list[BatchOutcome], used: Used, counted):
         """(obs, targets, weights) of the rows this run regresses on; the steps the horizon
         curriculum did not count were not improved: weight 0 (a branch's steps all count)."""
-        n_in = outs[0].targets.obs.shape[-1]  # the policy's inputs: with its last command
-        n_act = outs[0].targets.result.actions.shape[-1]
-        obs = jnp.concatenate([o.targets.obs.reshape(-1, n_in) for o in outs])[used.rows]
+        n_obs, n_act = outs[0].visited.shape[-1], outs[0].targets.result.actions.shape[-1]
+        obs = jnp.concatenate([o.targets.obs.reshape(-1, n_obs) for o in outs])[used.rows]
         actions = [o.targets.result.actions.reshape(-1, n_act) for o in outs]
         targets = jnp.concatenate(actions)[used.rows]
         if counted is None:
@@ -448,10 +447,9 @@ class _Stages:
             starts = jax.vmap(engine.reset)(jax.random.split(k_reset, count))
         act = lambda o: self.policy.apply(policy_params, o)  # noqa: E731
         sigma, (low, high) = self.sigma(hparams, epoch), self.bounds
-        memory = self.policy.last_command
         obs, actions, rewards = jax.vmap(
             lambda p, s, k: policy_rollout(
-                engine, p, self.env.task, act, s, k, sigma, steps, low, high, memory
+                engine, p, self.env.task, act, s, k, sigma, steps, low, high
             ),
             in_axes=(0 if per_rollout else None, 0, 0),
         )(params, starts, jax.random.split(k_roll, count))
@@ -483,8 +481,6 @@ class _Stages:
         alpha = anneal.step_size(hparams["step_size"], part.step_decay, epoch)
         temp = anneal.temperature(part.temperature, part.cooling, epoch)
         counted = self.continuation.counted(epoch) if episodes else None
-        memory = self.policy.last_command
-        inputs = policy_inputs(obs, actions, memory)  # what the policy saw: the regression's
         step = jax.vmap(
             lambda p, s, a, k: improve(
                 engine,
@@ -500,12 +496,11 @@ class _Stages:
                 high=high,
                 act=act if part.closed_loop else None,
                 counted=counted,
-                last_command=memory,
             ),
             in_axes=(p_axis, 0, 0, 0),
         )
         if part.closed_loop:  # the perturbations that reproduce the rollout: u = act(o) + delta
-            actions = actions - jax.vmap(jax.vmap(act))(inputs)
+            actions = actions - jax.vmap(jax.vmap(act))(obs)
         result = step(params, starts, actions, jax.random.split(key, count))
         if part.steps > 1:  # further steps from the improved actions
 
@@ -521,14 +516,11 @@ class _Stages:
             result, _ = jax.lax.scan(again, result, keys)
         if part.closed_loop:  # regress onto the improved trajectory: its states and controls
             obs, controls, _ = jax.vmap(
-                lambda p, s, d: perturbed_rollout(
-                    engine, p, self.env.task, act, s, d, low, high, last_command=memory
-                ),
+                lambda p, s, d: perturbed_rollout(engine, p, self.env.task, act, s, d, low, high),
                 in_axes=(p_axis, 0, 0),
             )(params, starts, result.actions)
             result = result._replace(actions=controls)
-            inputs = policy_inputs(obs, controls, memory)
-        return Targets(inputs, result, alpha)
+        return Targets(obs, result, alpha)
 
     def regress(self, params, opt_state, obs, targets, key, tol=None, weights=None):
         """Stage 3: regress the policy onto the targets (rows of obs [N, n_obs] and targets
@@ -598,7 +590,7 @@ def make_train_from_config(cfg, env, model=None, randomization=None) -> Trainer:
     betas = tuple(cfg.sweep.beta or ())
     return make_train(
         env=env,
-        policy=make_policy(algo.hidden, env.sim, algo.last_command),
+        policy=make_policy(algo.hidden, env.sim),
         improvement=improvement,
         regression=regression,
         continuation=continuation,

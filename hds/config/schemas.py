@@ -190,9 +190,6 @@ class AlgoConfig:
     grad_window: int = 0  # closed loop: SHAC-style truncated gradients, 0 = the whole horizon
     early_stop: float = 0.0  # stop regressing once the loss improves less than this
     hidden: list[int] = field(default_factory=lambda: [64, 64])
-    # the policy also sees the control it sent at the last step (zeros at an episode's start),
-    # as a real controller remembers it: what an actuator's delay otherwise hides from it
-    last_command: bool = False
     chunk: int = 5  # epochs per compiled chunk, between host-side logs and checkpoints
     # the policy a run returns: the last iterate, or the one whose simulator return was best
     # once the continuation (anneal.effect_ramp) had reached its end

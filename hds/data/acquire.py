@@ -32,22 +32,13 @@ def excited(plant, task, key, episodes: int, horizon: int, controls: Controls) -
 
 
 def deployed_and_excited(
-    plant,
-    task,
-    key,
-    act,
-    deploy_episodes: int,
-    episodes: int,
-    horizon: int,
-    controls: Controls,
-    last_command: bool = False,
+    plant, task, key, act, deploy_episodes: int, episodes: int, horizon: int, controls: Controls
 ) -> Dataset:
-    """A round's data: the policy `act` (obs -> u; with `last_command`, [obs, last control] ->
-    u) deployed for `deploy_episodes` from the task's initial states, then `episodes` of
-    open-loop `controls` from others."""
+    """A round's data: the policy `act` (obs -> u) deployed for `deploy_episodes` from the
+    task's initial states, then `episodes` of open-loop `controls` from others."""
     k_deploy, k_excite, k_u = jax.random.split(key, 3)
     q0, qd0 = initial_states(task, k_deploy, deploy_episodes)
-    deployed = collect(plant, task, q0, qd0, act, horizon, last_command)
+    deployed = collect(plant, task, q0, qd0, act, horizon)
     q0, qd0 = initial_states(task, k_excite, episodes)
     excitation = collect(plant, task, q0, qd0, controls(k_u, q0, qd0, deployed), horizon)
     return concatenate([deployed, excitation])

@@ -26,19 +26,12 @@ def initial_states(task, seed, n_episodes: int) -> tuple[np.ndarray, np.ndarray]
 
 
 def collect(
-    plant,
-    task,
-    q0,
-    qd0,
-    controller: Callable | np.ndarray,
-    horizon: int | None = None,
-    last_command: bool = False,
+    plant, task, q0, qd0, controller: Callable | np.ndarray, horizon: int | None = None
 ) -> Dataset:
     """Run E episodes on `plant` from (q0 [E, nq], qd0 [E, nv]) and record them.
 
-    `controller` is a policy obs [E, n_obs] -> u [E, n_act] (with `last_command`, of [obs,
-    the last control applied]: hds.real.rollout), or open-loop controls [E, T, n_act] (e.g. an
-    excitation signal), for which `horizon` defaults to T.
+    `controller` is a policy obs [E, n_obs] -> u [E, n_act], or open-loop controls
+    [E, T, n_act] (e.g. an excitation signal), for which `horizon` defaults to T.
     `task` only scores the rollout (rewards are not part of a Dataset)."""
     q0, qd0 = np.asarray(q0), np.asarray(qd0)
     if q0.ndim != 2 or qd0.ndim != 2 or len(q0) != len(qd0):
@@ -64,7 +57,7 @@ def collect(
         raise ValueError("give the horizon (steps per episode) when the controller is a policy")
     if int(horizon) < 1:
         raise ValueError(f"horizon = {horizon} must be at least 1 step")
-    episodes = rollout(plant, task, q0, qd0, controller, int(horizon), last_command)
+    episodes = rollout(plant, task, q0, qd0, controller, int(horizon))
     return Dataset(
         episodes.obs,
         episodes.actions,

@@ -71,13 +71,10 @@ def multistep_errors(
     return out
 
 
-def closed_loop_returns(
-    model, task, act, starts, horizon: int, ctrl_range, last_command: bool = False
-) -> np.ndarray:
-    """[E]: the return of the policy `act` (JAX in, JAX out; with `last_command`, of [obs,
-    last control]) run through `model` for `horizon` steps from each of `starts` [E, n_obs]
-    (observations; a model with action delays starts their buffers at rest), the task's
-    rewards as the simulator scores them."""
+def closed_loop_returns(model, task, act, starts, horizon: int, ctrl_range) -> np.ndarray:
+    """[E]: the return of the policy `act` (JAX in, JAX out) run through `model` for `horizon`
+    steps from each of `starts` [E, n_obs] (observations; a model with action delays starts
+    their buffers at rest), the task's rewards as the simulator scores them."""
     from hds.algo.rollout import perturbed_rollout
 
     low, high = (jnp.asarray(np.asarray(ctrl_range)[:, i], jnp.float32) for i in (0, 1))
@@ -85,9 +82,6 @@ def closed_loop_returns(
 
     def episode_return(start):
         start = model.start(start)
-        rewards = perturbed_rollout(
-            model, None, task, act, start, zeros, low, high, last_command=last_command
-        )[2]
-        return rewards.sum()
+        return perturbed_rollout(model, None, task, act, start, zeros, low, high)[2].sum()
 
     return np.asarray(jax.jit(jax.vmap(episode_return))(jnp.asarray(starts, jnp.float32)))

@@ -33,32 +33,17 @@ class Episodes:
         return self.rewards.sum(axis=1)
 
 
-def rollout(
-    plant,
-    task,
-    q0,
-    qd0,
-    controller: Callable | np.ndarray,
-    horizon: int,
-    last_command: bool = False,
-) -> Episodes:
+def rollout(plant, task, q0, qd0, controller: Callable | np.ndarray, horizon: int) -> Episodes:
     """Run B episodes on a plant. `controller` is a function obs [B, n_obs] -> u [B, n_act]
-    (a policy) or an array of open-loop controls [B, T, n_act]; with `last_command` it gets
-    [obs, the control applied at the last step] (zeros at the start: hds.networks.Policy). The
-    recorded actions are the controls applied, i.e. saturated to the actuators' range. Rewards
-    come from the true state."""
+    (a policy) or an array of open-loop controls [B, T, n_act]. The recorded actions are the
+    controls applied, i.e. saturated to the actuators' range. Rewards come from the true state."""
     reward = _batched_reward(task)
     obs = [plant.reset(np.asarray(q0), np.asarray(qd0))]
     actions, rewards = [], []
     low, high = plant.ctrl_range[:, 0], plant.ctrl_range[:, 1]
-    last = np.zeros((len(obs[0]), len(low)))
     for t in range(horizon):
-        if callable(controller):
-            seen = np.concatenate([obs[-1], last], axis=1) if last_command else obs[-1]
-            u = controller(seen)
-        else:
-            u = np.asarray(controller)[:, t]
-        u = last = np.clip(np.asarray(u, dtype=np.float64), low, high)
+        u = controller(obs[-1]) if callable(controller) else np.asarray(controller)[:, t]
+        u = np.clip(np.asarray(u, dtype=np.float64), low, high)
         obs.append(plant.step(u))
         q, qd = plant.state()
         actions.append(u)
