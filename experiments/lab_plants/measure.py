@@ -77,8 +77,7 @@ TRUTH_OF = {
 FRICTION = 0.25  # the issue's tolerance for frictions (and dead bands); 10% masses and gains
 TOLERANCE = {"coulomb_friction": FRICTION, "breakaway_friction": FRICTION}
 TOLERANCE |= {"viscous_damping": FRICTION, "actuator_deadzone": FRICTION}
-SCALES = RIGID  # the rigid body's and the motor's scales: no effect at 1
-TOLERANCE |= {name: 0.10 for name in SCALES}
+TOLERANCE |= {name: 0.10 for name in RIGID}  # the rigid body's and the motor's scales
 JUDGED = {"breakaway_friction": ("force", "static")}  # not the Stribeck velocity: no tolerance
 NO_OP = {"action_delay": 0}  # a drawn value that is no effect
 
@@ -113,7 +112,7 @@ def judge(e: dict) -> dict:
     (within the issue's tolerance of the truth)."""
     values = quantities(e)
     judged = JUDGED.get(e["name"], tuple(values)[:1])
-    nominal = 1.0 if e["name"] in SCALES else 0.0
+    nominal = 1.0 if e["name"] in RIGID else 0.0  # a scale: no effect at 1
     truth = e["truth"]
     if truth is None:
         x, lo, hi = values[judged[0]]
