@@ -1437,3 +1437,66 @@ def test_a_selection_rounds_progress_names_the_best_candidate_it_may_add():
         "(held-out error 0.03)"
     )
     assert _round_line(3, model, [1], decided).endswith("none left to add")
+
+
+class _Exchanges:
+    """A stand-in for selection's fitter in `_exchange`: the Furuta's candidates (the arm's
+    mass scale and friction, the motor's lag, gain and a delay of 1 or 2 steps); each set,
+    refitted, predicts the held-out episodes with the given error (0.1 where not given).
+    Records every set it is asked to fit."""
+
+    ARM_MASS = Candidate("mass_scale", "arm", (0,), ("scale",))
+    FRICTION = Candidate("coulomb_friction", "arm", (1,), ("force",))
+    LAG = Candidate("actuator_lag", "motor", (2,), ("time_constant",))
+    GAIN = Candidate("actuator_gain", "motor", (3,), ("gain",))
+    DELAYS = [Candidate("action_delay", "motor", (), ("steps",), 0, k) for k in (1, 2)]
+    candidates = [ARM_MASS, FRICTION, LAG, GAIN, *DELAYS]
+    engine = SimpleNamespace(
+        model=SimpleNamespace(candidates=candidates, start=np.array([1.0, 0.0, 0.0, 1.0]))
+    )
+    cfg = DiscoverConfig()
+
+    def __init__(self, errors: dict):
+        self.errors, self.asked = errors, []
+
+    def sets(self, _, sets):
+        from hds.discover.explain import State
+
+        self.asked += sets
+        zero = np.zeros(1, np.int32)
+        key = lambda s: tuple(c.label for c in s)  # noqa: E731
+        return [State(s, np.zeros(4), zero, self.errors.get(key(s), 0.1), 0.1) for s in sets]
+
+
+def test_an_effect_chosen_early_for_another_at_its_place_is_exchanged_for_it():
+    """A lab Furuta draw with a step of delay: a one-step lag wins the first round while the
+    arm's inertial error hides how the two differ, and the delay never earns a round of its
+    own beside it. Once selection ends, the delay takes the lag's place where it predicts
+    the held-out episodes better by `min_improvement`; only candidates at a selected
+    effect's own target are tried (the motor's for the lag, the arm's for the mass), and
+    the chain is rebuilt in the same order. Better by less, nothing moves."""
+    from hds.discover.explain import _exchange
+
+    x = _Exchanges
+    lag, mass, delay = x.LAG, x.ARM_MASS, x.DELAYS[0]
+    errors = {("actuator_lag@motor",): 0.09, ("actuator_lag@motor", "mass_scale@arm"): 0.05}
+    fit = _Exchanges({**errors, ("action_delay@motor=1", "mass_scale@arm"): 0.03})
+    chain = fit.sets(None, [[], [lag], [lag, mass]])
+    fit.asked = []
+    kept, out = _exchange(fit, chain, banned=set())
+    assert out == [lag]
+    assert [s.selected for s in kept] == [[], [delay], [delay, mass]]
+    assert kept[-1].heldout_error == 0.03
+    # tried: the motor's other effects in the lag's place, the arm's in the mass's
+    tried = {(s[0].key, s[1].key) for s in fit.asked if len(s) == 2}
+    assert ("actuator_gain@motor", "mass_scale@arm") in tried
+    assert ("actuator_lag@motor", "coulomb_friction@arm") in tried
+    assert all(s[0].target == "motor" and s[1].target == "arm" for s in fit.asked if len(s) == 2)
+    # better by less than `min_improvement` (0.001): near-equivalents do not trade places
+    fit = _Exchanges({**errors, ("action_delay@motor=1", "mass_scale@arm"): 0.0495})
+    chain = fit.sets(None, [[], [lag], [lag, mass]])
+    assert _exchange(fit, chain, banned=set()) == (chain, [])
+    # a banned candidate (one the data cannot identify) never takes a place
+    fit = _Exchanges({**errors, ("action_delay@motor=1", "mass_scale@arm"): 0.03})
+    chain = fit.sets(None, [[], [lag], [lag, mass]])
+    assert _exchange(fit, chain, banned={"action_delay@motor"}) == (chain, [])
