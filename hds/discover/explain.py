@@ -8,7 +8,9 @@ own). The candidate whose fitted model predicts the HELD-OUT episodes best is ad
 lowers their error by a meaningful margin (`stop_margin`, relative, and `min_improvement`,
 absolute); otherwise selection stops. A spurious effect fitted to noise lowers the
 identification error a little but not the held-out one, so with nothing missing nothing is
-named. Once selection ends, an effect that removes less of the identification misfit than
+named. Once selection ends, an effect chosen early for another at its own place is
+exchanged for it where that predicts the held-out episodes better (`_exchange`: a lag taken
+for a delay), and an effect that removes less of the identification misfit than
 the final model still leaves is law mismatch, not named, and so is one whose interval does
 not exclude no effect unless the held-out episodes show it (`_refuse_law_mismatch`,
 `_shown_on_held_out`).
