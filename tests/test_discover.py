@@ -1500,3 +1500,38 @@ def test_an_effect_chosen_early_for_another_at_its_place_is_exchanged_for_it():
     fit = _Exchanges({**errors, ("action_delay@motor=1", "mass_scale@arm"): 0.03})
     chain = fit.sets(None, [[], [lag], [lag, mass]])
     assert _exchange(fit, chain, banned={"action_delay@motor"}) == (chain, [])
+
+
+def test_more_sets_than_a_batch_has_rows_are_fitted_in_turns():
+    """A batched fit has one row per candidate (one compiled program); the exchange check
+    may ask for more sets than that (every candidate at each selected effect's place). They
+    are fitted in turns of at most that many rows, each set's result in its own place, and
+    a delay not in the starting state starts at its candidate's own length."""
+    from hds.discover.explain import Batch, State, _Fitter
+
+    x = _Exchanges
+    fitter = object.__new__(_Fitter)
+    fitter.engine, fitter.sizes, fitter.estimate = x.engine, (2,), False
+    fitter.noise_mse, fitter.count = 0.0, 1.0
+    x.engine.model.nominal = np.array([1.0, 0.0, 0.0, 1.0])
+    calls = []
+
+    def run(theta0, slots, delay, rows=None, z0=None, hold=False):
+        calls.append(rows)
+        n = len(theta0)
+        held = theta0.sum(1) + delay.sum(1)  # tells each row's set apart
+        empty = np.zeros((n, 0))
+        return Batch(
+            theta0, delay, held, held, np.zeros((n, 2, 2)), np.zeros((n, 1, 2)), slots,
+            np.zeros(n, int), np.zeros((n, 1, 2, 2)), np.zeros((n, 1, 1, 2)), empty,
+            np.zeros(n, bool),
+        )  # fmt: skip
+
+    fitter.run = run
+    start = State([], np.array([2.0, 3.0, 5.0, 7.0]), np.zeros(1, np.int32), 1.0, 1.0)
+    sets = [[c] for c in x.candidates] + [[x.ARM_MASS, x.GAIN], [x.FRICTION, x.DELAYS[1]]]
+    fitted = fitter.sets(start, sets)
+    assert calls == [len(x.candidates), 2]
+    assert [f.selected for f in fitted] == sets
+    # the nominal [1, 0, 0, 1] with each set's slots from the start, plus its delay
+    assert [f.heldout_error for f in fitted] == [3.0, 5.0, 7.0, 8.0, 3.0, 4.0, 9.0, 7.0]

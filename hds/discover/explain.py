@@ -1064,6 +1064,10 @@ class _Fitter:
             return []
         model = self.engine.model
         n_c = len(model.candidates)
+        if len(sets) > n_c:  # a call fits C rows (one compiled program): more in turns
+            return [
+                s for k in range(0, len(sets), n_c) for s in self.sets(state, sets[k : k + n_c])
+            ]
         width = self.width(max(sum(len(c.slots) for c in s) for s in sets))
         theta0 = np.tile(model.nominal, (n_c, 1))
         delay = np.zeros((n_c, len(state.delay)), np.int32)
