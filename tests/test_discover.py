@@ -1474,7 +1474,8 @@ def test_an_effect_chosen_early_for_another_at_its_place_is_exchanged_for_it():
     own beside it. Once selection ends, the delay takes the lag's place where it predicts
     the held-out episodes better by `min_improvement`; only candidates at a selected
     effect's own target are tried (the motor's for the lag, the arm's for the mass), and
-    the chain is rebuilt in the same order. Better by less, nothing moves."""
+    the chain is rebuilt in the same order; a delay's other lengths are tried in its place.
+    Better by less, nothing moves."""
     from hds.discover.explain import _exchange
 
     x = _Exchanges
@@ -1500,6 +1501,13 @@ def test_an_effect_chosen_early_for_another_at_its_place_is_exchanged_for_it():
     fit = _Exchanges({**errors, ("action_delay@motor=1", "mass_scale@arm"): 0.03})
     chain = fit.sets(None, [[], [lag], [lag, mass]])
     assert _exchange(fit, chain, banned={"action_delay@motor"}) == (chain, [])
+    # a delay of the wrong length: its other lengths are tried in its place
+    two = x.DELAYS[1]
+    errors = {("action_delay@motor=2", "mass_scale@arm"): 0.05}
+    fit = _Exchanges({**errors, ("action_delay@motor=1", "mass_scale@arm"): 0.03})
+    chain = fit.sets(None, [[], [two], [two, mass]])
+    kept, out = _exchange(fit, chain, banned=set())
+    assert out == [two] and kept[-1].selected == [delay, mass]
 
 
 def test_more_sets_than_a_batch_has_rows_are_fitted_in_turns():

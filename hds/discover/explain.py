@@ -276,7 +276,7 @@ def forward_selection(
         state = states[-1]
     states, exchanged = _exchange(fit, states, banned)
     dropped += exchanged
-    banned.update(c.key for c in exchanged)
+    banned.update(c.key for c in exchanged if c.key not in states[-1].keys)
     path = list(states[-1].selected)
     split_states, split = _split_proxy(fit, states, banned)
     if split:
@@ -472,7 +472,8 @@ def _exchange(fit, states: list[State], banned) -> tuple[list[State], list[Candi
     better, but a second effect at the motor never earns the margin, and the selection cap
     may stop the search first (a lab Furuta: held-out 0.030 with the lag, 0.020 with the
     delay). For each selected effect, every candidate at its target (actuator, joint, body
-    or sensor) not selected takes its place, all refitted jointly from the current values
+    or sensor) not selected, a delay's other lengths among them, takes its place, all
+    refitted jointly from the current values
     (a new effect's own from the library's start); the best exchange stands where it
     predicts the held-out episodes better by `min_improvement`. Not by the relative
     `stop_margin`, which an effect added must clear: an exchange adds no effect, so there is
@@ -489,9 +490,10 @@ def _exchange(fit, states: list[State], banned) -> tuple[list[State], list[Candi
             for j, named in enumerate(state.selected)
             for c in model.candidates
             if c.target == named.target
-            and c.key not in state.keys
+            and c not in state.selected
+            and (c.key not in state.keys or c.key == named.key)  # a delay's other lengths
             and c.key not in banned
-            and c.key not in {o.key for o in out}
+            and c not in out
             and not _refinement(c)
         ]
         if not trials:
@@ -1059,7 +1061,8 @@ class _Fitter:
 
     def sets(self, state: State, sets: list[list[Candidate]]) -> list[State]:
         """Each set of effects refitted jointly from state's values: theta's, and a delay's
-        length where `state` has it, its candidate's own length where not."""
+        length where `state` has that candidate, its candidate's own length where not (a
+        delay of another length)."""
         if not sets:
             return []
         model = self.engine.model
@@ -1078,7 +1081,7 @@ class _Fitter:
             slots[i, : len(own)] = own
             for c in chosen:
                 if c.shifts_actions:
-                    inside = c.key in state.keys
+                    inside = c in state.selected
                     delay[i, c.actuator] = state.delay[c.actuator] if inside else c.steps
         batch = self.run(theta0, slots, delay, rows=len(sets), z0=state.z)
         return [self.state(chosen, batch, i) for i, chosen in enumerate(sets)]
