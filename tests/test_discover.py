@@ -1451,8 +1451,9 @@ class _Exchanges:
     GAIN = Candidate("actuator_gain", "motor", (3,), ("gain",))
     DELAYS = [Candidate("action_delay", "motor", (), ("steps",), 0, k) for k in (1, 2)]
     candidates = [ARM_MASS, FRICTION, LAG, GAIN, *DELAYS]
+    nominal = np.array([1.0, 0.0, 0.0, 1.0])
     engine = SimpleNamespace(
-        model=SimpleNamespace(candidates=candidates, start=np.array([1.0, 0.0, 0.0, 1.0]))
+        model=SimpleNamespace(candidates=candidates, start=nominal, nominal=nominal)
     )
     cfg = DiscoverConfig()
 
@@ -1521,7 +1522,6 @@ def test_more_sets_than_a_batch_has_rows_are_fitted_in_turns():
     fitter = object.__new__(_Fitter)
     fitter.engine, fitter.sizes, fitter.estimate = x.engine, (2,), False
     fitter.noise_mse, fitter.count = 0.0, 1.0
-    x.engine.model.nominal = np.array([1.0, 0.0, 0.0, 1.0])
     calls = []
 
     def run(theta0, slots, delay, rows=None, z0=None, hold=False):

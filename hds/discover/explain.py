@@ -473,9 +473,9 @@ def _exchange(fit, states: list[State], banned) -> tuple[list[State], list[Candi
     may stop the search first (a lab Furuta: held-out 0.030 with the lag, 0.020 with the
     delay). For each selected effect, every candidate at its target (actuator, joint, body
     or sensor) not selected, a delay's other lengths among them, takes its place, all
-    refitted jointly from the current values
-    (a new effect's own from the library's start); the best exchange stands where it
-    predicts the held-out episodes better by `min_improvement`. Not by the relative
+    refitted jointly from the current values (a new effect's own from the library's start);
+    the best exchange stands where it predicts the held-out episodes better by
+    `min_improvement`. Not by the relative
     `stop_margin`, which an effect added must clear: an exchange adds no effect, so there is
     no growth of the model to guard against, and the absolute floor keeps near-equivalents
     (a mass scale and a centre of mass on one body) from trading places on noise. Repeated
@@ -498,9 +498,7 @@ def _exchange(fit, states: list[State], banned) -> tuple[list[State], list[Candi
         ]
         if not trials:
             break
-        theta = model.start.copy()
-        theta[state.slots] = state.theta[state.slots]
-        start = dataclasses.replace(state, theta=theta)
+        start = _from_library_start(model, state)
         fitted = fit.sets(start, [chosen for _, _, chosen in trials])
         held = np.array([f.heldout_error for f in fitted])
         held = np.where(np.isfinite(held), held, np.inf)
@@ -518,9 +516,24 @@ def _exchange(fit, states: list[State], banned) -> tuple[list[State], list[Candi
         if not better:
             break
         out.append(state.selected[j])
-        prefixes = [chosen[:n] for n in range(j + 1, len(chosen))]
-        states = states[: j + 1] + fit.sets(start, prefixes) + [trial]
+        states = _chain_replacing(fit, states, j, chosen, start, trial)
     return states, out
+
+
+def _from_library_start(model, state: State) -> State:
+    """The state with every parameter it has not fitted at the library's start: where a
+    fit of its effects with others in place of one of them starts."""
+    theta = model.start.copy()
+    theta[state.slots] = state.theta[state.slots]
+    return dataclasses.replace(state, theta=theta)
+
+
+def _chain_replacing(fit, states: list[State], j: int, chosen, start: State, trial: State):
+    """The chain with the j-th selected effect replaced (`chosen`: the new selection,
+    fitted as `trial`): the states before it, the prefixes of the new order refitted from
+    `start`, then `trial`."""
+    prefixes = [chosen[:n] for n in range(j + 1, len(chosen))]
+    return states[: j + 1] + fit.sets(start, prefixes) + [trial]
 
 
 def _split_proxy(fit, states: list[State], banned) -> tuple[list[State], list[Candidate]]:
@@ -568,9 +581,7 @@ def _split_proxy(fit, states: list[State], banned) -> tuple[list[State], list[Ca
     trials = trials[: len(model.candidates)]  # one batched fit: as many rows as candidates
     if not trials:
         return states, []
-    theta = model.start.copy()
-    theta[state.slots] = state.theta[state.slots]  # the others from where they are
-    start = dataclasses.replace(state, theta=theta)
+    start = _from_library_start(model, state)  # the others from where they are
     fitted = fit.sets(start, [chosen for _, chosen in trials])
     best = int(np.argmin([f.heldout_error for f in fitted]))
     (j, chosen), pair = trials[best], fitted[best]
@@ -586,8 +597,7 @@ def _split_proxy(fit, states: list[State], banned) -> tuple[list[State], list[Ca
         state.heldout_error,
         pair.heldout_error,
     )
-    prefixes = [chosen[:n] for n in range(j + 1, len(chosen))]
-    return states[: j + 1] + fit.sets(start, prefixes) + [pair], [state.selected[j]]
+    return _chain_replacing(fit, states, j, chosen, start, pair), [state.selected[j]]
 
 
 def _refinement(cand: Candidate) -> str:
@@ -628,8 +638,7 @@ def _refine(fit, states: list[State], banned, mismatch: list) -> tuple[list[Stat
                     trials.append((j, r, state.selected[:j] + [r] + state.selected[j + 1 :]))
         if not trials:
             return states, refined
-        theta = model.start.copy()
-        theta[state.slots] = state.theta[state.slots]
+        theta = _from_library_start(model, state).theta
         for j, r, _ in trials:  # the shared parameters from the named effect's values
             named = state.selected[j]
             for p, s in zip(r.params, r.slots, strict=True):
@@ -660,9 +669,8 @@ def _refine(fit, states: list[State], banned, mismatch: list) -> tuple[list[Stat
                 trial.misfit / max(fit.count, 1.0),
             )
             return states, refined
-        prefixes = [chosen[:n] for n in range(j + 1, len(chosen))]
         kept = list(mismatch)
-        judged = _finish(fit, states[: j + 1] + fit.sets(start, prefixes) + [trial], kept)
+        judged = _finish(fit, _chain_replacing(fit, states, j, chosen, start, trial), kept)
         if r.key not in judged[-1].keys:
             log.info("the refinement %s of %s did not stand as named", r.key, named.key)
             return states, refined
