@@ -431,11 +431,15 @@ class _Refits:
     cfg = DiscoverConfig()
     count = 1.0  # residuals: the misfits are sums over one
 
-    def __init__(self, misfits: dict):
-        self.misfits = misfits
+    def __init__(self, misfits: dict, heldout: dict | None = None):
+        self.misfits, self.heldout = misfits, heldout or {}
 
     def sets(self, _, sets):
-        return [_state(s, self.misfits[tuple(c.key for c in s)]) for s in sets]
+        keys = [tuple(c.key for c in s) for s in sets]
+        return [
+            dataclasses.replace(_state(s, self.misfits[k]), heldout_error=self.heldout.get(k, 0.1))
+            for s, k in zip(sets, keys)
+        ]
 
 
 def _state(selected, misfit, theta=(1.0, 0.0), h=None, g=None):
@@ -473,6 +477,32 @@ def test_an_effect_selected_first_is_refused_when_it_only_compensates_the_next()
     # a cart 1.28 heavy that the data need: without it the misfit would more than double
     fit = _Refits({("coulomb_friction@slider",): 3000.0, ("mass_scale@cart",): 17047.0})
     assert _refuse_law_mismatch(fit, chain, []) == chain
+
+
+def test_an_effect_the_held_out_episodes_show_is_kept_whatever_its_misfit_share():
+    """Furuta draw 202's one-shot: a step of delay that lowers the identification misfit by
+    less than the model leaves (the plant's cogging, dead band and Stribeck peaks in that
+    remainder) but whose drop raises the held-out error by more than that remainder per
+    residual is a finding, as for an interval that reaches no effect: what an effect explains
+    on episodes it was not fitted to, beyond the mismatch, cannot be a compensation for it."""
+    from hds.discover.explain import _refuse_law_mismatch
+
+    base = dataclasses.replace(_state([], 903558.0), heldout_error=30.0)
+    last = dataclasses.replace(_state([MASS, FRICTION], 100.0), heldout_error=1.0)
+    chain = [base, dataclasses.replace(_state([MASS], 17047.0), heldout_error=25.0), last]
+    misfits = {("coulomb_friction@slider",): 150.0, ("mass_scale@cart",): 17047.0}
+    # without the cart: the misfit rises by 50 < 100 and the held-out MSE by 11^2 - 1 = 120
+    assert (
+        _refuse_law_mismatch(_Refits(misfits, {("coulomb_friction@slider",): 11.0}), chain, [])
+        == chain
+    )
+    # the same misfits with a held-out rise of 3^2 - 1 = 8, within the 100 left: refused
+    refused = []
+    kept = _refuse_law_mismatch(
+        _Refits(misfits, {("coulomb_friction@slider",): 3.0}), chain, refused
+    )
+    assert [s.keys for s in kept] == [set(), {"coulomb_friction@slider"}]
+    assert [with_it.selected[-1].key for with_it, _ in refused] == ["mass_scale@cart"]
 
 
 def test_an_effect_whose_interval_holds_no_effect_is_refused():
@@ -592,7 +622,9 @@ def test_a_refused_effect_says_which_rule_refused_it_and_with_what_numbers():
     fit = _Refits({("coulomb_friction@slider",): 2113.0, ("mass_scale@cart",): 17047.0})
     _refuse_law_mismatch(fit, chain, refused)
     assert [with_it.refused_because for with_it, _ in refused] == [
-        "without it the identification misfit rises by 724, less than the 1.39e+03 the model leaves"
+        "without it the identification misfit rises by 724, less than the 1.39e+03 the model "
+        "leaves, and without it the held-out MSE rises by 0, less than the 1.39e+03 per "
+        "residual the model leaves"
     ]
     # an interval that reaches no friction, and a held-out share (20^2 - 19^2) below the 100
     # the model leaves per residual; without it the misfit rises far more than 100
@@ -603,8 +635,8 @@ def test_a_refused_effect_says_which_rule_refused_it_and_with_what_numbers():
     refused = []
     _refuse_law_mismatch(_Refits({}), [base, dataclasses.replace(last, delay=zero)], refused)
     assert [with_it.refused_because for with_it, _ in refused] == [
-        "its 95% interval reaches no effect, without it the held-out MSE rises by 39, less "
-        "than the 100 per residual the model leaves"
+        "its 95% interval reaches no effect, and without it the held-out MSE rises by 39, "
+        "less than the 100 per residual the model leaves"
     ]
     # the held-out share alone: the cart's 0.030^2 - 0.0295^2 against 0.0295^2
     keys = {("coulomb_friction@slider",): 0.030, ("mass_scale@cart",): 0.4}
