@@ -505,6 +505,43 @@ def test_an_effect_the_held_out_episodes_show_is_kept_whatever_its_misfit_share(
     assert [with_it.selected[-1].key for with_it, _ in refused] == ["mass_scale@cart"]
 
 
+def test_an_effect_shown_beside_all_the_others_is_not_refused_in_a_cascade():
+    """Furuta draws 201 and 203's one-shots: a compensation refused first moves its share
+    into what the model leaves, and a step of delay the held-out episodes showed beside all
+    the others (dropping it raised the held-out MSE by 150, above the 100 left per residual)
+    then fell within the larger remainder (100 against 120) and was refused with it. What
+    was shown beside all the others stays shown, by both rules."""
+    from hds.discover.explain import _refuse_law_mismatch, _refuse_within_heldout_mismatch
+
+    delay = Candidate("action_delay", "slide", (), (), actuator=0, steps=1)
+    base = dataclasses.replace(_state([], 903558.0), heldout_error=30.0)
+    last = dataclasses.replace(_state([FRICTION, MASS, delay], 100.0), heldout_error=1.0)
+    chain = [base, _state([FRICTION], 20000.0), _state([FRICTION, MASS], 170.0), last]
+    misfits = {
+        ("mass_scale@cart", "action_delay@slide"): 120.0,  # without the friction: weak
+        ("coulomb_friction@slider", "action_delay@slide"): 10000.0,
+        ("coulomb_friction@slider", "mass_scale@cart"): 170.0,
+        ("mass_scale@cart",): 200.0,
+        ("action_delay@slide",): 10000.0,
+    }
+    heldout = {
+        ("mass_scale@cart", "action_delay@slide"): 1.0,
+        ("coulomb_friction@slider", "action_delay@slide"): 20.0,
+        ("coulomb_friction@slider", "mass_scale@cart"): 151.0**0.5,  # the delay's 150
+        ("mass_scale@cart",): 101.0**0.5,  # beside the cart alone: 100, within 120
+        ("action_delay@slide",): 20.0,
+    }
+    fit = _Refits(misfits, heldout)
+    refused, shown = [], set()
+    kept = _refuse_law_mismatch(fit, chain, refused, shown)
+    assert shown == {"mass_scale@cart", "action_delay@slide"}
+    assert [with_it.selected[-1].key for with_it, _ in refused] == ["coulomb_friction@slider"]
+    assert kept[-1].keys == {"mass_scale@cart", "action_delay@slide"}
+    assert _refuse_within_heldout_mismatch(fit, kept, [], shown) == kept
+    # judged afresh after the friction's refusal, the delay would go too
+    assert _refuse_within_heldout_mismatch(fit, kept, [])[-1].keys == {"mass_scale@cart"}
+
+
 def test_an_effect_whose_interval_holds_no_effect_is_refused():
     """The 80 N swing-up loop's data: beside the friction, a cart 1.05 [1.00, 1.11] times
     heavier earns more than the misfit left (without it the misfit more than doubles), but its

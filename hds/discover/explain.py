@@ -404,8 +404,9 @@ def _finish(fit, states: list[State], mismatch: list) -> list[State]:
     `_refuse_within_heldout_mismatch`; each refusal appended to `mismatch`): the chain."""
     states = list(states)
     states[-1] = _settle(fit, states[-1])
-    states = _refuse_law_mismatch(fit, states, mismatch)
-    return _refuse_within_heldout_mismatch(fit, states, mismatch)
+    shown: set[str] = set()
+    states = _refuse_law_mismatch(fit, states, mismatch, shown)
+    return _refuse_within_heldout_mismatch(fit, states, mismatch, shown)
 
 
 TRADE_OFF = 0.5  # |correlation| of two effects' parameters above which their fits trade off
@@ -784,7 +785,7 @@ def _chain_without(fit, states: list[State], j: int, reduced: State) -> list[Sta
 
 
 def _refuse_law_mismatch(
-    fit, states: list[State], refused: list[tuple[State, State]]
+    fit, states: list[State], refused: list[tuple[State, State]], shown: set[str] | None = None
 ) -> list[State]:
     """Once selection has ended, what the final model still fails to fit above the
     measurement noise (its `misfit`) is the named laws' mismatch with the plant's (or
@@ -807,8 +808,16 @@ def _refuse_law_mismatch(
     (cogging, a dead band, Stribeck peaks): Furuta draw 202's one-shot refused a true step
     of delay that removed 28.8 of a misfit of 56.4, and a lab cart's rail friction of 7.8
     [0, 20.8] N that removed 86% of the held-out error was refused for its interval.
+    What the held-out episodes show beside all the others (the first model judged) stays
+    shown while others are refused: each refusal moves the refused effect's share into what
+    the model leaves, so without that a compensation refused first could take a real effect
+    with it (Furuta draws 201 and 203: a gain and a friction, then the delay). Two
+    substitutes for one mismatch are each shown beside the other by little, and are both
+    refused still. Those keys are added to `shown` (for `_refuse_within_heldout_mismatch`).
     Returns the rebuilt chain."""
     model = fit.engine.model
+    shown = set() if shown is None else shown
+    first = True
     while states[-1].selected:
         state = states[-1]
         sets = [[c for c in state.selected if c is not out] for out in state.selected]
@@ -816,9 +825,13 @@ def _refuse_law_mismatch(
         rises = np.array([r.misfit - state.misfit for r in reduced])
         # the held-out episodes decide, for either rule (`_shown_on_held_out`)
         shares, left = _held_out_shares(fit, state, reduced)
-        shown = _shown_on_held_out(shares, left)
-        small = (rises < state.misfit) & ~shown
-        indistinct = _indistinct(model, state, fit.cfg.min_scale_change) & ~shown
+        now = _shown_on_held_out(shares, left)
+        if first:
+            shown.update(c.key for c, yes in zip(state.selected, now) if yes)
+            first = False
+        kept = now | np.array([c.key in shown for c in state.selected])
+        small = (rises < state.misfit) & ~kept
+        indistinct = _indistinct(model, state, fit.cfg.min_scale_change) & ~kept
         weak = small | indistinct
         if not weak.any():
             break
@@ -863,7 +876,7 @@ def _refuse_weakest(fit, states, sets, reduced, rises, weak, refused, reasons) -
 
 
 def _refuse_within_heldout_mismatch(
-    fit, states: list[State], refused: list[tuple[State, State]]
+    fit, states: list[State], refused: list[tuple[State, State]], shown=frozenset()
 ) -> list[State]:
     """What the final model leaves of the held-out error above the measurement noise is, once
     selection has ended and the remainder has no effect of the library left in it, the named
@@ -875,14 +888,15 @@ def _refuse_within_heldout_mismatch(
     model leaves more. `_refuse_law_mismatch` judges the identification misfit, which an
     effect fitted to that very data's mismatch lowers well; held-out episodes tell whether
     the lowering carries over. The weakest is taken out, the rest refitted, until every
-    effect's share is above what the model leaves; each refused state (its effect last) is
-    appended to `refused` with the state without it. Returns the rebuilt chain."""
+    effect's share is above what the model leaves (or, in `shown`, was above it beside all the
+    others: `_refuse_law_mismatch`); each refused state (its effect last) is appended to
+    `refused` with the state without it. Returns the rebuilt chain."""
     while states[-1].selected:
         state = states[-1]
         sets = [[c for c in state.selected if c is not out] for out in state.selected]
         reduced = fit.sets(state, sets) if len(sets) > 1 else [states[0]]
         rises, left = _held_out_shares(fit, state, reduced)
-        weak = rises < left
+        weak = (rises < left) & np.array([c.key not in shown for c in state.selected])
         if not weak.any():
             break
         reasons = [_held_out_reason(r, left) for r in rises]
