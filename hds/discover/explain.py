@@ -876,7 +876,10 @@ def _refuse_weakest(fit, states, sets, reduced, rises, weak, refused, reasons) -
 
 
 def _refuse_within_heldout_mismatch(
-    fit, states: list[State], refused: list[tuple[State, State]], shown=frozenset()
+    fit,
+    states: list[State],
+    refused: list[tuple[State, State]],
+    shown: set[str] | frozenset[str] = frozenset(),
 ) -> list[State]:
     """What the final model leaves of the held-out error above the measurement noise is, once
     selection has ended and the remainder has no effect of the library left in it, the named
