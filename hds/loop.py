@@ -10,9 +10,10 @@ Each round reports the named effects with intervals, the real return (mean and 9
 the runs), the sim2real gap and the data used (episodes, and the plant time they cost: seconds
 of deployment and of excitation, hds.results.PlantTime), in <out>/rounds/<r>/round.json and a
 final table; the loop stops when the real return no longer rises beyond the rounds' intervals
-(`improved`), and leaves its last round's policies, or the round's before where the last made
-the real return worse beyond them (`result_round`). Every round is checkpointed: a killed loop
-started again on its directory resumes and ends with the numbers of an uninterrupted one.
+(`improved`) and no policy that solves its simulator fails on the plant (`plant_failures`),
+and leaves the policies of its latest round that no other round beats beyond the intervals
+(`result_round`). Every round is checkpointed: a killed loop started again on its directory
+resumes and ends with the numbers of an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -251,9 +252,16 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
         report["plant_time_so_far"] = spent.to_json()
         atomic_write_json(rdir / "round.json", report)  # the round's whole report, data used too
         rounds.append(report)
-        if r > 0 and not improved(rounds[-2], rounds[-1]):
+        if r > 0 and not goes_on(rounds[-2], rounds[-1]):
             log.info("round %d: the real return no longer improves; the loop stops", r)
             break
+        if r > 0 and not improved(rounds[-2], rounds[-1]):
+            log.info(
+                "round %d: the real return no longer improves, but seeds %s solve the corrected "
+                "simulator and fail on the plant; the loop goes on to record them",
+                r,
+                plant_failures(report),
+            )
     result = result_round(rounds)
     atomic_write_json(
         out_dir / "loop.json",
@@ -270,16 +278,36 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
     return rounds
 
 
+def goes_on(before: dict, after: dict) -> bool:
+    """Whether the loop records another round after `after` (the round reports of two
+    successive rounds): while the real return rises beyond the rounds' intervals (`improved`),
+    or while a policy that solves its simulator fails on the plant (`plant_failures`)."""
+    return improved(before, after) or bool(plant_failures(after))
+
+
 def result_round(rounds: list[dict]) -> int:
-    """The round whose policies the loop leaves: its last, unless that round made the real
-    return worse beyond the rounds' intervals (`improved`, read backwards), then the one
-    before it. Only the last can be worse (the loop stops at the first round that does not
-    improve), and a fall within the intervals keeps the last round: choosing the better of two
-    on the evaluation that measured them would favour noise."""
-    last = len(rounds) - 1
-    if last > 0 and improved(rounds[last], rounds[last - 1]):
-        return last - 1
-    return last
+    """The round whose policies the loop leaves: the latest that no other round beats beyond
+    the rounds' intervals (`improved`). A rise or a fall within the intervals keeps the later
+    round: choosing the better of two on the evaluation that measured them would favour noise.
+    The round with the best mean is never beaten, so there always is one."""
+    return max(
+        k
+        for k in range(len(rounds))
+        if not any(improved(rounds[k], other) for other in rounds if other is not rounds[k])
+    )
+
+
+def plant_failures(report: dict) -> list[int]:
+    """The seeds whose policy solves the task on its simulator and fails it on the plant (the
+    task's `solved_at`; none where the task has none): a gap in the model where it matters,
+    which the next round's deployments record, so the loop goes on while there is one, even
+    where the real return's mean did not rise beyond the intervals (with 3 seeds, one failing
+    seed hides any rise)."""
+    return [
+        row.get("seed", k)
+        for k, row in enumerate(report["rows"])
+        if row.get("solved_sim") is True and row.get("solved_real") is False
+    ]
 
 
 def plant_time(cfg: Config, data: Dataset) -> PlantTime:

@@ -207,6 +207,38 @@ def test_the_loop_goes_on_while_the_real_return_rises_beyond_the_intervals(befor
     assert loop.improved({"real_return": before}, {"real_return": after}) is rose
 
 
+def _round(real_return, solved=()):
+    """A round's report: its real return [mean, low, high] and, per seed, whether the policy
+    solves the task (on the simulator, on the plant)."""
+    rows = [
+        {"seed": k, "solved_sim": sim, "solved_real": real} for k, (sim, real) in enumerate(solved)
+    ]
+    return {"real_return": real_return, "rows": rows}
+
+
+@pytest.mark.parametrize(
+    "solved, going_on",
+    [
+        ([(True, True)] * 3, False),  # every seed works on the plant: the loop has settled
+        ([(True, False), (True, True), (True, True)], True),  # a gap the model still misses
+        ([(False, False), (True, True), (True, True)], False),  # a failed training, not a gap
+        ([], False),  # a task with no `solved_at`
+    ],
+)
+def test_the_loop_goes_on_while_a_policy_that_solves_its_simulator_fails_on_the_plant(
+    solved, going_on
+):
+    """With 3 seeds one failing seed hides any rise of the mean (cart-pole swing-up, lab draw
+    1: -2441 [-3912, -971] -> -1852 [-4722, 1018], two of round 1's seeds failing on the plant),
+    so a round whose real return did not rise beyond the intervals still records another where
+    a seed's policy solves the corrected simulator and fails on the plant."""
+    before = _round([-2441.4, -3912.0, -970.9])
+    after = _round([-1852.2, -4722.0, 1017.5], solved)
+    assert loop.goes_on(before, after) is going_on
+    assert loop.plant_failures(after) == ([0] if going_on else [])
+    assert loop.goes_on(before, _round([-410.0, -430.0, -390.0], solved))  # rose: goes on
+
+
 @pytest.mark.parametrize(
     "returns, kept",
     [
@@ -215,9 +247,13 @@ def test_the_loop_goes_on_while_the_real_return_rises_beyond_the_intervals(befor
         ([[-11.6, -12.8, -10.5], [-1.3, -1.5, -1.1], [-1.4, -1.9, -0.9]], 2),  # within both
         # a last round that fell beyond the intervals (a lost delay: -1.3 -> -51.6)
         ([[-11.6, -12.8, -10.5], [-1.3, -1.5, -1.1], [-51.6, -80.0, -23.2]], 1),
+        # a loop that went on past a fall (a seed failing on the plant): the later rise counts
+        ([[-11.6, -12.8, -10.5], [-51.6, -80.0, -23.2], [-1.3, -1.5, -1.1]], 2),
+        # ... and a round beaten by one two rounds before it is not left
+        ([[-1.3, -1.5, -1.1], [-3.0, -9.0, 3.0], [-6.2, -6.5, -5.9]], 0),
     ],
 )
-def test_the_loop_leaves_its_last_round_unless_that_round_made_it_worse(returns, kept):
+def test_the_loop_leaves_its_latest_round_that_no_other_round_beats(returns, kept):
     rounds = [{"real_return": r} for r in returns]
     assert loop.result_round(rounds) == kept
 
