@@ -252,15 +252,15 @@ def run_loop(cfg: Config, out_dir: Path, hooks: experiment.Hooks | None = None) 
         report["plant_time_so_far"] = spent.to_json()
         atomic_write_json(rdir / "round.json", report)  # the round's whole report, data used too
         rounds.append(report)
-        if r > 0 and not goes_on(rounds[-2], rounds[-1]):
+        if r > 0 and not goes_on(rounds[-2], report):
             log.info("round %d: the real return no longer improves; the loop stops", r)
             break
-        if r > 0 and not improved(rounds[-2], rounds[-1]):
+        if r > 0 and (failed := plant_failures(report)):
             log.info(
-                "round %d: the real return no longer improves, but seeds %s solve the corrected "
-                "simulator and fail on the plant; the loop goes on to record them",
+                "round %d: seeds %s solve the corrected simulator and fail on the plant; the "
+                "loop goes on to record them",
                 r,
-                plant_failures(report),
+                failed,
             )
     result = result_round(rounds)
     atomic_write_json(
@@ -289,11 +289,10 @@ def result_round(rounds: list[dict]) -> int:
     """The round whose policies the loop leaves: the latest that no other round beats beyond
     the rounds' intervals (`improved`). A rise or a fall within the intervals keeps the later
     round: choosing the better of two on the evaluation that measured them would favour noise.
-    The round with the best mean is never beaten, so there always is one."""
+    The round with the best mean is never beaten (nor is a round by itself), so there always
+    is one."""
     return max(
-        k
-        for k in range(len(rounds))
-        if not any(improved(rounds[k], other) for other in rounds if other is not rounds[k])
+        k for k, kept in enumerate(rounds) if not any(improved(kept, other) for other in rounds)
     )
 
 
