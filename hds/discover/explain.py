@@ -579,7 +579,6 @@ def _split_proxy(fit, states: list[State], banned) -> tuple[list[State], list[Ca
         # selected after the law, alone first in the chain, predicts worse than no effect)
         before, after = state.selected[:j], state.selected[j + 1 :]
         trials += [(j, before + [a, b] + after) for a, b in combinations(free, 2)]
-    trials = trials[: len(model.candidates)]  # one batched fit: as many rows as candidates
     if not trials:
         return states, []
     start = _from_library_start(model, state)  # the others from where they are
