@@ -396,3 +396,24 @@ def test_the_rigid_body_measure_counts_what_a_model_predicts_not_its_scales_one_
     arm, pendulum = (float(part.split()[1]) for part in line.split(", "))
     assert line.startswith("arm ") and ", pendulum " in line
     assert 0.0 < arm < 0.5 and 0.0 < pendulum < 1.0
+
+
+@pytest.mark.parametrize("task", ["cartpole_balance", "furuta_swingup"])
+def test_the_out_of_library_comparison_gives_the_plant_the_draw_less_what_it_removes(task):
+    """experiments/lab_study/out_of_library.py: its overrides compose into a plant with every
+    effect of the draw, each parameter's value as drawn, less the removed ones, and no
+    family (whose draw would put them back)."""
+    from hds.config import compose
+
+    module = _study_script("out_of_library")
+    family = "lab_furuta" if task.startswith("furuta") else "lab_cartpole"
+    removed = "cogging_torque" if family == "lab_furuta" else "backlash"
+    drawn = lab.effects(family, 7)
+    assert any(e["name"] == removed for e in drawn)
+    for without in ([], [removed]):
+        cfg = compose(module.overrides(task, 7, "prbs", without), config_dirs=[CONF.parent])
+        assert cfg.real.family == "" and cfg.dynamics.excitation == "prbs"
+        got = [
+            {"name": e.name, "target": e.target, "params": dict(e.params)} for e in cfg.real.effects
+        ]
+        assert got == [e for e in drawn if e["name"] not in without]
