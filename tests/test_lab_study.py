@@ -406,7 +406,7 @@ def test_the_out_of_library_comparison_gives_the_plant_the_draw_less_what_it_rem
     from hds.config import compose
 
     module = _study_script("out_of_library")
-    family = "lab_furuta" if task.startswith("furuta") else "lab_cartpole"
+    family = module.family_of(task)
     removed = "cogging_torque" if family == "lab_furuta" else "backlash"
     drawn = lab.effects(family, 7)
     assert any(e["name"] == removed for e in drawn)

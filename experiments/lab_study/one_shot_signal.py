@@ -22,7 +22,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from omegaconf import OmegaConf  # noqa: E402
-from report import family_of, named_vs_truth  # noqa: E402
+from report import family_of, named_vs_truth, study_experiment  # noqa: E402
 
 from hds.real import lab  # noqa: E402
 
@@ -31,10 +31,9 @@ def run(task: str, draw: int, signal: str, out: Path) -> Path:
     """The run's directory, running it first where it has no summary.json."""
     run_dir = out / f"{task}_{draw}_{signal}"
     if not (run_dir / "summary.json").exists():
-        family = "_furuta" if family_of(task) == "lab_furuta" else ""
         command = [
             sys.executable, "-m", "hds.run", "--config-dir", str(HERE / "conf"),
-            f"env={task}", f"+experiment=[lab_study{family},lab_task_{task}]",
+            f"env={task}", study_experiment(task),
             f"real.draw={draw}", "method=pods_corrected", "seeds=1",
             f"dynamics.excitation={signal}", "hydra.mode=RUN", f"hydra.run.dir={run_dir}",
         ]  # fmt: skip

@@ -23,7 +23,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from report import family_of, named_vs_truth, unexplained  # noqa: E402
+from report import family_of, named_vs_truth, study_experiment, unexplained  # noqa: E402
 
 from hds.real import lab  # noqa: E402
 
@@ -34,14 +34,18 @@ def effect_override(effect: dict) -> str:
     return f"{{name:{effect['name']},target:{effect['target']},params:{{{params}}}}}"
 
 
+def variant(without: list[str]) -> str:
+    """The removed effects' names as the table and the run directory show them."""
+    return "+".join(without) or "none"
+
+
 def overrides(task: str, draw: int, signal: str, without: list[str]) -> list[str]:
     """hds.run's overrides of one (draw, variant), less its run directory."""
-    family, variant = family_of(task), "_".join(without) or "none"
+    family = family_of(task)
     effects = [e for e in lab.effects(family, draw) if e["name"] not in without]
-    suffix = "_furuta" if family == "lab_furuta" else ""
+    name = f"{family}_{draw}_without_{variant(without).replace('+', '_')}"  # no '+' in a name
     return [
-        f"env={task}", f"+experiment=[lab_study{suffix},lab_task_{task}]",
-        "real.family=", f"real.name={family}_{draw}_without_{variant}",
+        f"env={task}", study_experiment(task), "real.family=", f"real.name={name}",
         "real.effects=[" + ",".join(effect_override(e) for e in effects) + "]",
         "method=pods_corrected", "seeds=1", "algo.epochs=2", f"dynamics.excitation={signal}",
     ]  # fmt: skip
@@ -49,14 +53,13 @@ def overrides(task: str, draw: int, signal: str, without: list[str]) -> list[str
 
 def run(task: str, draw: int, signal: str, without: list[str], out: Path) -> Path:
     """The run's directory, running it first where it has no summary.json."""
-    variant = "+".join(without) or "none"
-    run_dir = out / f"{task}_{draw}_{signal}_without_{variant}"
+    run_dir = out / f"{task}_{draw}_{signal}_without_{variant(without)}"
     if not (run_dir / "summary.json").exists():
         command = [
             sys.executable, "-m", "hds.run", "--config-dir", str(HERE / "conf"),
             *overrides(task, draw, signal, without), "hydra.mode=RUN", f"hydra.run.dir={run_dir}",
         ]  # fmt: skip
-        print(f"{task} draw {draw}, {signal}, without {variant}: running", flush=True)
+        print(f"{task} draw {draw}, {signal}, without {variant(without)}: running", flush=True)
         subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
     return run_dir
 
@@ -68,7 +71,7 @@ def row(task: str, draw: int, without: list[str], run_dir: Path) -> str:
     named = named_vs_truth(found["effects"], truth) or "nothing"
     left = unexplained(run_dir / "discovery")
     share = "-" if left is None else f"{100 * left:.1f}%"
-    return f"| {draw} | {'+'.join(without) or 'none'} | {named} | {share} |"
+    return f"| {draw} | {variant(without)} | {named} | {share} |"
 
 
 def main() -> None:

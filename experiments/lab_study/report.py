@@ -68,6 +68,12 @@ def family_of(task: str) -> str:
     return "lab_furuta" if task.startswith("furuta") else "lab_cartpole"
 
 
+def study_experiment(task: str) -> str:
+    """The override that composes a task's per-draw study configs, as `make study-lab` does."""
+    suffix = "_furuta" if family_of(task) == "lab_furuta" else ""
+    return f"+experiment=[lab_study{suffix},lab_task_{task}]"
+
+
 def draw_of(plant: str) -> int | None:
     match = re.search(r"#(\d+)$", plant or "")
     return int(match.group(1)) if match else None
